@@ -1,0 +1,248 @@
+"""From a validated problem spec to a calibrated outcome: read, detect, average, compose, solve.
+
+This module orchestrates; the physics is in :mod:`castimate.models` and
+:mod:`castimate.problem`, the numerical solve in :mod:`castimate.solve`. It does not write
+files or plot.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Callable
+
+import numpy as np
+
+from .errors import InputError, NotConvergedError
+from .io.readers import read_recording
+from .io.recording import Recording
+from .problem.spec import ProblemSpec
+from .problem.static import (StaticConfig, StaticProblem, TriadConfig, build_static, evaluate_Tb,
+                             initial_directions, recover_nominal_rotation, single_triad_config)
+from .segments import (Detection, PoseAverages, average_poses, detect_static, explicit_segments,
+                       pose_averages_from_means)
+from .solve import Solution, Solver
+
+Log = Callable[[str], None]
+
+
+def _quiet(msg: str) -> None:
+    pass
+
+
+# ---------------------------------------------------------------------------------------------
+# Data
+# ---------------------------------------------------------------------------------------------
+
+def load_recording(spec: ProblemSpec) -> Recording:
+    """Read the problem's data file in SI units and keep the declared time range."""
+    d = spec.data
+    rec = read_recording(d.format, d.path, acc_units=d.acc_units, gyro_units=d.gyro_units, gyro_path=d.gyro_path)
+    if d.time_range is not None:
+        keep = (rec.t >= d.time_range[0]) & (rec.t <= d.time_range[1])
+        if keep.sum() < 2:
+            raise InputError(spec.path, "data.time_range",
+                             f"keeps {int(keep.sum())} samples; the recording spans "
+                             f"{rec.t[0]:.3f}-{rec.t[-1]:.3f} s")
+        rec = rec.select(keep)
+    for i, t in enumerate(spec.array.triads):
+        if t.name not in rec.acc:
+            raise InputError(spec.path, f"array.triads[{i}].name",
+                             f"triad {t.name!r} is not in {d.path.name}, which has {', '.join(rec.acc)}")
+        if t.gyroscope and t.name not in rec.gyro:
+            raise InputError(spec.path, f"array.triads[{i}].gyroscope",
+                             f"is true but {d.path.name} has no gyroscope columns for {t.name!r}")
+    return rec
+
+
+def pose_averages(spec: ProblemSpec, rec: Recording) -> tuple[PoseAverages, Detection | None]:
+    """Static poses (detected, explicit or one per row) averaged per triad, with the σ of each mean.
+
+    A σ given in the problem file's ``noise`` section overrides the one estimated from the data.
+    """
+    names = spec.array.names
+    seg = spec.data.segments
+    if seg == "rows":
+        gyro = {n: rec.gyro[n] for n in names if n in rec.gyro and spec.noise.gyroscope}
+        avg = pose_averages_from_means({n: rec.acc[n] for n in names}, 1, spec.noise.accelerometer,
+                                       gyro or None, spec.noise.gyroscope if gyro else None,
+                                       source=spec.path, where="data")
+        return avg, None
+    det = explicit_segments(rec, seg, spec.path, "data.segments") if isinstance(seg, tuple) \
+        else detect_static(rec, spec.data.detection, triads=names)
+    avg = average_poses(rec, det, triads=names)
+    sqn = np.sqrt(avg.n)[:, None]
+    if spec.noise.accelerometer:
+        avg = replace(avg, acc_sigma={n: np.full((avg.n_poses, 3), spec.noise.accelerometer[n]) / sqn
+                                      for n in names})
+    if spec.noise.gyroscope:
+        avg = replace(avg, gyro_sigma={n: np.full((avg.n_poses, 3), spec.noise.gyroscope[n]) / sqn
+                                       for n in avg.gyro_mean})
+    return avg, det
+
+
+def static_config(spec: ProblemSpec, avg: PoseAverages) -> tuple[StaticConfig, dict[str, str]]:
+    """The static problem structure; ``rotation: auto`` is recovered from the pose means.
+
+    Returns the config and a note per triad whose rotation was recovered.
+    """
+    ref = next(t for t in spec.array.triads if t.name == spec.array.reference)
+    R_ref = np.eye(3) if isinstance(ref.rotation, str) else ref.rotation
+    notes, triads = {}, []
+    for t in spec.array.triads:
+        if isinstance(t.rotation, np.ndarray):
+            R = t.rotation
+        elif t.rotation == "identity":
+            R = np.eye(3)
+        else:
+            W, resid = recover_nominal_rotation(avg.acc_mean[ref.name], avg.acc_mean[t.name])
+            R = W @ R_ref
+            notes[t.name] = (f"nominal rotation recovered from the static poses: {np.round(R).astype(int).tolist()} "
+                             f"(exact fit {resid:.1f} deg from it)")
+        has_gyro = t.name in avg.gyro_mean if t.gyroscope is None else t.gyroscope
+        s = spec.model.settings
+        triads.append(TriadConfig(
+            t.name, R,
+            {g: s[t.name, "accelerometer", g] for g in ("gain", "bias", "nonorthogonality", "misalignment")},
+            {g: s[t.name, "gyroscope", g] for g in ("gain", "bias", "misalignment")} if has_gyro else None,
+            t.position))
+    m = spec.model
+    return StaticConfig(tuple(triads), spec.array.reference, m.gravity, m.gravity_direction, m.misalignment), notes
+
+
+# ---------------------------------------------------------------------------------------------
+# Identifiability
+# ---------------------------------------------------------------------------------------------
+
+def check_identifiable(spec_path, problem: StaticProblem, solver: Solver, avg: PoseAverages) -> None:
+    """Refuse problems the data cannot determine, naming the undetermined directions."""
+    lay = problem.lsq.layout
+    n_free = lay.x.shape[0] - solver.n_constraints
+    if solver.n_residuals < n_free:
+        raise InputError(spec_path, "model",
+                         f"{avg.n_poses} poses give {solver.n_residuals} measurements for {n_free} free "
+                         f"parameters and pose directions; add poses or fix parameters")
+    u = initial_directions(problem.config, avg)
+    s = np.linalg.svd(u, compute_uv=False)
+    if s[-1] / s[0] < 0.05:
+        normal = np.linalg.svd(u)[2][-1]
+        raise InputError(spec_path, "data.segments",
+                         f"the {avg.n_poses} pose directions all lie in one plane (normal "
+                         f"{np.round(normal, 2).tolist()}, out-of-plane spread {np.degrees(np.arcsin(s[-1] / np.sqrt(len(u)))):.1f} deg); "
+                         "the gains along its normal cannot be determined: add tilted poses")
+    bad = solver.undetermined(lay.x0())
+    if bad:
+        raise InputError(spec_path, "model",
+                         f"the data cannot determine {len(bad)} direction(s): {'; '.join(bad)}; "
+                         "fix these parameters, give them priors, or add poses")
+
+
+# ---------------------------------------------------------------------------------------------
+# Consistency (Nilsson 2014, sec. IV)
+# ---------------------------------------------------------------------------------------------
+
+def compensate(T: np.ndarray, b: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Body-frame input from raw readings: f = T^-1 (y - b), rows are samples."""
+    return np.linalg.solve(T, (y - b).T).T
+
+
+def array_spread(calibration: dict[str, tuple[np.ndarray, np.ndarray]], acc_mean: dict[str, np.ndarray]) -> np.ndarray:
+    """Per pose, the trace of the across-triad sample covariance of the compensated forces, (m/s^2)^2."""
+    u = np.stack([compensate(*calibration[n], acc_mean[n]) for n in calibration])  # (M, P, 3)
+    d = u - u.mean(axis=0)
+    return (d ** 2).sum(axis=(0, 2)) / (u.shape[0] - 1)
+
+
+@dataclass(frozen=True)
+class Consistency:
+    """Nilsson's figure of merit before (each triad alone, no misalignment) and after (array model)."""
+
+    before: np.ndarray  # (P,) (m/s^2)^2
+    after: np.ndarray
+
+    @property
+    def ratio_db(self) -> float:
+        return float(10 * np.log10(self.after.mean() / self.before.mean()))
+
+
+def individual_calibrations(config: StaticConfig, avg: PoseAverages) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """(T, b) of every triad calibrated alone: gain, bias and non-orthogonality, nominal mounting."""
+    out = {}
+    for name in config.names:
+        prob = build_static(single_triad_config(config, name), avg)
+        sol = Solver(prob.lsq).solve()
+        if not sol.success:
+            raise NotConvergedError(f"single-triad calibration of {name} did not converge: {sol.message}")
+        out[name] = evaluate_Tb(prob.T_b, [name], sol.x, prob.lsq.layout.p0())[name]
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# The whole job
+# ---------------------------------------------------------------------------------------------
+
+@dataclass
+class StaticOutcome:
+    spec: ProblemSpec
+    recording: Recording
+    detection: Detection | None
+    averages: PoseAverages
+    config: StaticConfig
+    rotation_notes: dict[str, str]
+    problem: StaticProblem
+    solver: Solver
+    solution: Solution
+    calibration: dict[str, tuple[np.ndarray, np.ndarray]]  # accelerometer (T, b)
+    gyro_calibration: dict[str, tuple[np.ndarray, np.ndarray]]
+    residual_acc: dict[str, np.ndarray]  # (P, 3) m/s^2, y - (T f + b)
+    residual_gyro: dict[str, np.ndarray]  # (P, 3) rad/s
+    consistency: Consistency | None
+
+    @property
+    def gravity_norm_error(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """Per triad, | |f| - g | per pose before (raw readings) and after calibration, m/s^2."""
+        g = self.config.gravity
+        out = {}
+        for n, (T, b) in self.calibration.items():
+            y = self.averages.acc_mean[n]
+            out[n] = (np.abs(np.linalg.norm(y, axis=1) - g), np.abs(np.linalg.norm(compensate(T, b, y), axis=1) - g))
+        return out
+
+
+def calibrate_static(spec: ProblemSpec, log: Log = _quiet) -> StaticOutcome:
+    """Run a static array calibration end to end. Raises InputError or NotConvergedError."""
+    log(f"reading {spec.data.path.name} ({spec.data.format})")
+    rec = load_recording(spec)
+    for note in rec.notes:
+        log(f"  {note}")
+    avg, det = pose_averages(spec, rec)
+    if det is not None:
+        log(det.summary())
+    config, notes = static_config(spec, avg)
+    for n, note in notes.items():
+        log(f"  {n}: {note}")
+    log(f"building the NLP: {len(config.triads)} triads, {avg.n_poses} poses")
+    problem = build_static(config, avg)
+    solver = Solver(problem.lsq, spec.solver)
+    check_identifiable(spec.path, problem, solver, avg)
+    log(f"solving with IPOPT ({problem.lsq.layout.x.shape[0]} variables, {solver.n_residuals} residuals)")
+    sol = solver.solve()
+    if not sol.success:
+        raise NotConvergedError(f"{spec.path}: IPOPT did not converge: {sol.message} after {sol.iterations} iterations")
+    p0 = problem.lsq.layout.p0()
+    cal = evaluate_Tb(problem.T_b, config.names, sol.x, p0)
+    gcal = evaluate_Tb(problem.T_b_gyro, problem.gyro_triads, sol.x, p0)
+    P = avg.n_poses
+    names = config.names + problem.gyro_triads
+    sig = problem.lsq.data.reshape(len(names), 2, P, 3)[:, 1]
+    res = sol.residual.reshape(len(names), P, 3) * sig
+    consistency = None
+    if len(config.names) > 1:
+        log("calibrating each triad alone for the before/after consistency")
+        consistency = Consistency(array_spread(individual_calibrations(config, avg), avg.acc_mean),
+                                  array_spread(cal, avg.acc_mean))
+    M = len(config.names)
+    return StaticOutcome(
+        spec, rec, det, avg, config, notes, problem, solver, sol, cal, gcal,
+        {n: res[i] for i, n in enumerate(config.names)},
+        {n: res[M + i] for i, n in enumerate(problem.gyro_triads)},
+        consistency)

@@ -1,0 +1,96 @@
+"""The ``castimate`` command: one verb per job. Thin: parse, call the library, map errors to exit codes."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from .errors import EXIT_INVALID_INPUT, CastimateError, InputError
+
+
+def _log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def cmd_solve(args) -> int:
+    from .calibrate import calibrate_static
+    from .io.results import static_results, write_json
+    from .problem.spec import load_problem
+    from .report.data import write_details
+    from .summary import static_summary
+
+    spec = load_problem(args.problem)
+    outcome = calibrate_static(spec, log=_log if not args.quiet else (lambda m: None))
+    out = Path(args.output)
+    write_details(out / "details.npz", outcome)
+    write_json(out / "results.json", static_results(outcome))
+    print(static_summary(outcome))
+    print(f"wrote {out / 'results.json'}")
+    return 0
+
+
+def cmd_simulate(args) -> int:
+    from .scenario import simulate_scenario
+
+    files = simulate_scenario(args.scenario, args.output)
+    for k, v in files.items():
+        print(f"wrote {k}: {v}")
+    return 0
+
+
+def cmd_apply(args) -> int:
+    from .apply import apply_calibration
+
+    n = apply_calibration(args.results, args.data, args.output, fmt=args.format)
+    print(f"wrote {args.output}: {n} samples calibrated")
+    return 0
+
+
+def cmd_report(args) -> int:
+    from .report.html import write_report
+
+    path = write_report(Path(args.directory))
+    print(f"wrote {path}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="castimate", description="Calibrate inertial sensor arrays.")
+    sub = p.add_subparsers(dest="verb", required=True)
+    s = sub.add_parser("solve", help="solve a YAML problem, write DIR/results.json and print a summary")
+    s.add_argument("problem")
+    s.add_argument("-o", "--output", required=True, help="output directory")
+    s.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
+    s.set_defaults(func=cmd_solve)
+    s = sub.add_parser("simulate", help="simulate a session with known truth and write a ready problem")
+    s.add_argument("scenario")
+    s.add_argument("-o", "--output", required=True)
+    s.set_defaults(func=cmd_simulate)
+    s = sub.add_parser("apply", help="write calibrated data from a results.json")
+    s.add_argument("results")
+    s.add_argument("data")
+    s.add_argument("-o", "--output", required=True, help="output file (.csv or .npz)")
+    s.add_argument("--format", choices=("csv", "npz", "mimu", "imutk"), help="data format (default: from the extension)")
+    s.set_defaults(func=cmd_apply)
+    s = sub.add_parser("report", help="write DIR/report.html from a solved DIR")
+    s.add_argument("directory")
+    s.set_defaults(func=cmd_report)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except CastimateError as e:
+        print(f"castimate {args.verb}: error: {e}", file=sys.stderr)
+        return e.exit_code
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,55 @@
+"""The in-memory form of a recording, shared by every reader."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Recording:
+    """A time series of an inertial sensor array in SI units.
+
+    Attributes
+    ----------
+    t
+        Sample times, shape (N,), seconds, strictly increasing.
+    acc
+        Triad name -> specific force readings, shape (N, 3), m/s^2 (after the declared
+        unit conversion; still *uncalibrated*).
+    gyro
+        Triad name -> angular rate readings, shape (N, 3), rad/s (uncalibrated). Triads
+        without a gyroscope are absent.
+    temp
+        Triad name -> temperature, shape (N,), K, where logged.
+    source
+        The file(s) it was read from, for error messages.
+    notes
+        Human-readable remarks from the reader (dropped packets, resynchronisations).
+    """
+
+    t: np.ndarray
+    acc: dict[str, np.ndarray]
+    gyro: dict[str, np.ndarray] = field(default_factory=dict)
+    temp: dict[str, np.ndarray] = field(default_factory=dict)
+    source: str = ""
+    notes: tuple[str, ...] = ()
+
+    @property
+    def triads(self) -> list[str]:
+        return list(self.acc)
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def select(self, mask: np.ndarray) -> "Recording":
+        """The samples where ``mask`` is true."""
+        return Recording(
+            t=self.t[mask],
+            acc={k: v[mask] for k, v in self.acc.items()},
+            gyro={k: v[mask] for k, v in self.gyro.items()},
+            temp={k: v[mask] for k, v in self.temp.items()},
+            source=self.source,
+            notes=self.notes,
+        )

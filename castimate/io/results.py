@@ -1,0 +1,132 @@
+"""The results file (``results.json``, DESIGN.md contract) and atomic output.
+
+``T`` and ``b`` are such that raw ≈ T f + b in SI units with f in the body frame, so any tool can
+apply the calibration from this file alone: f = T^-1 (raw - b).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+
+FORMAT = "castimate.results/1"
+
+
+def write_atomic(path: str | Path, data: bytes | str) -> None:
+    """Write a file so that readers never see a partial one: temp file, then rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    mode = "wb" if isinstance(data, bytes) else "w"
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+    try:
+        with os.fdopen(fd, mode) as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, (np.floating, float)):
+        return float(x) if np.isfinite(x) else None
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, (np.bool_,)):
+        return bool(x)
+    return x
+
+
+def write_json(path: str | Path, obj: dict) -> None:
+    write_atomic(path, json.dumps(_jsonable(obj), indent=1) + "\n")
+
+
+def static_results(outcome) -> dict:
+    """The results.json document of a static calibration outcome."""
+    sol, cfg, spec = outcome.solution, outcome.config, outcome.spec
+    lay = outcome.problem.lsq.layout
+    triads = {}
+    for t in cfg.triads:
+        T, b = outcome.calibration[t.name]
+        entry: dict[str, Any] = {"accelerometer": {"T": T, "b": b}, "R_nominal": t.R_nominal}
+        if t.name in outcome.gyro_calibration:
+            Tg, bg = outcome.gyro_calibration[t.name]
+            entry["gyroscope"] = {"T": Tg, "b": bg}
+        if t.position is not None:
+            entry["position"] = t.position
+        params = {}
+        for g in lay.groups:
+            if not g.name.startswith(t.name + "."):
+                continue
+            sensor, group = g.name.split(".")[1:]
+            key = group if sensor == "accelerometer" else f"{sensor}.{group}"
+            params[key] = {"value": sol.values[g.name], "std": sol.std[g.name], "free": g.free,
+                           "unit": g.unit, "components": list(g.components)}
+        entry["parameters"] = params
+        triads[t.name] = entry
+    rms = {n: np.sqrt((r ** 2).mean(axis=0)) for n, r in outcome.residual_acc.items()}
+    doc = {
+        "format": FORMAT,
+        "kind": spec.kind,
+        "problem": str(spec.path),
+        "problem_sha256": spec.sha256,
+        "status": {"success": sol.success, "message": sol.message, "iterations": sol.iterations,
+                   "wall_s": sol.wall_s, "build_s": outcome.solver.build_s},
+        "gravity": cfg.gravity,
+        "reference": cfg.reference,
+        "units": {"accelerometer": "m/s^2", "gyroscope": "rad/s", "angles": "rad",
+                  "data_accelerometer": spec.data.acc_units.to_dict() if spec.data.acc_units else None,
+                  "data_gyroscope": spec.data.gyro_units.to_dict() if spec.data.gyro_units else None,
+                  "data_format": spec.data.format},
+        "triads": triads,
+        "residuals": {"chi2": sol.chi2, "dof": sol.dof, "chi2_per_dof": sol.chi2_per_dof,
+                      "rms": rms, "rms_unit": "m/s^2",
+                      "gyro_rms": {n: np.sqrt((r ** 2).mean(axis=0)) for n, r in outcome.residual_gyro.items()}},
+        "poses": {"count": outcome.averages.n_poses, "samples": outcome.averages.n,
+                  "t_start": outcome.averages.t_start, "t_end": outcome.averages.t_end},
+    }
+    if outcome.consistency is not None:
+        c = outcome.consistency
+        doc["consistency"] = {"before": float(c.before.mean()), "after": float(c.after.mean()),
+                              "ratio_db": c.ratio_db, "unit": "(m/s^2)^2",
+                              "definition": "mean over poses of the trace of the across-triad covariance "
+                                            "of the compensated specific force (Nilsson 2014, sec. IV)"}
+    return doc
+
+
+def read_results(path: str | Path) -> dict:
+    """Read and check a results.json (format, successful status, T and b of every triad)."""
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text())
+    except OSError as e:
+        raise InputError(path, "", f"cannot read ({e.strerror})") from None
+    except json.JSONDecodeError as e:
+        raise InputError(path, f"line {e.lineno}", f"not valid JSON ({e.msg})") from None
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+        raise InputError(path, "format", f"expected {FORMAT!r}, found {doc.get('format') if isinstance(doc, dict) else doc!r}")
+    if not doc.get("status", {}).get("success"):
+        raise InputError(path, "status.success", "the calibration did not converge; refusing to use it")
+    for name, t in doc.get("triads", {}).items():
+        for sensor in ("accelerometer", "gyroscope"):
+            if sensor not in t:
+                continue
+            T, b = np.asarray(t[sensor].get("T")), np.asarray(t[sensor].get("b"))
+            if T.shape != (3, 3) or b.shape != (3,):
+                raise InputError(path, f"triads.{name}.{sensor}",
+                                 f"expected T 3x3 and b of 3, found {T.shape} and {b.shape}")
+    return doc

@@ -1,0 +1,1 @@
+"""Problem assembly: the YAML spec, parameter selection and the kinds as compositions of models."""

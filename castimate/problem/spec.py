@@ -1,0 +1,379 @@
+"""Problem files: YAML -> validated, frozen dataclasses.
+
+Everything is checked at load time. Each error is one line naming the file, the key path, what
+was expected and what was found (an :class:`~castimate.errors.InputError`).
+
+Layout of a problem file (DESIGN.md)::
+
+    kind: static_array
+    data:   {path, format, units, time_range, segments, detection, gyro_path}
+    array:  {reference, triads: [{name, rotation, position, gyroscope}, ...]}
+    model:  {gravity, gravity_direction, misalignment,
+             accelerometer: {gain, bias, nonorthogonality, misalignment},
+             gyroscope: {gain, bias, misalignment},
+             triads: {<name>: {accelerometer: {...}, gyroscope: {...}}}}
+    noise:  {accelerometer: auto | sigma | {<triad>: sigma}, gyroscope: ...}
+    solver: {max_iter, tol, linear_solver, print_level}
+
+A parameter group is ``free``, ``fixed``, or a mapping with ``free`` (bool or one bool per
+component), ``initial``, ``bounds: [lower, upper]`` and ``prior: {mean, std}``, each a scalar or
+one value per component, in the group's physical unit.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from ..errors import InputError
+from ..io.units import UnitConversion, parse_units
+from ..segments import DetectionOptions
+from ..solve import SolverOptions
+from .static import QUATERNION_MISALIGNMENT, SENSOR_GROUPS, GroupSetting
+
+KINDS = ("static_array",)
+FORMATS = ("csv", "npz", "mimu", "imutk")
+DIRECTIONS = ("unit_vector", "quaternion", "pitch_roll")
+MISALIGNMENTS = ("small_angle", "rotation")
+
+#: Defaults of the static kind: all accelerometer groups free; the gyroscope bias free and its
+#: gain and misalignment fixed, because a static pose does not excite them.
+DEFAULT_FREE = {
+    "accelerometer": {"gain": True, "bias": True, "nonorthogonality": True, "misalignment": True},
+    "gyroscope": {"gain": False, "bias": True, "misalignment": False},
+}
+
+
+@dataclass(frozen=True)
+class DataSpec:
+    path: Path
+    format: str
+    acc_units: UnitConversion | None
+    gyro_units: UnitConversion | None
+    gyro_path: Path | None = None
+    time_range: tuple[float, float] | None = None
+    segments: Any = "auto"  # "auto" | "rows" | tuple of (t0, t1) in seconds
+    detection: DetectionOptions = DetectionOptions()
+
+
+@dataclass(frozen=True)
+class TriadSpec:
+    name: str
+    rotation: Any = "identity"  # "identity" | "auto" | 3x3 ndarray (body -> triad)
+    position: np.ndarray | None = None
+    gyroscope: bool | None = None  # None: use it if the data has it
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    reference: str
+    triads: tuple[TriadSpec, ...]
+
+    @property
+    def names(self) -> list[str]:
+        return [t.name for t in self.triads]
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    gravity: float
+    gravity_direction: str
+    misalignment: str
+    settings: dict  # (triad, sensor, group) -> GroupSetting
+
+
+@dataclass(frozen=True)
+class NoiseSpec:
+    """Per-sample white-noise σ per triad (m/s^2, rad/s); None means estimate it from the data."""
+
+    accelerometer: dict[str, float] | None = None
+    gyroscope: dict[str, float] | None = None
+
+
+@dataclass(frozen=True)
+class ProblemSpec:
+    path: Path
+    sha256: str
+    kind: str
+    data: DataSpec
+    array: ArraySpec
+    model: ModelSpec
+    noise: NoiseSpec
+    solver: SolverOptions
+
+
+class _Check:
+    """Small validators that raise one-line InputErrors naming the file and key path."""
+
+    def __init__(self, source: Path):
+        self.source = source
+
+    def fail(self, where: str, msg: str):
+        raise InputError(self.source, where, msg)
+
+    def mapping(self, v, where, allowed, required=()):
+        if v is None:
+            v = {}
+        if not isinstance(v, dict):
+            self.fail(where, f"expected a mapping, found {type(v).__name__} {v!r}")
+        for k in v:
+            if k not in allowed:
+                self.fail(f"{where}.{k}" if where else str(k),
+                          f"unknown key; expected one of {', '.join(sorted(map(str, allowed)))}")
+        for k in required:
+            if k not in v:
+                self.fail(where or "(top level)", f"missing required key {k!r}")
+        return v
+
+    def number(self, v, where, positive=False, integer=False):
+        ok = isinstance(v, (int, float)) and not isinstance(v, bool)
+        if not ok or not np.isfinite(v) or (positive and v <= 0) or (integer and int(v) != v):
+            kind = ("a positive " if positive else "a ") + ("integer" if integer else "finite number")
+            self.fail(where, f"expected {kind}, found {v!r}")
+        return int(v) if integer else float(v)
+
+    def choice(self, v, where, options):
+        if v not in options:
+            self.fail(where, f"expected one of {', '.join(options)}, found {v!r}")
+        return v
+
+    def vector(self, v, where, n, kind=float):
+        """A scalar (broadcast) or a list of exactly n values."""
+        items = v if isinstance(v, list) else [v] * n
+        if len(items) != n:
+            self.fail(where, f"expected a scalar or a list of {n} values, found a list of {len(items)}")
+        out = []
+        for i, x in enumerate(items):
+            w = f"{where}[{i}]" if isinstance(v, list) else where
+            if kind is bool:
+                if not isinstance(x, bool):
+                    self.fail(w, f"expected true or false, found {x!r}")
+                out.append(x)
+            else:
+                out.append(self.number(x, w))
+        return tuple(out)
+
+    def matrix3(self, v, where):
+        a = np.asarray(v, dtype=object)
+        if a.shape != (3, 3):
+            self.fail(where, f"expected a 3x3 matrix (list of 3 rows), found shape {a.shape}")
+        m = np.array([[self.number(a[i, j], f"{where}[{i}][{j}]") for j in range(3)] for i in range(3)])
+        if not np.allclose(m @ m.T, np.eye(3), atol=1e-6) or np.linalg.det(m) < 0:
+            self.fail(where, "expected a proper rotation matrix (orthonormal, det +1)")
+        return m
+
+
+def load_problem(path: str | Path) -> ProblemSpec:
+    """Read and validate a problem file."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as e:
+        raise InputError(path, "", f"cannot read the problem file ({e.strerror})") from None
+    try:
+        raw = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f"line {mark.line + 1}" if mark else ""
+        raise InputError(path, where, f"not valid YAML ({getattr(e, 'problem', e)})") from None
+    return parse_problem(raw, path, hashlib.sha256(text.encode()).hexdigest())
+
+
+def parse_problem(raw: Any, path: Path, sha256: str = "") -> ProblemSpec:
+    c = _Check(path)
+    top = c.mapping(raw, "", ("kind", "data", "array", "model", "noise", "motion", "solver"),
+                    required=("kind", "data", "array"))
+    kind = c.choice(top["kind"], "kind", KINDS)
+    if "motion" in top:
+        c.fail("motion", f"process-model settings are not used by kind {kind}")
+    data = _data(c, top["data"], path.parent)
+    array = _array(c, top["array"])
+    model = _model(c, top.get("model"), array)
+    noise = _noise(c, top.get("noise"), array)
+    solver = _solver(c, top.get("solver"))
+    if data.segments == "rows" and noise.accelerometer is None:
+        c.fail("noise.accelerometer", "data with one row per pose (segments: rows) needs the σ of each row; found auto")
+    return ProblemSpec(path, sha256, kind, data, array, model, noise, solver)
+
+
+def _data(c: _Check, d, base: Path) -> DataSpec:
+    d = c.mapping(d, "data", ("path", "format", "units", "gyro_path", "time_range", "segments", "detection"),
+                  required=("path", "format"))
+    fmt = c.choice(d["format"], "data.format", FORMATS)
+    if not isinstance(d["path"], str):
+        c.fail("data.path", f"expected a file path, found {d['path']!r}")
+    p = (base / d["path"]).resolve()
+    if not p.is_file():
+        c.fail("data.path", f"data file {p} does not exist")
+    gp = None
+    if "gyro_path" in d:
+        if fmt != "imutk":
+            c.fail("data.gyro_path", f"only the imutk format has a separate gyroscope file, format is {fmt}")
+        gp = (base / str(d["gyro_path"])).resolve()
+        if not gp.is_file():
+            c.fail("data.gyro_path", f"data file {gp} does not exist")
+    units = c.mapping(d.get("units"), "data.units", ("accelerometer", "gyroscope"))
+    acc_u = parse_units(units["accelerometer"], c.source, "data.units.accelerometer", "accelerometer") \
+        if "accelerometer" in units else None
+    gyro_u = parse_units(units["gyroscope"], c.source, "data.units.gyroscope", "gyroscope") \
+        if "gyroscope" in units else None
+    if fmt == "imutk" and acc_u is None:
+        c.fail("data.units.accelerometer", "imu_tk tables hold raw counts; declare {unit: counts, scale, offset}")
+    tr = None
+    if "time_range" in d:
+        v = d["time_range"]
+        if not (isinstance(v, list) and len(v) == 2):
+            c.fail("data.time_range", f"expected [start, end] in seconds, found {v!r}")
+        tr = (c.number(v[0], "data.time_range[0]"), c.number(v[1], "data.time_range[1]"))
+        if tr[1] <= tr[0]:
+            c.fail("data.time_range", f"end must be after start, found {list(tr)}")
+    seg = d.get("segments", "auto")
+    if isinstance(seg, list):
+        out = []
+        for i, s in enumerate(seg):
+            if not (isinstance(s, list) and len(s) == 2):
+                c.fail(f"data.segments[{i}]", f"expected [t_start, t_end] in seconds, found {s!r}")
+            out.append((c.number(s[0], f"data.segments[{i}][0]"), c.number(s[1], f"data.segments[{i}][1]")))
+        seg = tuple(out)
+    elif seg not in ("auto", "rows"):
+        c.fail("data.segments", f"expected auto, rows or a list of [t_start, t_end], found {seg!r}")
+    det = DetectionOptions.from_mapping(d.get("detection") or {}, c.source, "data.detection")
+    return DataSpec(p, fmt, acc_u, gyro_u, gp, tr, seg, det)
+
+
+def _array(c: _Check, a) -> ArraySpec:
+    a = c.mapping(a, "array", ("reference", "triads"), required=("reference", "triads"))
+    if not isinstance(a["triads"], list) or not a["triads"]:
+        c.fail("array.triads", f"expected a non-empty list of triads, found {a['triads']!r}")
+    triads, seen = [], set()
+    for i, t in enumerate(a["triads"]):
+        w = f"array.triads[{i}]"
+        t = c.mapping(t, w, ("name", "rotation", "position", "gyroscope"), required=("name",))
+        name = t["name"]
+        if not isinstance(name, str) or not name.replace("_", "").isalnum():
+            c.fail(f"{w}.name", f"expected a name of letters, digits and underscores, found {name!r}")
+        if name in seen:
+            c.fail(f"{w}.name", f"duplicate triad name {name!r}")
+        seen.add(name)
+        r = t.get("rotation", "identity")
+        if not isinstance(r, str):
+            r = c.matrix3(r, f"{w}.rotation")
+        elif r not in ("identity", "auto"):
+            c.fail(f"{w}.rotation", f"expected identity, auto or a 3x3 rotation matrix, found {r!r}")
+        pos = np.array(c.vector(t["position"], f"{w}.position", 3)) if "position" in t else None
+        gy = t.get("gyroscope")
+        if gy is not None and not isinstance(gy, bool):
+            c.fail(f"{w}.gyroscope", f"expected true or false, found {gy!r}")
+        triads.append(TriadSpec(name, r, pos, gy))
+    ref = a["reference"]
+    if ref not in seen:
+        c.fail("array.reference", f"unknown triad {ref!r}; triads are {', '.join(seen)}")
+    if next(t for t in triads if t.name == ref).rotation == "auto":
+        c.fail("array.reference", "the reference triad defines the body frame; its rotation cannot be auto")
+    return ArraySpec(ref, tuple(triads))
+
+
+def _group_setting(c: _Check, v, where, size, base: dict) -> dict:
+    """Merge a group's YAML value into ``base`` (a dict of GroupSetting fields)."""
+    out = dict(base)
+    if v in ("free", "fixed"):
+        out["free"] = (v == "free",) * size
+        return out
+    v = c.mapping(v, where, ("free", "initial", "bounds", "prior"))
+    if "free" in v:
+        out["free"] = c.vector(v["free"], f"{where}.free", size, bool)
+    if "initial" in v:
+        out["initial"] = c.vector(v["initial"], f"{where}.initial", size)
+    if "bounds" in v:
+        b = v["bounds"]
+        if not (isinstance(b, list) and len(b) == 2):
+            c.fail(f"{where}.bounds", f"expected [lower, upper], found {b!r}")
+        lo, hi = c.vector(b[0], f"{where}.bounds[0]", size), c.vector(b[1], f"{where}.bounds[1]", size)
+        if any(l >= h for l, h in zip(lo, hi)):
+            c.fail(f"{where}.bounds", f"lower must be below upper, found {list(lo)} and {list(hi)}")
+        out["lower"], out["upper"] = lo, hi
+    if "prior" in v:
+        p = c.mapping(v["prior"], f"{where}.prior", ("mean", "std"), required=("mean", "std"))
+        out["prior_mean"] = c.vector(p["mean"], f"{where}.prior.mean", size)
+        out["prior_std"] = c.vector(p["std"], f"{where}.prior.std", size)
+        if any(s <= 0 for s in out["prior_std"]):
+            c.fail(f"{where}.prior.std", f"expected positive standard deviations, found {list(out['prior_std'])}")
+    return out
+
+
+def _model(c: _Check, m, array: ArraySpec) -> ModelSpec:
+    m = c.mapping(m, "model", ("gravity", "gravity_direction", "misalignment", "accelerometer", "gyroscope",
+                               "triads"))
+    gravity = c.number(m.get("gravity", 9.81), "model.gravity", positive=True)
+    direction = c.choice(m.get("gravity_direction", "unit_vector"), "model.gravity_direction", DIRECTIONS)
+    mis = c.choice(m.get("misalignment", "small_angle"), "model.misalignment", MISALIGNMENTS)
+
+    def size(sensor, group):
+        if sensor == "accelerometer" and group == "misalignment" and mis == "rotation":
+            return len(QUATERNION_MISALIGNMENT.components)
+        return len(SENSOR_GROUPS[sensor][group].components)
+
+    glob = {}
+    for sensor, groups in SENSOR_GROUPS.items():
+        sec = c.mapping(m.get(sensor), f"model.{sensor}", tuple(groups))
+        for g in groups:
+            base = {"free": (DEFAULT_FREE[sensor][g],) * size(sensor, g)}
+            glob[sensor, g] = _group_setting(c, sec[g], f"model.{sensor}.{g}", size(sensor, g), base) \
+                if g in sec else base
+    per = c.mapping(m.get("triads"), "model.triads", tuple(array.names))
+    settings = {}
+    for name in array.names:
+        tsec = c.mapping(per.get(name), f"model.triads.{name}", tuple(SENSOR_GROUPS))
+        for sensor, groups in SENSOR_GROUPS.items():
+            ssec = c.mapping(tsec.get(sensor), f"model.triads.{name}.{sensor}", tuple(groups))
+            for g in groups:
+                w = f"model.triads.{name}.{sensor}.{g}"
+                if name == array.reference and sensor == "accelerometer" and g == "misalignment" and g in ssec:
+                    c.fail(w, "the reference triad defines the body frame; it has no misalignment")
+                s = _group_setting(c, ssec[g], w, size(sensor, g), glob[sensor, g]) if g in ssec \
+                    else glob[sensor, g]
+                if sensor == "accelerometer" and g == "misalignment" and mis == "rotation" \
+                        and len(set(s["free"])) > 1:
+                    c.fail(w + ".free", "a misalignment quaternion is free or fixed as a whole")
+                settings[name, sensor, g] = GroupSetting(**s)
+    return ModelSpec(gravity, direction, mis, settings)
+
+
+def _noise(c: _Check, n, array: ArraySpec) -> NoiseSpec:
+    n = c.mapping(n, "noise", ("accelerometer", "gyroscope"))
+    out = {}
+    for sensor in ("accelerometer", "gyroscope"):
+        v = n.get(sensor, "auto")
+        w = f"noise.{sensor}"
+        if v == "auto":
+            out[sensor] = None
+        elif isinstance(v, dict):
+            v = c.mapping(v, w, tuple(array.names), required=tuple(array.names))
+            out[sensor] = {k: c.number(x, f"{w}.{k}", positive=True) for k, x in v.items()}
+        else:
+            s = c.number(v, w, positive=True)
+            out[sensor] = {k: s for k in array.names}
+    return NoiseSpec(**out)
+
+
+def _solver(c: _Check, s) -> SolverOptions:
+    names = tuple(f.name for f in fields(SolverOptions))
+    s = c.mapping(s, "solver", names)
+    kw = {}
+    for k, v in s.items():
+        default = getattr(SolverOptions, k)
+        w = f"solver.{k}"
+        if k == "linear_solver":
+            kw[k] = c.choice(v, w, ("mumps", "spral"))
+        elif isinstance(default, int):
+            kw[k] = c.number(v, w, integer=True)
+            if k == "max_iter" and kw[k] < 1:
+                c.fail(w, f"expected a positive integer, found {v!r}")
+        else:
+            kw[k] = c.number(v, w, positive=True)
+    return SolverOptions(**kw)

@@ -1,0 +1,1 @@
+"""Reports: HTML with matplotlib figures, built from a solved output directory."""

@@ -1,0 +1,35 @@
+"""The arrays a report needs, saved beside results.json as ``details.npz`` (SI units)."""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+
+from ..io.results import write_atomic
+
+
+def write_details(path: Path, outcome) -> None:
+    """Per-pose arrays of a static outcome: readings, σ, residuals, gravity-norm errors, consistency."""
+    names = outcome.config.names
+    avg = outcome.averages
+    arrays = {
+        "triads": np.array(names),
+        "t_start": avg.t_start, "t_end": avg.t_end, "n": avg.n,
+        "acc_mean": np.stack([avg.acc_mean[n] for n in names]),  # (M, P, 3) m/s^2
+        "acc_sigma": np.stack([avg.acc_sigma[n] for n in names]),
+        "residual_acc": np.stack([outcome.residual_acc[n] for n in names]),  # (M, P, 3) m/s^2
+        "norm_error_before": np.stack([outcome.gravity_norm_error[n][0] for n in names]),  # (M, P)
+        "norm_error_after": np.stack([outcome.gravity_norm_error[n][1] for n in names]),
+    }
+    if outcome.residual_gyro:
+        g = list(outcome.residual_gyro)
+        arrays["gyro_triads"] = np.array(g)
+        arrays["residual_gyro"] = np.stack([outcome.residual_gyro[n] for n in g])
+    if outcome.consistency is not None:
+        arrays["consistency_before"] = outcome.consistency.before
+        arrays["consistency_after"] = outcome.consistency.after
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    write_atomic(path, buf.getvalue())

@@ -1,0 +1,38 @@
+"""Short human-readable summaries of outcomes for the terminal."""
+
+from __future__ import annotations
+
+import numpy as np
+
+DEG = 180 / np.pi
+
+
+def _fmt(values, stds, unit) -> str:
+    if unit == "rad":
+        values, stds, unit = np.asarray(values) * DEG, np.asarray(stds) * DEG, "deg"
+    parts = [f"{v:+.4f}±{s:.1g}" if s > 0 else f"{v:+.4f} (fixed)" for v, s in zip(values, stds)]
+    return f"[{', '.join(parts)}] {unit}"
+
+
+def static_summary(outcome) -> str:
+    sol = outcome.solution
+    lay = outcome.problem.lsq.layout
+    lines = [f"{outcome.spec.path.name}: {sol.message} in {sol.iterations} iterations, "
+             f"{sol.wall_s * 1e3:.0f} ms solve + {outcome.solver.build_s * 1e3:.0f} ms build",
+             f"  {outcome.averages.n_poses} poses, {len(outcome.config.triads)} triads, "
+             f"chi2/dof = {sol.chi2_per_dof:.3f} (dof {sol.dof})"]
+    for name in outcome.config.names:
+        r = outcome.residual_acc[name]
+        lines.append(f"  {name}: residual RMS {np.sqrt((r ** 2).mean()) * 1e3:.2f} mm/s^2")
+        for g in lay.groups:
+            if g.name.startswith(name + ".") and g.free.any():
+                lines.append(f"    {g.name.split('.', 1)[1]:32s} {_fmt(sol.values[g.name], sol.std[g.name], g.unit)}")
+    ge = outcome.gravity_norm_error
+    before = np.sqrt(np.mean([np.mean(b ** 2) for b, _ in ge.values()]))
+    after = np.sqrt(np.mean([np.mean(a ** 2) for _, a in ge.values()]))
+    lines.append(f"  gravity-norm error RMS: {before * 1e3:.1f} mm/s^2 raw -> {after * 1e3:.2f} mm/s^2 calibrated")
+    if outcome.consistency is not None:
+        c = outcome.consistency
+        lines.append(f"  array consistency (Nilsson sec. IV): {np.sqrt(c.before.mean()) * 1e3:.1f} -> "
+                     f"{np.sqrt(c.after.mean()) * 1e3:.1f} mm/s^2, {c.ratio_db:+.1f} dB")
+    return "\n".join(lines)
