@@ -132,24 +132,24 @@ class Solver:
         data = self.problem.data if data is None else data
         return np.concatenate([np.asarray(p_fixed, float), np.asarray(data, float).ravel()])
 
-    def fisher(self, x, p_fixed=None, data=None) -> tuple[np.ndarray, np.ndarray]:
-        """Fisher information J^T J (scaled x) and a basis U of the constraint tangent space."""
+    def jacobians(self, x, p_fixed=None, data=None) -> tuple[np.ndarray, np.ndarray]:
+        """Dense Jacobians (scaled x) of the whitened residuals J and of the constraints G."""
         J, G = self._jac(x, self._p(p_fixed, data))
-        J = np.asarray(ca.DM(J))
-        G = np.asarray(ca.DM(G))
-        n = J.shape[1]
-        if G.size:
-            _, s, vt = np.linalg.svd(G)
-            rank = int((s > 1e-12 * max(s.max(), 1.0)).sum())
-            U = vt[rank:].T
-        else:
-            U = np.eye(n)
-        return J.T @ J, U
+        return J.full(), G.full()
+
+    def _tangent_fisher(self, x, p_fixed, data) -> tuple[np.ndarray, np.ndarray]:
+        """Fisher information J^T J restricted to the constraint tangent space, and its basis U."""
+        J, G = self.jacobians(x, p_fixed, data)
+        if G.shape[0]:
+            Q = np.linalg.qr(G.T, mode="complete")[0]
+            U = Q[:, G.shape[0]:]
+            JU = J @ U
+            return JU.T @ JU, U
+        return J.T @ J, np.eye(J.shape[1])
 
     def undetermined(self, x, p_fixed=None, data=None, top: int = 4) -> list[str]:
         """Directions the data cannot determine at x, each named by its largest components."""
-        F, U = self.fisher(x, p_fixed, data)
-        Fu = U.T @ F @ U
+        Fu, U = self._tangent_fisher(x, p_fixed, data)
         w, V = np.linalg.eigh(Fu)
         tol = self.options.identifiability_tol * max(w.max(), 1e-300)
         out = []
@@ -162,11 +162,26 @@ class Solver:
         return out
 
     def covariance(self, x, p_fixed=None, data=None) -> np.ndarray:
-        """Covariance of the free components (physical units): U (U^T F U)^-1 U^T, scaled back."""
-        F, U = self.fisher(x, p_fixed, data)
-        Cu = np.linalg.pinv(U.T @ F @ U, hermitian=True)
+        """Covariance of all free components (physical units): the constrained inverse Fisher information.
+
+        Its blocks for calibration parameters are the marginals with the nuisance variables
+        integrated out. Computed as the top-left block of the inverse of the KKT matrix
+        [[J^T J, G^T], [G, 0]], which equals U (U^T J^T J U)^-1 U^T for a tangent basis U.
+        """
+        J, G = self.jacobians(x, p_fixed, data)
+        n, c = J.shape[1], G.shape[0]
+        K = np.zeros((n + c, n + c))
+        K[:n, :n] = J.T @ J
+        K[n:, :n], K[:n, n:] = G, G.T
+        rhs = np.zeros((n + c, n))
+        rhs[:n] = np.eye(n)
+        try:
+            C = np.linalg.solve(K, rhs)[:n]
+        except np.linalg.LinAlgError:
+            Fu, U = self._tangent_fisher(x, p_fixed, data)  # rank deficient: pseudo-inverse
+            C = U @ np.linalg.pinv(Fu, hermitian=True) @ U.T
         s = self.problem.layout.x_scale
-        return (U @ Cu @ U.T) * np.outer(s, s)
+        return C * np.outer(s, s)
 
     def solve(self, x0=None, p_fixed=None, data=None) -> Solution:
         lay = self.problem.layout

@@ -170,10 +170,16 @@ class Layout:
 
     def unpack(self, x: np.ndarray, p: np.ndarray) -> dict[str, np.ndarray]:
         """Physical values of every group from numeric x and p."""
-        f = ca.Function("unpack", [self.x, self.p], [self._values[g.name] for g in self.groups])
-        out = f(x, p)
-        out = out if isinstance(out, (list, tuple)) else [out]
-        return {g.name: np.asarray(v, float).ravel() for g, v in zip(self.groups, out)}
+        x, p = np.asarray(x, float).ravel(), np.asarray(p, float).ravel()
+        out, ix, ip = {}, 0, 0
+        for g in self.groups:
+            v = np.empty(g.size)
+            nf = int(g.free.sum())
+            v[g.free] = x[ix: ix + nf] * g.scale[g.free]
+            v[~g.free] = p[ip: ip + g.size - nf]
+            ix, ip = ix + nf, ip + g.size - nf
+            out[g.name] = v
+        return out
 
     def x_indices(self, name: str) -> np.ndarray:
         """Positions in x of the free components of a group."""

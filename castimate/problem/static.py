@@ -162,6 +162,17 @@ class StaticProblem:
     def data_vector(self, poses: PoseAverages) -> np.ndarray:
         return pack_data(self.config, poses, self.gyro_triads)
 
+    def x0(self, poses: PoseAverages, values: dict[str, np.ndarray] | None = None) -> np.ndarray:
+        """Start for new data of the same structure: directions from the reference triad's readings.
+
+        ``values`` overrides any group's start (physical units), e.g. the truth in a CRB computation.
+        """
+        u0 = initial_directions(self.config, poses)
+        start = {f"pose{n + 1}.direction": direction_group(n, self.config.gravity_direction, u0[n]).initial
+                 for n in range(self.n_poses)}
+        start.update(values or {})
+        return self.lsq.layout.x0(start)
+
 
 def pack_data(config: StaticConfig, poses: PoseAverages, gyro_triads: list[str]) -> np.ndarray:
     """Data vector in the order the problem expects: per triad y (P x 3, row-major) then σ."""
