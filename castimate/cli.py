@@ -6,9 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-import numpy as np
 
-from .errors import EXIT_INVALID_INPUT, CastimateError, InputError
+from .errors import CastimateError
 
 
 def _log(msg: str) -> None:

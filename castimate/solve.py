@@ -115,7 +115,7 @@ class Solver:
         lay = problem.layout
         r = problem.all_residuals
         c = lay.constraints()
-        p = ca.vertcat(lay.p, problem.data_sym)
+        p = self._p_sym = ca.vertcat(lay.p, problem.data_sym)
         t0 = time.perf_counter()
         nlp = {"x": lay.x, "p": p, "f": 0.5 * ca.sumsqr(r), "g": c}
         self.nlp = ca.nlpsol("castimate", "ipopt", nlp, options.ipopt())

@@ -12,8 +12,6 @@ import csv
 import io
 import os
 import re
-import stat
-import tempfile
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
@@ -22,6 +20,7 @@ from typing import IO
 import numpy as np
 
 from castimate.errors import InputError
+from castimate.io.atomic import atomic_write
 from castimate.io.recording import Recording
 from castimate.io.units import UnitConversion, UnitSpec, parse_units
 
@@ -67,35 +66,6 @@ def _check_finite(arr: np.ndarray, source: str, where: str, row_label: Callable[
         raise InputError(source, where, f"expected finite numbers, found {arr[i].tolist()!r} at {row_label(i)}")
 
 
-def _atomic_write(path: str | os.PathLike, write: Callable[[IO[bytes]], None]) -> None:
-    """Write ``path`` through a temporary file in the same directory and ``os.replace``.
-
-    Readers never see a half-written file, and a failed write leaves any old file intact.
-    """
-    target = Path(path)
-    directory = target.parent if str(target.parent) else Path(".")
-    try:
-        fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{target.name}.", suffix=".tmp")
-    except OSError as exc:
-        raise InputError(target, "", f"cannot write to directory {str(directory)!r}: {exc.strerror}") from None
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            write(fh)
-            fh.flush()
-            os.fsync(fh.fileno())
-        # mkstemp creates mode 0600; keep an existing file's mode, else the usual 0644.
-        try:
-            mode = stat.S_IMODE(os.stat(target).st_mode)
-        except FileNotFoundError:
-            mode = 0o644
-        os.chmod(tmp, mode)
-        os.replace(tmp, target)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
 
 
 def _check_recording(path: str | os.PathLike, rec: Recording) -> int:
@@ -308,7 +278,7 @@ def write_csv(path: str | os.PathLike, recording: Recording) -> None:
         text.flush()
         text.detach()  # leave fh open for the fsync in _atomic_write
 
-    _atomic_write(path, write)
+    atomic_write(path, write)
 
 
 # ----------------------------------------------------------------------------- NPZ
@@ -431,7 +401,7 @@ def write_npz(path: str | os.PathLike, recording: Recording) -> None:
         if triad in recording.temp:
             arrays[f"{triad}.temp"] = np.asarray(recording.temp[triad], dtype=np.float64)
     # Passing a file object stops np.savez from appending ".npz" to the temporary name.
-    _atomic_write(path, lambda fh: np.savez(fh, **arrays))
+    atomic_write(path, lambda fh: np.savez(fh, **arrays))
 
 
 # ----------------------------------------------------------------------------- dispatch

@@ -7,32 +7,15 @@ apply the calibration from this file alone: f = T^-1 (raw - b).
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from ..errors import InputError
+from .atomic import write_atomic
 
 FORMAT = "castimate.results/1"
-
-
-def write_atomic(path: str | Path, data: bytes | str) -> None:
-    """Write a file so that readers never see a partial one: temp file, then rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    mode = "wb" if isinstance(data, bytes) else "w"
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    try:
-        with os.fdopen(fd, mode) as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def _jsonable(x: Any) -> Any:
@@ -119,14 +102,32 @@ def read_results(path: str | Path) -> dict:
         raise InputError(path, f"line {e.lineno}", f"not valid JSON ({e.msg})") from None
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise InputError(path, "format", f"expected {FORMAT!r}, found {doc.get('format') if isinstance(doc, dict) else doc!r}")
-    if not doc.get("status", {}).get("success"):
+    status = doc.get("status")
+    if not isinstance(status, dict) or status.get("success") is not True:
         raise InputError(path, "status.success", "the calibration did not converge; refusing to use it")
-    for name, t in doc.get("triads", {}).items():
+    triads = doc.get("triads")
+    if not isinstance(triads, dict) or not triads:
+        raise InputError(path, "triads", f"expected a non-empty mapping of triads, found {triads!r}")
+    if not isinstance(doc.get("units", {}), dict):
+        raise InputError(path, "units", f"expected a mapping, found {doc['units']!r}")
+    for name, t in triads.items():
+        if not isinstance(t, dict) or "accelerometer" not in t:
+            raise InputError(path, f"triads.{name}.accelerometer", "missing; expected {T, b}")
         for sensor in ("accelerometer", "gyroscope"):
             if sensor not in t:
                 continue
-            T, b = np.asarray(t[sensor].get("T")), np.asarray(t[sensor].get("b"))
+            w = f"triads.{name}.{sensor}"
+            if not isinstance(t[sensor], dict):
+                raise InputError(path, w, f"expected a mapping {{T, b}}, found {t[sensor]!r}")
+            try:
+                T, b = np.asarray(t[sensor].get("T"), float), np.asarray(t[sensor].get("b"), float)
+            except (TypeError, ValueError):
+                raise InputError(path, w, f"expected T 3x3 and b of 3 numbers, found T={t[sensor].get('T')!r} "
+                                          f"and b={t[sensor].get('b')!r}") from None
             if T.shape != (3, 3) or b.shape != (3,):
-                raise InputError(path, f"triads.{name}.{sensor}",
-                                 f"expected T 3x3 and b of 3, found {T.shape} and {b.shape}")
+                raise InputError(path, w, f"expected T 3x3 and b of 3, found {T.shape} and {b.shape}")
+            if not (np.isfinite(T).all() and np.isfinite(b).all()):
+                raise InputError(path, w, f"expected finite numbers, found T={T.tolist()} and b={b.tolist()}")
+            if np.linalg.cond(T) > 1e12:
+                raise InputError(path, f"{w}.T", f"expected an invertible matrix, found {T.tolist()}")
     return doc

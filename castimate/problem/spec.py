@@ -198,6 +198,9 @@ def parse_problem(raw: Any, path: Path, sha256: str = "") -> ProblemSpec:
     solver = _solver(c, top.get("solver"))
     if data.segments == "rows" and noise.accelerometer is None:
         c.fail("noise.accelerometer", "data with one row per pose (segments: rows) needs the σ of each row; found auto")
+    if data.segments == "rows" and noise.gyroscope is None and any(t.gyroscope for t in array.triads):
+        c.fail("noise.gyroscope", "data with one row per pose (segments: rows) and gyroscope: true need the σ of "
+                                  "each gyroscope row; found auto")
     return ProblemSpec(path, sha256, kind, data, array, model, noise, solver)
 
 
@@ -242,7 +245,7 @@ def _data(c: _Check, d, base: Path) -> DataSpec:
         seg = tuple(out)
     elif seg not in ("auto", "rows"):
         c.fail("data.segments", f"expected auto, rows or a list of [t_start, t_end], found {seg!r}")
-    det = DetectionOptions.from_mapping(d.get("detection") or {}, c.source, "data.detection")
+    det = DetectionOptions.from_mapping(d.get("detection"), c.source, "data.detection")
     return DataSpec(p, fmt, acc_u, gyro_u, gp, tr, seg, det)
 
 
@@ -271,19 +274,24 @@ def _array(c: _Check, a) -> ArraySpec:
             c.fail(f"{w}.gyroscope", f"expected true or false, found {gy!r}")
         triads.append(TriadSpec(name, r, pos, gy))
     ref = a["reference"]
-    if ref not in seen:
-        c.fail("array.reference", f"unknown triad {ref!r}; triads are {', '.join(seen)}")
+    if not isinstance(ref, str) or ref not in seen:
+        c.fail("array.reference", f"unknown triad {ref!r}; triads are {', '.join(t.name for t in triads)}")
     if next(t for t in triads if t.name == ref).rotation == "auto":
         c.fail("array.reference", "the reference triad defines the body frame; its rotation cannot be auto")
     return ArraySpec(ref, tuple(triads))
 
 
-def _group_setting(c: _Check, v, where, size, base: dict) -> dict:
-    """Merge a group's YAML value into ``base`` (a dict of GroupSetting fields)."""
+def _group_setting(c: _Check, v, where, size, base: dict, neutral: tuple) -> dict:
+    """Merge a group's YAML value into ``base`` (a dict of GroupSetting fields).
+
+    ``neutral`` is the group's default initial value, checked against bounds given here.
+    """
     out = dict(base)
     if v in ("free", "fixed"):
         out["free"] = (v == "free",) * size
         return out
+    if not isinstance(v, dict):
+        c.fail(where, f"expected free, fixed or a mapping with free, initial, bounds, prior; found {v!r}")
     v = c.mapping(v, where, ("free", "initial", "bounds", "prior"))
     if "free" in v:
         out["free"] = c.vector(v["free"], f"{where}.free", size, bool)
@@ -303,6 +311,12 @@ def _group_setting(c: _Check, v, where, size, base: dict) -> dict:
         out["prior_std"] = c.vector(p["std"], f"{where}.prior.std", size)
         if any(s <= 0 for s in out["prior_std"]):
             c.fail(f"{where}.prior.std", f"expected positive standard deviations, found {list(out['prior_std'])}")
+    if out.get("lower") is not None and ("bounds" in v or "initial" in v):
+        x0 = out.get("initial") or neutral
+        if any(not l <= x <= h for x, l, h in zip(x0, out["lower"], out["upper"])):
+            c.fail(f"{where}.initial" if "initial" in v else f"{where}.bounds",
+                   f"expected the initial value {list(x0)}{'' if 'initial' in out else ' (default)'} within the "
+                   f"bounds {list(out['lower'])} to {list(out['upper'])}")
     return out
 
 
@@ -313,18 +327,26 @@ def _model(c: _Check, m, array: ArraySpec) -> ModelSpec:
     direction = c.choice(m.get("gravity_direction", "unit_vector"), "model.gravity_direction", DIRECTIONS)
     mis = c.choice(m.get("misalignment", "small_angle"), "model.misalignment", MISALIGNMENTS)
 
-    def size(sensor, group):
+    def gdef(sensor, group):
         if sensor == "accelerometer" and group == "misalignment" and mis == "rotation":
-            return len(QUATERNION_MISALIGNMENT.components)
-        return len(SENSOR_GROUPS[sensor][group].components)
+            return QUATERNION_MISALIGNMENT
+        return SENSOR_GROUPS[sensor][group]
+
+    def size(sensor, group):
+        return len(gdef(sensor, group).components)
+
+    def check_quaternion(sensor, group, s, where):
+        if sensor == "accelerometer" and group == "misalignment" and mis == "rotation" and len(set(s["free"])) > 1:
+            c.fail(where + ".free", "a misalignment quaternion is free or fixed as a whole")
 
     glob = {}
     for sensor, groups in SENSOR_GROUPS.items():
         sec = c.mapping(m.get(sensor), f"model.{sensor}", tuple(groups))
         for g in groups:
             base = {"free": (DEFAULT_FREE[sensor][g],) * size(sensor, g)}
-            glob[sensor, g] = _group_setting(c, sec[g], f"model.{sensor}.{g}", size(sensor, g), base) \
-                if g in sec else base
+            glob[sensor, g] = _group_setting(c, sec[g], f"model.{sensor}.{g}", size(sensor, g), base,
+                                             gdef(sensor, g).neutral) if g in sec else base
+            check_quaternion(sensor, g, glob[sensor, g], f"model.{sensor}.{g}")
     per = c.mapping(m.get("triads"), "model.triads", tuple(array.names))
     settings = {}
     for name in array.names:
@@ -335,11 +357,9 @@ def _model(c: _Check, m, array: ArraySpec) -> ModelSpec:
                 w = f"model.triads.{name}.{sensor}.{g}"
                 if name == array.reference and sensor == "accelerometer" and g == "misalignment" and g in ssec:
                     c.fail(w, "the reference triad defines the body frame; it has no misalignment")
-                s = _group_setting(c, ssec[g], w, size(sensor, g), glob[sensor, g]) if g in ssec \
-                    else glob[sensor, g]
-                if sensor == "accelerometer" and g == "misalignment" and mis == "rotation" \
-                        and len(set(s["free"])) > 1:
-                    c.fail(w + ".free", "a misalignment quaternion is free or fixed as a whole")
+                s = _group_setting(c, ssec[g], w, size(sensor, g), glob[sensor, g], gdef(sensor, g).neutral) \
+                    if g in ssec else glob[sensor, g]
+                check_quaternion(sensor, g, s, w)
                 settings[name, sensor, g] = GroupSetting(**s)
     return ModelSpec(gravity, direction, mis, settings)
 
@@ -374,6 +394,8 @@ def _solver(c: _Check, s) -> SolverOptions:
             kw[k] = c.number(v, w, integer=True)
             if k == "max_iter" and kw[k] < 1:
                 c.fail(w, f"expected a positive integer, found {v!r}")
+            if k == "print_level" and not 0 <= kw[k] <= 12:
+                c.fail(w, f"expected an integer from 0 to 12, found {v!r}")
         else:
             kw[k] = c.number(v, w, positive=True)
     return SolverOptions(**kw)

@@ -1,0 +1,330 @@
+"""``castimate report DIR``: one self-contained ``DIR/report.html`` from ``results.json`` and
+``details.npz`` (figures embedded as base64 PNG, inline CSS, no external assets).
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import math
+import zipfile
+from html import escape
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+from ..io.results import FORMAT, write_atomic
+from . import figures
+
+DEG = 180 / np.pi
+
+REQUIRED_DETAILS = ("triads", "acc_sigma", "residual_acc", "norm_error_before", "norm_error_after")
+
+CSS = """
+body { font-family: -apple-system, "Segoe UI", Helvetica, Arial, sans-serif; color: #222; margin: 0 auto;
+       max-width: 1200px; padding: 1.2em 2em 3em; line-height: 1.45; }
+h1 { font-size: 1.5em; margin-bottom: 0.1em; }
+h1 .kind { color: #666; font-weight: normal; font-size: 0.75em; }
+h2 { font-size: 1.2em; border-bottom: 1px solid #ddd; padding-bottom: 0.2em; margin-top: 1.8em; }
+.sub { color: #666; margin-top: 0; font-size: 0.9em; }
+.ok { color: #1a7f37; font-weight: 600; }
+.bad { color: #b42318; font-weight: 600; }
+.scroll { overflow-x: auto; }
+table { border-collapse: collapse; font-size: 0.85em; margin: 0.6em 0 1em; }
+th, td { border: 1px solid #d8dde3; padding: 0.25em 0.6em; }
+th { background: #f3f5f7; font-weight: 600; text-align: center; }
+td { text-align: right; font-variant-numeric: tabular-nums; white-space: nowrap; }
+td.name, th.name { text-align: left; font-weight: 600; }
+td.na { color: #999; text-align: center; }
+td.fixed { color: #777; }
+tr:nth-child(even) td { background: #fafbfc; }
+table.kv td { text-align: left; }
+table.kv td:first-child { color: #555; }
+pre.matrix { margin: 0; font-size: 0.95em; line-height: 1.2; text-align: left; }
+figure { margin: 1.2em 0 2em; }
+figure img { max-width: 100%; height: auto; border: 1px solid #eee; }
+figcaption { color: #444; font-size: 0.9em; margin-top: 0.3em; max-width: 60em; }
+p.note { color: #555; font-size: 0.9em; margin-top: -0.4em; }
+code { background: #f3f5f7; padding: 0 0.2em; border-radius: 3px; }
+"""
+
+UNIT_DISPLAY = {"-": "–", "m/s^2": "m/s²", "rad": "deg", "rad/s": "rad/s", "": "–"}
+
+
+# ---------------------------------------------------------------------------------------------
+# Loading
+# ---------------------------------------------------------------------------------------------
+
+def load_results(directory: Path) -> dict:
+    """results.json of a solved directory (format checked; the status is reported, not enforced)."""
+    path = directory / "results.json"
+    if not path.is_file():
+        raise InputError(path, "", "not found; expected the output directory of `castimate solve PROBLEM.yaml -o DIR`")
+    try:
+        doc = json.loads(path.read_text())
+    except OSError as e:
+        raise InputError(path, "", f"cannot read ({e.strerror})") from None
+    except json.JSONDecodeError as e:
+        raise InputError(path, f"line {e.lineno}", f"not valid JSON ({e.msg})") from None
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+        found = doc.get("format") if isinstance(doc, dict) else type(doc).__name__
+        raise InputError(path, "format", f"expected {FORMAT!r}, found {found!r}")
+    return doc
+
+
+def load_details(directory: Path) -> dict[str, np.ndarray]:
+    """details.npz of a solved directory, as a dict of arrays (required arrays checked)."""
+    path = directory / "details.npz"
+    if not path.is_file():
+        raise InputError(path, "", "not found; expected the output directory of `castimate solve PROBLEM.yaml -o DIR`")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except (OSError, ValueError, zipfile.BadZipFile) as e:
+        raise InputError(path, "", f"not a readable .npz file ({e})") from None
+    for k in REQUIRED_DETAILS:
+        if k not in arrays:
+            raise InputError(path, k, "array missing; re-run `castimate solve` to regenerate details.npz")
+    return arrays
+
+
+# ---------------------------------------------------------------------------------------------
+# Formatting
+# ---------------------------------------------------------------------------------------------
+
+def _finite(x: Any) -> bool:
+    return isinstance(x, (int, float)) and math.isfinite(x)
+
+
+def format_pm(value: float, std: float | None) -> str:
+    """"value ± σ" with σ to two significant digits and the value to the same decimal place."""
+    if not _finite(value):
+        return "n/a"
+    if not _finite(std) or std <= 0:
+        return f"{value:.6g} ± ?"
+    std = float(f"{std:.2g}")  # 2 significant digits first, so 9.996e-6 becomes 1.0e-5
+    decimals = min(12, max(0, 1 - int(math.floor(math.log10(std)))))
+    return f"{value:.{decimals}f} ± {std:.{decimals}f}"
+
+
+def _unit(unit: str) -> str:
+    return UNIT_DISPLAY.get(unit, unit.replace("^2", "²"))
+
+
+def _sensor_of(key: str) -> tuple[str, str]:
+    """results parameter key -> (sensor, group): "bias" -> accelerometer, "gyroscope.bias" -> gyroscope."""
+    return tuple(key.split(".", 1)) if "." in key else ("accelerometer", key)  # type: ignore[return-value]
+
+
+def parameter_tables(results: dict) -> list[tuple[str, list[str], list[str], str]]:
+    """The parameter tables, one per sensor: (sensor, header HTML rows, body HTML rows, note HTML).
+
+    One row per triad; one column per parameter component, "value ± σ" in display units (angles in
+    degrees, gains as-is, biases in SI); fixed components say "fixed", absent groups "—". Groups
+    fixed for every triad get no columns; the note names them.
+    """
+    triads = results.get("triads", {})
+    reference = results.get("reference")
+    order: dict[str, list[str]] = {}  # sensor -> group keys in order of appearance
+    meta: dict[str, tuple[list[str], str]] = {}  # key -> (components, unit)
+    for t in triads.values():
+        for key, g in t.get("parameters", {}).items():
+            sensor, _ = _sensor_of(key)
+            if key not in meta:
+                order.setdefault(sensor, []).append(key)
+                meta[key] = (list(g.get("components", [])), str(g.get("unit", "")))
+    tables = []
+    for sensor, keys in order.items():
+        fixed = [k for k in keys if not any(any(t.get("parameters", {}).get(k, {}).get("free", [False]))
+                                          for t in triads.values())]
+        keys = [k for k in keys if k not in fixed]
+        note = ("Fixed for every triad (not estimated): "
+                + ", ".join(f"{escape(_sensor_of(k)[1])}" for k in fixed) + ".") if fixed else ""
+        if not keys:
+            tables.append((sensor, [], [], note))
+            continue
+        head1 = ['<th class="name" rowspan="2">triad</th>']
+        head2 = []
+        for key in keys:
+            comps, unit = meta[key]
+            group = _sensor_of(key)[1]
+            head1.append(f'<th colspan="{len(comps)}">{escape(group)} [{escape(_unit(unit))}]</th>')
+            head2 += [f"<th>{escape(c)}</th>" for c in comps]
+        body = []
+        for name, t in triads.items():
+            label = escape(name) + (" <small>(reference)</small>" if name == reference else "")
+            cells = [f'<td class="name">{label}</td>']
+            params = t.get("parameters", {})
+            for key in keys:
+                comps, unit = meta[key]
+                g = params.get(key)
+                if g is None:
+                    cells += ['<td class="na">—</td>'] * len(comps)
+                    continue
+                scale = DEG if unit == "rad" else 1.0
+                for k in range(len(comps)):
+                    v = g["value"][k]
+                    s = g["std"][k] if g.get("std") is not None else None
+                    v = v * scale if _finite(v) else v
+                    s = s * scale if _finite(s) else s
+                    if not g.get("free", [True] * len(comps))[k]:
+                        cells.append(f'<td class="fixed">{v:.6g} fixed</td>' if _finite(v) else
+                                     '<td class="fixed">fixed</td>')
+                    else:
+                        cells.append(f"<td>{escape(format_pm(v, s))}</td>")
+            body.append("<tr>" + "".join(cells) + "</tr>")
+        tables.append((sensor, ["<tr>" + "".join(head1) + "</tr>", "<tr>" + "".join(head2) + "</tr>"], body, note))
+    return tables
+
+
+def _matrix(R: Any) -> str:
+    A = np.asarray(R, float)
+    if A.shape != (3, 3):
+        return '<span class="na">n/a</span>'
+    integer = np.allclose(A, np.round(A), atol=1e-12)
+    rows = []
+    for r in A:
+        rows.append(" ".join(f"{int(round(x)) + 0:>2d}" if integer else f"{x:+.4f}" for x in r))
+    return '<pre class="matrix">' + escape("\n".join(rows)) + "</pre>"
+
+
+def _fig_html(fig, alt: str, caption: str) -> str:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, metadata={"Software": None})
+    data = base64.b64encode(buf.getvalue()).decode("ascii")
+    return (f'<figure><img alt="{escape(alt)}" src="data:image/png;base64,{data}">'
+            f"<figcaption>{caption}</figcaption></figure>")
+
+
+def _kv(rows: list[tuple[str, str]]) -> str:
+    return '<table class="kv">' + "".join(f"<tr><td>{k}</td><td>{v}</td></tr>" for k, v in rows) + "</table>"
+
+
+# ---------------------------------------------------------------------------------------------
+# The report
+# ---------------------------------------------------------------------------------------------
+
+def render_report(results: dict, details: dict[str, np.ndarray]) -> str:
+    """The HTML text of a report."""
+    problem = Path(str(results.get("problem", "?"))).name
+    kind = str(results.get("kind", "?"))
+    status = results.get("status", {})
+    res = results.get("residuals", {})
+    triads = [str(n) for n in details["triads"]]
+    out: list[str] = []
+    add = out.append
+    add("<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">")
+    add(f"<title>castimate report: {escape(problem)}</title>")
+    add(f"<style>{CSS}</style>\n</head>\n<body>")
+    add(f'<h1>{escape(problem)} <span class="kind">{escape(kind)}</span></h1>')
+    add(f'<p class="sub">castimate calibration report; problem <code>{escape(str(results.get("problem", "?")))}</code>, '
+        f'sha256 <code>{escape(str(results.get("problem_sha256", "?"))[:16])}…</code></p>')
+
+    # --- summary
+    add("<h2>Summary</h2>")
+    ok = bool(status.get("success"))
+    wall, build = status.get("wall_s"), status.get("build_s")
+    rows = [("solver status", f'<span class="{"ok" if ok else "bad"}">{"success" if ok else "failed"}</span> '
+                              f'— {escape(str(status.get("message", "")))}'),
+            ("iterations", escape(str(status.get("iterations", "?")))),
+            ("solve time", f"{wall * 1e3:.0f} ms" if _finite(wall) else "n/a"),
+            ("build time", f"{build * 1e3:.0f} ms" if _finite(build) else "n/a")]
+    chi2 = res.get("chi2_per_dof")
+    dof = res.get("dof")
+    hint = ""
+    if _finite(chi2) and _finite(dof) and dof > 0:
+        # two-sided 99 % band of chi2/dof under the noise model (normal approximation)
+        band = 2.58 * math.sqrt(2 / dof)
+        if chi2 > 1 + band:
+            hint = " — above 1: the residuals exceed the noise model (a missing effect or a too small σ)"
+        elif chi2 < 1 - band:
+            hint = " — below 1: the noise σ is larger than the residuals suggest"
+    rows.append(("χ²/dof", (f"{chi2:.3f}" if _finite(chi2) else "n/a") + f" (dof {dof if dof is not None else '?'}"
+                 + (f", χ² {res['chi2']:.1f}" if _finite(res.get("chi2")) else "") + ")" + hint))
+    cons = results.get("consistency")
+    if cons and _finite(cons.get("ratio_db")):
+        b, a = cons.get("before"), cons.get("after")
+        spread = (f": spread {math.sqrt(b) * 1e3:.1f} mm/s² before → {math.sqrt(a) * 1e3:.2f} mm/s² after "
+                  f"(√ of the mean over poses of the trace of the across-triad covariance)"
+                  if _finite(b) and _finite(a) and b >= 0 and a >= 0 else "")
+        rows.append(("array consistency (Nilsson 2014, sec. IV)", f"<b>{cons['ratio_db']:+.1f} dB</b>{spread}"))
+    nb, na = details["norm_error_before"], details["norm_error_after"]
+    rows.append(("gravity-norm error RMS", f"{np.sqrt(np.mean(nb ** 2)) * 1e3:.1f} mm/s² raw → "
+                                           f"{np.sqrt(np.mean(na ** 2)) * 1e3:.2f} mm/s² calibrated"))
+    rms = details["residual_acc"]
+    rows.append(("accelerometer residual RMS", f"{np.sqrt(np.mean(rms ** 2)) * 1e3:.2f} mm/s² (all triads and axes)"))
+    if "residual_gyro" in details:
+        rg = details["residual_gyro"]
+        rows.append(("gyroscope residual RMS", f"{np.sqrt(np.mean(rg ** 2)) * DEG * 1e3:.2f} mdeg/s "
+                                               f"({len(details.get('gyro_triads', []))} triads, all axes)"))
+    poses = results.get("poses", {})
+    rows.append(("triads, poses", f"{len(triads)} triads (reference {escape(str(results.get('reference', '?')))}), "
+                                  f"{poses.get('count', rms.shape[1])} poses"))
+    if _finite(results.get("gravity")):
+        rows.append(("gravity", f"{results['gravity']:.5g} m/s²"))
+    add(_kv(rows))
+
+    # --- parameters
+    add("<h2>Parameters</h2>")
+    add("<p>Estimates with one standard deviation from the inverse Fisher information. Angles in degrees, "
+        "gains dimensionless, biases in SI units; “fixed” components were not estimated, “—” groups do not "
+        "exist for that triad (the reference triad defines the array frame, so it has no misalignment).</p>")
+    for sensor, head, body, note in parameter_tables(results):
+        add(f"<h3>{escape(sensor.capitalize())}</h3>")
+        if body:
+            add('<div class="scroll"><table>' + "".join(head) + "".join(body) + "</table></div>")
+        if note:
+            add(f'<p class="note">{note}</p>')
+
+    add("<h3>Nominal mounting</h3>")
+    add("<p>The nominal rotation R̄ from the body frame to each triad's frame (given or recovered with "
+        "<code>rotation: auto</code>), and the nominal position in the body frame.</p>")
+    mrows = ['<tr><th class="name">triad</th><th>R̄ (body → triad)</th><th>position [mm]</th></tr>']
+    for name, t in results.get("triads", {}).items():
+        pos = t.get("position")
+        pos_s = ", ".join(f"{x * 1e3:.2f}" for x in pos) if pos is not None else "—"
+        mrows.append(f'<tr><td class="name">{escape(name)}</td><td>{_matrix(t.get("R_nominal"))}</td>'
+                     f"<td>{escape(pos_s)}</td></tr>")
+    add('<div class="scroll"><table>' + "".join(mrows) + "</table></div>")
+
+    # --- figures
+    add("<h2>Figures</h2>")
+    fig = figures.residuals_per_pose(details["residual_acc"], details["acc_sigma"], triads)
+    add(_fig_html(fig, "whitened residuals per pose and triad",
+                  "Whitened residuals (residual / σ of the pose average) per triad and pose, and the residual "
+                  "RMS per triad: with a complete model the heatmaps look like unstructured noise within about "
+                  "±2; a whole row, column or axis in one colour points to an effect the model lacks in that "
+                  "triad, pose or axis."))
+    if "consistency_before" in details and "consistency_after" in details:
+        fig = figures.consistency(details["consistency_before"], details["consistency_after"])
+        add(_fig_html(fig, "array consistency per pose",
+                      "Trace of the across-triad covariance of the compensated specific force per pose, with each "
+                      "triad calibrated alone (before) and with the array model (after): the after bars should sit "
+                      "well below the before bars in every pose, not only on average."))
+    fig = figures.gravity_norm(details["norm_error_before"], details["norm_error_after"], triads)
+    add(_fig_html(fig, "gravity-norm error per pose and triad",
+                  "The error of the measured specific-force magnitude against g per pose and triad: calibrated "
+                  "(filled) markers should be orders of magnitude below the raw (open) ones and close to the "
+                  "noise level, with no triad or pose standing out."))
+    fig = figures.misalignment_map(results)
+    add(_fig_html(fig, "estimated misalignment and non-orthogonality angles",
+                  "Misalignment and non-orthogonality angles per triad with ±1σ error bars: look for angles "
+                  "that are large against the mounting tolerance, or error bars that are large against the "
+                  "estimate (poorly determined angles)."))
+    add("</body>\n</html>\n")
+    return "\n".join(out)
+
+
+def write_report(directory: Path) -> Path:
+    """Write ``DIR/report.html`` for a solved directory; return its path. Raises InputError."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise InputError(directory, "", "no such directory; expected the output directory of `castimate solve`")
+    results = load_results(directory)
+    details = load_details(directory)
+    path = directory / "report.html"
+    write_atomic(path, render_report(results, details))
+    return path
