@@ -47,7 +47,7 @@ import scipy.sparse as sp  # noqa: E402
 from scipy.optimize import least_squares  # noqa: E402
 
 from castimate.problem.static import (  # noqa: E402
-    ACCELEROMETER_GROUPS, GroupSetting, StaticConfig, TriadConfig, build_static, evaluate_Tb,
+    ACCELEROMETER_GROUPS, GroupSetting, StaticConfig, TriadConfig, build_static,
     initial_directions,
 )
 from castimate.segments import pose_averages_from_means  # noqa: E402
@@ -252,7 +252,7 @@ def run_castimate(config, poses, truth, repeats: int) -> tuple[dict, list]:
         nlp_times.append(sol.wall_s)
     st = solver.nlp.stats()
     ipopt_times = {k[len("t_wall_"):]: float(v) for k, v in st.items() if k.startswith("t_wall_")}
-    Tb = list(evaluate_Tb(prob.T_b, names, sol.x, lay.p0()).values())
+    Tb = list(prob.calibration(sol.values).values())
     gain = {n: sol.values[f"{n}.accelerometer.gain"] for n in names}
     bias = {n: sol.values[f"{n}.accelerometer.bias"] for n in names}
     res = {

@@ -16,8 +16,8 @@ from .errors import InputError, NotConvergedError
 from .io.readers import read_recording
 from .io.recording import Recording
 from .problem.spec import ProblemSpec
-from .problem.static import (StaticConfig, StaticProblem, TriadConfig, build_static, evaluate_Tb,
-                             initial_directions, recover_nominal_rotation, single_triad_config)
+from .problem.static import (StaticConfig, StaticProblem, TriadConfig, build_static, initial_directions,
+                             recover_nominal_rotation, single_triad_config)
 from .segments import (Detection, PoseAverages, average_poses, detect_static, explicit_segments,
                        pose_averages_from_means)
 from .solve import Solution, Solver
@@ -116,7 +116,7 @@ def static_config(spec: ProblemSpec, avg: PoseAverages) -> tuple[StaticConfig, d
 def check_identifiable(spec_path, problem: StaticProblem, solver: Solver, avg: PoseAverages) -> None:
     """Refuse problems the data cannot determine, naming the undetermined directions."""
     lay = problem.lsq.layout
-    n_free = lay.x.shape[0] - solver.n_constraints
+    n_free = lay.n_x - solver.n_constraints
     if solver.n_residuals < n_free:
         raise InputError(spec_path, "model",
                          f"{avg.n_poses} poses give {solver.n_residuals} measurements for {n_free} free "
@@ -172,7 +172,7 @@ def individual_calibrations(config: StaticConfig, avg: PoseAverages) -> dict[str
         sol = Solver(prob.lsq).solve()
         if not sol.success:
             raise NotConvergedError(f"single-triad calibration of {name} did not converge: {sol.message}")
-        out[name] = evaluate_Tb(prob.T_b, [name], sol.x, prob.lsq.layout.p0())[name]
+        out[name] = prob.calibration(sol.values)[name]
     return out
 
 
@@ -224,17 +224,15 @@ def calibrate_static(spec: ProblemSpec, log: Log = _quiet) -> StaticOutcome:
     problem = build_static(config, avg)
     solver = Solver(problem.lsq, spec.solver)
     check_identifiable(spec.path, problem, solver, avg)
-    log(f"solving with IPOPT ({problem.lsq.layout.x.shape[0]} variables, {solver.n_residuals} residuals)")
+    log(f"solving with IPOPT ({problem.lsq.layout.n_x} variables, {solver.n_residuals} residuals)")
     sol = solver.solve()
     if not sol.success:
         raise NotConvergedError(f"{spec.path}: IPOPT did not converge: {sol.message} after {sol.iterations} iterations")
-    p0 = problem.lsq.layout.p0()
-    cal = evaluate_Tb(problem.T_b, config.names, sol.x, p0)
-    gcal = evaluate_Tb(problem.T_b_gyro, problem.gyro_triads, sol.x, p0)
+    cal, gcal = problem.calibration(sol.values), problem.gyro_calibration(sol.values)
     P = avg.n_poses
     names = config.names + problem.gyro_triads
-    sig = problem.lsq.data.reshape(len(names), 2, P, 3)[:, 1]
-    res = sol.residual.reshape(len(names), P, 3) * sig
+    sig = np.vstack([d[:, 3:6] for d in problem.block_data(avg)])  # σ of every residual, (M+Mg)*P x 3
+    res = (sol.residual.reshape(-1, 3) * sig).reshape(len(names), P, 3)
     consistency = None
     if len(config.names) > 1:
         log("calibrating each triad alone for the before/after consistency")

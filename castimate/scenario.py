@@ -20,6 +20,13 @@ SCENARIO_KEYS = ("kind", "seed", "gravity", "triads", "reference", "poses", "noi
                  "truth", "gyroscope", "time_series", "rate", "pose_duration", "transition")
 
 
+def _flag(c: _Check, s: dict, key: str) -> bool:
+    v = s.get(key, False)
+    if not isinstance(v, bool):
+        c.fail(key, f"expected true or false, found {v!r}")
+    return v
+
+
 def simulate_scenario(path: str | Path, out: str | Path) -> dict[str, Path]:
     """Read a scenario file, simulate it and write ``data.csv``, ``truth.json`` and ``problem.yaml``."""
     path, out = Path(path), Path(out)
@@ -32,18 +39,31 @@ def simulate_scenario(path: str | Path, out: str | Path) -> dict[str, Path]:
     c = _Check(path)
     s = c.mapping(raw, "", SCENARIO_KEYS, required=("kind",))
     c.choice(s["kind"], "kind", ("static_array",))
-    rng = np.random.default_rng(c.number(s.get("seed", 0), "seed", integer=True))
+    seed = c.number(s.get("seed", 0), "seed", integer=True)
+    if seed < 0:
+        c.fail("seed", f"expected a non-negative integer, found {seed}")
+    rng = np.random.default_rng(seed)
     g = c.number(s.get("gravity", 9.81), "gravity", positive=True)
     tr = s.get("triads", 14)
-    names = [f"imu{i + 1}" for i in range(c.number(tr, "triads", positive=True, integer=True))] \
-        if not isinstance(tr, list) else [str(n) for n in tr]
+    if isinstance(tr, list):
+        if not tr:
+            c.fail("triads", "expected a number of triads or a non-empty list of names, found []")
+        names = []
+        for i, n in enumerate(tr):
+            if not isinstance(n, str) or not n.replace("_", "").isalnum():
+                c.fail(f"triads[{i}]", f"expected a name of letters, digits and underscores, found {n!r}")
+            if n in names:
+                c.fail(f"triads[{i}]", f"duplicate triad name {n!r}")
+            names.append(n)
+    else:
+        names = [f"imu{i + 1}" for i in range(c.number(tr, "triads", positive=True, integer=True))]
     ref = s.get("reference", names[0])
     if ref not in names:
         c.fail("reference", f"unknown triad {ref!r}; triads are {', '.join(names)}")
     P = c.number(s.get("poses", 20), "poses", positive=True, integer=True)
     noise = c.mapping(s.get("noise"), "noise", ("accelerometer", "gyroscope"))
     sigma = c.number(noise.get("accelerometer", 0.01), "noise.accelerometer", positive=True)
-    gyro = bool(s.get("gyroscope", False))
+    gyro = _flag(c, s, "gyroscope")
     gsigma = c.number(noise.get("gyroscope", 0.002), "noise.gyroscope", positive=True) if gyro else None
     tsec = c.mapping(s.get("truth"), "truth", tuple(StaticTruthScale.__dataclass_fields__))
     scale = StaticTruthScale(**{k: c.number(v, f"truth.{k}") for k, v in tsec.items()})
@@ -57,7 +77,7 @@ def simulate_scenario(path: str | Path, out: str | Path) -> dict[str, Path]:
         "array": {"reference": ref, "triads": [{"name": n} for n in names]},
         "model": {"gravity": g},
     }
-    if s.get("time_series", False):
+    if _flag(c, s, "time_series"):
         rate = c.number(s.get("rate", 100.0), "rate", positive=True)
         rec, intervals = static_time_series(truth, U, sigma, rng, rate=rate,
                                             pose_duration=c.number(s.get("pose_duration", 10.0), "pose_duration", positive=True),

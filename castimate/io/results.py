@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from .units import parse_units
 from .atomic import write_atomic
 
 FORMAT = "castimate.results/1"
@@ -108,10 +109,16 @@ def read_results(path: str | Path) -> dict:
     triads = doc.get("triads")
     if not isinstance(triads, dict) or not triads:
         raise InputError(path, "triads", f"expected a non-empty mapping of triads, found {triads!r}")
-    if not isinstance(doc.get("units", {}), dict):
-        raise InputError(path, "units", f"expected a mapping, found {doc['units']!r}")
+    units = doc.get("units", {})
+    if not isinstance(units, dict):
+        raise InputError(path, "units", f"expected a mapping, found {units!r}")
+    for key, quantity in (("data_accelerometer", "accelerometer"), ("data_gyroscope", "gyroscope")):
+        if units.get(key) is not None:
+            parse_units(units[key], path, f"units.{key}", quantity)
     for name, t in triads.items():
-        if not isinstance(t, dict) or "accelerometer" not in t:
+        if not isinstance(t, dict):
+            raise InputError(path, f"triads.{name}", f"expected a mapping with accelerometer {{T, b}}, found {t!r}")
+        if "accelerometer" not in t:
             raise InputError(path, f"triads.{name}.accelerometer", "missing; expected {T, b}")
         for sensor in ("accelerometer", "gyroscope"):
             if sensor not in t:

@@ -8,12 +8,9 @@ NLP's parameter vector ``p``, so that changing them means re-solving, not rebuil
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
-import casadi as ca
 import numpy as np
-
-from ..models.rotation import quaternion_norm_residual
 
 
 @dataclass(frozen=True)
@@ -73,73 +70,53 @@ class Group:
         return len(self.components)
 
 
-@dataclass
 class Layout:
     """Maps groups onto the decision vector ``x`` and the fixed-value vector ``p``.
 
-    Build it once per problem structure; solve with other fixed values by passing another ``p``.
+    Numeric bookkeeping only: free components become ``x`` (``value = x * scale``), fixed ones
+    ``p_fixed`` (``value = p``). The solver gathers each group's values from the stacked vector
+    ``w = [x * scale; p_fixed]`` with :meth:`w_index`. Build it once per problem structure; solve
+    with other fixed values by passing another ``p``.
     """
 
-    groups: list[Group]
-    sym: type = ca.SX
-    x: ca.SX = field(init=False)
-    p: ca.SX = field(init=False)
-    _values: dict = field(init=False)
-    x_labels: list[str] = field(init=False)
-
-    def __post_init__(self):
-        names = [g.name for g in self.groups]
+    def __init__(self, groups: list[Group]):
+        names = [g.name for g in groups]
         if len(set(names)) != len(names):
             raise ValueError("duplicate parameter group names")
-        n_free = sum(int(g.free.sum()) for g in self.groups)
-        n_fixed = sum(int((~g.free).sum()) for g in self.groups)
-        self.x = self.sym.sym("x", n_free)
-        self.p = self.sym.sym("p_fixed", n_fixed)
-        self._values, self.x_labels = {}, []
-        self._x_slices: dict[str, np.ndarray] = {}
-        ix = ip = 0
-        for g in self.groups:
-            parts, xi = [], []
+        self.groups = list(groups)
+        self._by_name = {g.name: g for g in groups}
+        self.n_x = sum(int(g.free.sum()) for g in groups)
+        self.n_p = sum(int((~g.free).sum()) for g in groups)
+        self._w_index: dict[str, np.ndarray] = {}
+        self.x_labels: list[str] = []
+        ix, ip = 0, self.n_x
+        for g in groups:
+            w = np.empty(g.size, dtype=int)
             for c, is_free in enumerate(g.free):
                 if is_free:
-                    parts.append(self.x[ix] * g.scale[c])
-                    xi.append(ix)
+                    w[c] = ix
                     self.x_labels.append(f"{g.name}[{g.components[c]}]")
                     ix += 1
                 else:
-                    parts.append(self.p[ip])
+                    w[c] = ip
                     ip += 1
-            self._values[g.name] = ca.vertcat(*parts)
-            self._x_slices[g.name] = np.array(xi, dtype=int)
-        self._by_name = {g.name: g for g in self.groups}
-
-    # -- symbolic ----------------------------------------------------------------------------
-    def value(self, name: str):
-        """Symbolic physical value of a group (free parts from x, fixed parts from p)."""
-        return self._values[name]
+            self._w_index[g.name] = w
 
     def __contains__(self, name: str) -> bool:
-        return name in self._values
+        return name in self._by_name
 
     def group(self, name: str) -> Group:
         return self._by_name[name]
 
-    def prior_residuals(self):
-        """Whitened prior residuals (value - mean) / std for every free component with a prior."""
-        terms = []
-        for g in self.groups:
-            v = self._values[g.name]
-            for c in np.flatnonzero(g.free & np.isfinite(g.prior_std)):
-                terms.append((v[c] - g.prior_mean[c]) / g.prior_std[c])
-        return ca.vertcat(*terms) if terms else self.sym(0, 1)
+    def w_index(self, name: str) -> np.ndarray:
+        """Positions of a group's components in w = [x * scale; p_fixed]; < n_x means free."""
+        return self._w_index[name]
 
-    def constraints(self):
-        """Equality constraints (= 0): unit norm of quaternions and unit vectors with a free part."""
-        terms = [quaternion_norm_residual(self._values[g.name])
-                 for g in self.groups if g.unit_norm and g.free.any()]
-        return ca.vertcat(*terms) if terms else self.sym(0, 1)
+    def x_indices(self, name: str) -> np.ndarray:
+        """Positions in x of the free components of a group."""
+        w = self._w_index[name]
+        return w[w < self.n_x]
 
-    # -- numeric -----------------------------------------------------------------------------
     def _gather(self, attr: str, free: bool) -> np.ndarray:
         parts = [getattr(g, attr)[g.free if free else ~g.free] for g in self.groups]
         return np.concatenate(parts) if parts else np.zeros(0)
@@ -170,20 +147,22 @@ class Layout:
 
     def unpack(self, x: np.ndarray, p: np.ndarray) -> dict[str, np.ndarray]:
         """Physical values of every group from numeric x and p."""
-        x, p = np.asarray(x, float).ravel(), np.asarray(p, float).ravel()
-        out, ix, ip = {}, 0, 0
-        for g in self.groups:
-            v = np.empty(g.size)
-            nf = int(g.free.sum())
-            v[g.free] = x[ix: ix + nf] * g.scale[g.free]
-            v[~g.free] = p[ip: ip + g.size - nf]
-            ix, ip = ix + nf, ip + g.size - nf
-            out[g.name] = v
-        return out
+        w = np.concatenate([np.asarray(x, float).ravel() * self.x_scale, np.asarray(p, float).ravel()])
+        return {g.name: w[self._w_index[g.name]] for g in self.groups}
 
-    def x_indices(self, name: str) -> np.ndarray:
-        """Positions in x of the free components of a group."""
-        return self._x_slices[name]
+    def priors(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(x index, mean, std) of every free component with a Gaussian prior."""
+        idx, mean, std = [], [], []
+        for g in self.groups:
+            for c in np.flatnonzero(g.free & np.isfinite(g.prior_std)):
+                idx.append(self._w_index[g.name][c])
+                mean.append(g.prior_mean[c])
+                std.append(g.prior_std[c])
+        return np.array(idx, dtype=int), np.array(mean), np.array(std)
+
+    def unit_norm_groups(self) -> list[Group]:
+        """Groups constrained to |value|^2 = 1 that have a free component."""
+        return [g for g in self.groups if g.unit_norm and g.free.any()]
 
     def check_start(self, x0: np.ndarray) -> list[str]:
         """Names of the free components whose initial value lies outside its bounds."""

@@ -133,7 +133,8 @@ class _Check:
     def number(self, v, where, positive=False, integer=False):
         ok = isinstance(v, (int, float)) and not isinstance(v, bool)
         if not ok or not np.isfinite(v) or (positive and v <= 0) or (integer and int(v) != v):
-            kind = ("a positive " if positive else "a ") + ("integer" if integer else "finite number")
+            kind = "a positive " if positive else "an " if integer else "a "
+            kind += "integer" if integer else "finite number"
             self.fail(where, f"expected {kind}, found {v!r}")
         return int(v) if integer else float(v)
 

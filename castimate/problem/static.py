@@ -21,7 +21,7 @@ from ..models import rotation as rot
 from ..models import triad as tri
 from .parameters import Group, Layout
 from ..segments import PoseAverages
-from ..solve import LeastSquaresProblem
+from ..solve import FactorBlock, LeastSquaresProblem
 
 XYZ = ("x", "y", "z")
 
@@ -148,19 +148,96 @@ def misalignment_rotation(kind: str, v):
     return rot.small_angle_rotation(v) if kind == "small_angle" else rot.quaternion_to_rotation(v)
 
 
+def triad_groups(config: StaticConfig, t: TriadConfig, with_gyro: bool) -> list[Group]:
+    """The parameter groups of one triad. The reference triad's misalignment is fixed at identity:
+    it defines the body frame."""
+    out = []
+    for gname, gd in ACCELEROMETER_GROUPS.items():
+        setting = t.accelerometer[gname]
+        if gname == "misalignment":
+            gd = QUATERNION_MISALIGNMENT if config.misalignment == "rotation" else gd
+            if t.name == config.reference:
+                setting = GroupSetting(free=(False,) * len(gd.components))
+        out.append(_group(group_name(t.name, "accelerometer", gname), gd, setting))
+    if with_gyro:
+        for gname, gd in GYROSCOPE_GROUPS.items():
+            out.append(_group(group_name(t.name, "gyroscope", gname), gd, t.gyroscope[gname]))
+    return out
+
+
+def accelerometer_matrix(misalignment: str) -> ca.Function:
+    """T = K L M Rbar of an accelerometer triad (Nilsson 2014, eq. 3), as a function of
+    (k, l, misalignment, Rbar)."""
+    n_mis = len(QUATERNION_MISALIGNMENT.components) if misalignment == "rotation" else 3
+    k, l, m = ca.SX.sym("k", 3), ca.SX.sym("l", 3), ca.SX.sym("m", n_mis)
+    R = ca.SX.sym("Rbar", 3, 3)
+    T = ca.mtimes([tri.gain_matrix(k), tri.nonorthogonality_matrix(l), misalignment_rotation(misalignment, m), R])
+    return ca.Function("accelerometer_T", [k, l, m, R], [T], ["k", "l", "misalignment", "Rbar"], ["T"])
+
+
+def gyroscope_matrix() -> ca.Function:
+    """T_g = K_g M_g Rbar of a gyroscope triad (DESIGN.md), as a function of (k, misalignment, Rbar)."""
+    k, m, R = ca.SX.sym("k", 3), ca.SX.sym("m", 3), ca.SX.sym("Rbar", 3, 3)
+    T = ca.mtimes([tri.gain_matrix(k), rot.small_angle_rotation(m), R])
+    return ca.Function("gyroscope_T", [k, m, R], [T], ["k", "misalignment", "Rbar"], ["T"])
+
+
+def accelerometer_pose_factor(config: StaticConfig) -> ca.Function:
+    """Whitened residual of one accelerometer triad in one static pose (Nilsson 2014, eq. 4).
+
+    z = [k, l, misalignment, b, pose direction], d = [y, σ, vec(Rbar), g].
+    """
+    Tfn = accelerometer_matrix(config.misalignment)
+    n_mis = Tfn.size1_in(2)
+    n_dir = direction_group(0, config.gravity_direction, np.array([0, 0, 1.0])).size
+    k, l, m, b = ca.SX.sym("k", 3), ca.SX.sym("l", 3), ca.SX.sym("m", n_mis), ca.SX.sym("b", 3)
+    v = ca.SX.sym("direction", n_dir)
+    y, sigma, R, g = ca.SX.sym("y", 3), ca.SX.sym("sigma", 3), ca.SX.sym("Rbar", 9), ca.SX.sym("g")
+    f = tri.static_specific_force(g, direction_expression(config.gravity_direction, v))
+    r = (y - tri.triad_output(Tfn(k, l, m, ca.reshape(R, 3, 3)), b, f)) / sigma
+    return ca.Function("accelerometer_pose", [ca.vertcat(k, l, m, b, v), ca.vertcat(y, sigma, R, g)], [r])
+
+
+def gyroscope_pose_factor() -> ca.Function:
+    """Whitened residual of one gyroscope triad in a static pose: y = T_g 0 + b_g + v.
+
+    z = [k_g, misalignment_g, b_g], d = [y, σ, vec(Rbar)].
+    """
+    k, m, b = ca.SX.sym("k", 3), ca.SX.sym("m", 3), ca.SX.sym("b", 3)
+    y, sigma, R = ca.SX.sym("y", 3), ca.SX.sym("sigma", 3), ca.SX.sym("Rbar", 9)
+    T = gyroscope_matrix()(k, m, ca.reshape(R, 3, 3))
+    r = (y - tri.triad_output(T, b, ca.DM.zeros(3))) / sigma
+    return ca.Function("gyroscope_pose", [ca.vertcat(k, m, b), ca.vertcat(y, sigma, R)], [r])
+
+
+ACC_FACTOR_GROUPS = ("gain", "nonorthogonality", "misalignment", "bias")
+GYRO_FACTOR_GROUPS = ("gain", "misalignment", "bias")
+
+
 @dataclass
 class StaticProblem:
-    """A composed static problem plus the functions needed to interpret its solution."""
+    """A composed static problem plus what is needed to interpret its solution."""
 
     config: StaticConfig
     lsq: LeastSquaresProblem
-    T_b: ca.Function  # (x, p) -> [T_1, b_1, T_2, b_2, ...] accelerometers
-    T_b_gyro: ca.Function | None
     gyro_triads: list[str]
     n_poses: int
 
+    def block_data(self, poses: PoseAverages) -> list[np.ndarray]:
+        """Per-block data arrays: accelerometer (M*P, 16) then gyroscope (Mg*P, 15), triad-major."""
+        P, g = self.n_poses, self.config.gravity
+        acc = [np.hstack([poses.acc_mean[t.name], poses.acc_sigma[t.name],
+                          np.tile(t.R_nominal.ravel(order="F"), (P, 1)), np.full((P, 1), g)])
+               for t in self.config.triads]
+        out = [np.vstack(acc)]
+        if self.gyro_triads:
+            R = {t.name: t.R_nominal for t in self.config.triads}
+            out.append(np.vstack([np.hstack([poses.gyro_mean[n], poses.gyro_sigma[n],
+                                             np.tile(R[n].ravel(order="F"), (P, 1))]) for n in self.gyro_triads]))
+        return out
+
     def data_vector(self, poses: PoseAverages) -> np.ndarray:
-        return pack_data(self.config, poses, self.gyro_triads)
+        return self.lsq.pack(self.block_data(poses))
 
     def x0(self, poses: PoseAverages, values: dict[str, np.ndarray] | None = None) -> np.ndarray:
         """Start for new data of the same structure: directions from the reference triad's readings.
@@ -173,15 +250,21 @@ class StaticProblem:
         start.update(values or {})
         return self.lsq.layout.x0(start)
 
+    def calibration(self, values: dict[str, np.ndarray]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """(T, b) of every accelerometer triad: raw = T f + b with f in the body frame."""
+        Tfn = accelerometer_matrix(self.config.misalignment)
+        v = lambda n, g: values[group_name(n, "accelerometer", g)]  # noqa: E731
+        return {t.name: (np.asarray(Tfn(v(t.name, "gain"), v(t.name, "nonorthogonality"),
+                                        v(t.name, "misalignment"), t.R_nominal)), v(t.name, "bias"))
+                for t in self.config.triads}
 
-def pack_data(config: StaticConfig, poses: PoseAverages, gyro_triads: list[str]) -> np.ndarray:
-    """Data vector in the order the problem expects: per triad y (P x 3, row-major) then σ."""
-    parts = []
-    for name in config.names:
-        parts += [poses.acc_mean[name].ravel(), poses.acc_sigma[name].ravel()]
-    for name in gyro_triads:
-        parts += [poses.gyro_mean[name].ravel(), poses.gyro_sigma[name].ravel()]
-    return np.concatenate(parts)
+    def gyro_calibration(self, values: dict[str, np.ndarray]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """(T_g, b_g) of every gyroscope triad: raw = T_g w + b_g with w in the body frame."""
+        Tfn = gyroscope_matrix()
+        R = {t.name: t.R_nominal for t in self.config.triads}
+        v = lambda n, g: values[group_name(n, "gyroscope", g)]  # noqa: E731
+        return {n: (np.asarray(Tfn(v(n, "gain"), v(n, "misalignment"), R[n])), v(n, "bias"))
+                for n in self.gyro_triads}
 
 
 def initial_directions(config: StaticConfig, poses: PoseAverages) -> np.ndarray:
@@ -191,39 +274,8 @@ def initial_directions(config: StaticConfig, poses: PoseAverages) -> np.ndarray:
     return y / np.linalg.norm(y, axis=1, keepdims=True)
 
 
-def triad_groups(config: StaticConfig, t: TriadConfig, with_gyro: bool) -> list[Group]:
-    """The parameter groups of one triad."""
-    out = []
-    for gname, gd in ACCELEROMETER_GROUPS.items():
-        if gname == "misalignment":
-            if t.name == config.reference:
-                continue  # the reference triad defines the body frame
-            if config.misalignment == "rotation":
-                gd = QUATERNION_MISALIGNMENT
-        out.append(_group(group_name(t.name, "accelerometer", gname), gd, t.accelerometer[gname]))
-    if with_gyro:
-        for gname, gd in GYROSCOPE_GROUPS.items():
-            out.append(_group(group_name(t.name, "gyroscope", gname), gd, t.gyroscope[gname]))
-    return out
-
-
-def accelerometer_T(config: StaticConfig, lay: Layout, t: TriadConfig):
-    """T = K L M Rbar for an accelerometer triad (Nilsson 2014, eq. 3)."""
-    g = lambda k: lay.value(group_name(t.name, "accelerometer", k))  # noqa: E731
-    M = ca.DM.eye(3) if t.name == config.reference else misalignment_rotation(config.misalignment, g("misalignment"))
-    return ca.mtimes([tri.gain_matrix(g("gain")), tri.nonorthogonality_matrix(g("nonorthogonality")), M,
-                      ca.DM(t.R_nominal)])
-
-
-def gyroscope_T(lay: Layout, t: TriadConfig):
-    """T_g = K_g M_g Rbar for a gyroscope triad (DESIGN.md, gyroscope model)."""
-    g = lambda k: lay.value(group_name(t.name, "gyroscope", k))  # noqa: E731
-    return ca.mtimes([tri.gain_matrix(g("gain")), rot.small_angle_rotation(g("misalignment")),
-                      ca.DM(t.R_nominal)])
-
-
 def build_static(config: StaticConfig, poses: PoseAverages) -> StaticProblem:
-    """Compose the static array problem; the data enter as NLP parameters."""
+    """Compose the static array problem from two factor blocks; the data enter as NLP parameters."""
     P = poses.n_poses
     gyro_triads = [t.name for t in config.triads if t.gyroscope is not None and t.name in poses.gyro_mean]
     u0 = initial_directions(config, poses)
@@ -231,45 +283,18 @@ def build_static(config: StaticConfig, poses: PoseAverages) -> StaticProblem:
     for t in config.triads:
         groups += triad_groups(config, t, t.name in gyro_triads)
     groups += [direction_group(n, config.gravity_direction, u0[n]) for n in range(P)]
-    lay = Layout(groups)
-
-    n_data = 6 * P * (len(config.triads) + len(gyro_triads))
-    data = ca.SX.sym("data", n_data)
-    u = [direction_expression(config.gravity_direction, lay.value(f"pose{n + 1}.direction")) for n in range(P)]
-    residuals, Tb, Tb_g = [], [], []
-    off = 0
-    for t in config.triads:
-        T = accelerometer_T(config, lay, t)
-        b = lay.value(group_name(t.name, "accelerometer", "bias"))
-        Tb += [T, b]
-        y, s = data[off: off + 3 * P], data[off + 3 * P: off + 6 * P]
-        off += 6 * P
-        for n in range(P):
-            f = tri.static_specific_force(config.gravity, u[n])
-            residuals.append((y[3 * n: 3 * n + 3] - tri.triad_output(T, b, f)) / s[3 * n: 3 * n + 3])
-    for name in gyro_triads:
-        t = next(t for t in config.triads if t.name == name)
-        T = gyroscope_T(lay, t)
-        b = lay.value(group_name(name, "gyroscope", "bias"))
-        Tb_g += [T, b]
-        y, s = data[off: off + 3 * P], data[off + 3 * P: off + 6 * P]
-        off += 6 * P
-        for n in range(P):
-            residuals.append((y[3 * n: 3 * n + 3] - tri.triad_output(T, b, ca.DM.zeros(3))) / s[3 * n: 3 * n + 3])
-
-    lsq = LeastSquaresProblem(lay, ca.vertcat(*residuals), data, pack_data(config, poses, gyro_triads))
-    T_b = ca.Function("T_b", [lay.x, lay.p], Tb)
-    T_b_g = ca.Function("T_b_gyro", [lay.x, lay.p], Tb_g) if gyro_triads else None
-    return StaticProblem(config, lsq, T_b, T_b_g, gyro_triads, P)
-
-
-def evaluate_Tb(fn: ca.Function | None, names: list[str], x, p) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Numeric (T, b) per triad from a T_b function."""
-    if fn is None:
-        return {}
-    out = fn(x, p)
-    out = out if isinstance(out, (list, tuple)) else [out]
-    return {n: (np.asarray(out[2 * i]), np.asarray(out[2 * i + 1]).ravel()) for i, n in enumerate(names)}
+    blocks = [FactorBlock("accelerometer_pose", accelerometer_pose_factor(config),
+                          [tuple(group_name(t.name, "accelerometer", g) for g in ACC_FACTOR_GROUPS)
+                           + (f"pose{n + 1}.direction",) for t in config.triads for n in range(P)],
+                          np.zeros((0, 0)))]
+    if gyro_triads:
+        blocks.append(FactorBlock("gyroscope_pose", gyroscope_pose_factor(),
+                                  [tuple(group_name(name, "gyroscope", g) for g in GYRO_FACTOR_GROUPS)
+                                   for name in gyro_triads for _ in range(P)], np.zeros((0, 0))))
+    problem = StaticProblem(config, LeastSquaresProblem(Layout(groups), blocks), gyro_triads, P)
+    for b, d in zip(blocks, problem.block_data(poses)):
+        b.data = d
+    return problem
 
 
 def recover_nominal_rotation(ref_mean: np.ndarray, triad_mean: np.ndarray) -> tuple[np.ndarray, float]:
