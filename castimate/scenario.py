@@ -67,6 +67,9 @@ def simulate_scenario(path: str | Path, out: str | Path) -> dict[str, Path]:
     gsigma = c.number(noise.get("gyroscope", 0.002), "noise.gyroscope", positive=True) if gyro else None
     tsec = c.mapping(s.get("truth"), "truth", tuple(StaticTruthScale.__dataclass_fields__))
     scale = StaticTruthScale(**{k: c.number(v, f"truth.{k}") for k, v in tsec.items()})
+    for k, v in vars(scale).items():
+        if v < 0:
+            c.fail(f"truth.{k}", f"expected a standard deviation >= 0, found {v}")
     n_samp = c.number(s.get("samples_per_pose", 1000), "samples_per_pose", positive=True, integer=True)
 
     truth = random_static_truth(names, ref, rng, g, scale, gyroscope=gyro)

@@ -361,6 +361,10 @@ def _model(c: _Check, m, array: ArraySpec) -> ModelSpec:
                 s = _group_setting(c, ssec[g], w, size(sensor, g), glob[sensor, g], gdef(sensor, g).neutral) \
                     if g in ssec else glob[sensor, g]
                 check_quaternion(sensor, g, s, w)
+                if s.get("prior_std") and not all(s["free"]):
+                    c.fail((w if g in ssec else f"model.{sensor}.{g}") + ".prior",
+                           f"a prior only acts on free components, but {name}'s {g} has fixed components "
+                           f"(free: {list(s['free'])})")
                 settings[name, sensor, g] = GroupSetting(**s)
     return ModelSpec(gravity, direction, mis, settings)
 
@@ -391,6 +395,8 @@ def _solver(c: _Check, s) -> SolverOptions:
         w = f"solver.{k}"
         if k == "linear_solver":
             kw[k] = c.choice(v, w, ("mumps", "spral"))
+        elif k == "hessian":
+            kw[k] = c.choice(v, w, ("exact", "gauss_newton"))
         elif isinstance(default, int):
             kw[k] = c.number(v, w, integer=True)
             if k == "max_iter" and kw[k] < 1:

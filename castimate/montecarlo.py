@@ -1,0 +1,72 @@
+"""Monte Carlo checks of the estimator: are the reported σ's honest, and is the CRB reached?
+
+One problem is built once; every run re-solves it with fresh noise passed as NLP parameters.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .problem.static import ACCELEROMETER_GROUPS, GroupSetting, StaticConfig, TriadConfig, build_static
+from .segments import pose_averages_from_means
+from .simulate import pose_directions, random_static_truth, static_pose_means
+from .solve import Solver
+
+
+@dataclass
+class MonteCarloResult:
+    """Per calibration parameter (columns) and run (rows)."""
+
+    labels: list[str]
+    errors: np.ndarray  # estimate - truth, physical units
+    z: np.ndarray  # error / reported σ of that run
+    crb: np.ndarray  # Cramér-Rao bound σ at the truth
+    failures: int  # runs that did not converge (excluded)
+
+    @property
+    def z_std(self) -> np.ndarray:
+        return self.z.std(axis=0, ddof=1)
+
+    @property
+    def rmse_over_crb(self) -> np.ndarray:
+        return np.sqrt((self.errors ** 2).mean(axis=0)) / self.crb
+
+
+def monte_carlo_static(runs: int, n_triads: int = 14, n_poses: int = 20, sigma: float = 0.01,
+                       samples_per_pose: int = 1000, seed: int = 0) -> MonteCarloResult:
+    """Simulate a Nilsson-like array once (truth, poses) and solve ``runs`` noise realisations."""
+    rng = np.random.default_rng(seed)
+    names = [f"imu{i + 1}" for i in range(n_triads)]
+    truth = random_static_truth(names, names[0], rng)
+    U = pose_directions(n_poses, rng)
+    free = GroupSetting(free=(True,) * 3)
+    cfg = StaticConfig(tuple(TriadConfig(n, np.eye(3), {g: free for g in ACCELEROMETER_GROUPS}) for n in names),
+                       names[0], truth.gravity)
+
+    def poses(noise: bool):
+        acc, _ = static_pose_means(truth, U, sigma if noise else 0.0, samples_per_pose, rng)
+        return pose_averages_from_means(acc, samples_per_pose, sigma)
+
+    exact = poses(False)
+    prob = build_static(cfg, exact)
+    solver = Solver(prob.lsq)
+    lay = prob.lsq.layout
+    true_values = dict(truth.values)
+    true_values.update({f"pose{n + 1}.direction": U[n] for n in range(n_poses)})
+    x_true = prob.x0(exact, true_values)
+    calib = np.array([i for i, lab in enumerate(lay.x_labels) if not lab.startswith("pose")])
+    crb = np.sqrt(np.diag(solver.covariance(x_true, data=prob.data_vector(exact))))[calib]
+    scale = lay.x_scale[calib]
+    errors, z, failures = [], [], 0
+    for _ in range(runs):
+        d = poses(True)
+        sol = solver.solve(x0=prob.x0(d), data=prob.data_vector(d))
+        if not sol.success:
+            failures += 1
+            continue
+        e = (sol.x - x_true)[calib] * scale
+        errors.append(e)
+        z.append(e / np.sqrt(np.diag(sol.covariance_x))[calib])
+    return MonteCarloResult([lay.x_labels[i] for i in calib], np.array(errors), np.array(z), crb, failures)

@@ -1,0 +1,74 @@
+"""Markdown tables across results: parameter spread over sessions (Nilsson 2014, Table I) and a
+comparison of a raw-count calibration with manufacturer values."""
+
+from __future__ import annotations
+
+import numpy as np
+
+DEG = 180 / np.pi
+# (parameter key, component, column title, factor to display units)
+TABLE_I_COLUMNS = [("gain", i, f"k_{a} [-]", 1.0) for i, a in enumerate("xyz")] + \
+    [("bias", i, f"b_{a} [m/s²]", 1.0) for i, a in enumerate("xyz")] + \
+    [("nonorthogonality", i, f"l_{c} [°]", DEG) for i, c in enumerate(("yx", "zx", "zy"))] + \
+    [("misalignment", i, f"ξ_{a} [°]", DEG) for i, a in enumerate("xyz")]
+
+
+def _fmt(x: float) -> str:
+    return f"{x:.4f}" if abs(x) < 10 else f"{x:.1f}"
+
+
+def session_spread(results: list[dict], sessions: list[str]) -> str:
+    """Mean (range) of every accelerometer parameter over sessions, one row per triad."""
+    triads = list(results[0]["triads"])
+    head = "| triad | " + " | ".join(c[2] for c in TABLE_I_COLUMNS) + " |"
+    lines = [f"Mean (range) over {len(results)} sessions ({', '.join(sessions)}).", "", head,
+             "|" + "---|" * (len(TABLE_I_COLUMNS) + 1)]
+    for t in triads:
+        cells = []
+        for key, i, _, f in TABLE_I_COLUMNS:
+            p = results[0]["triads"][t]["parameters"].get(key)
+            if p is None or not p["free"][i]:
+                cells.append("–")
+                continue
+            v = np.array([r["triads"][t]["parameters"][key]["value"][i] for r in results]) * f
+            cells.append(f"{_fmt(v.mean())} ({v.max() - v.min():.1e})")
+        lines.append(f"| {t} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def session_summary(results: list[dict], sessions: list[str]) -> str:
+    """Per session: convergence, χ²/dof, residual RMS, consistency before/after in dB."""
+    lines = ["| session | status | iterations | χ²/dof | residual RMS [mm/s²] | consistency before → after [mm/s²] | ratio [dB] |",
+             "|---|---|---|---|---|---|---|"]
+    for s, r in zip(sessions, results):
+        rms = np.sqrt(np.mean([np.mean(np.square(v)) for v in r["residuals"]["rms"].values()])) * 1e3
+        c = r.get("consistency", {})
+        cons = f"{np.sqrt(c['before']) * 1e3:.1f} → {np.sqrt(c['after']) * 1e3:.1f}" if c else "–"
+        db = f"{c['ratio_db']:+.1f}" if c else "–"
+        lines.append(f"| {s} | {r['status']['message']} | {r['status']['iterations']} | "
+                     f"{r['residuals']['chi2_per_dof']:.2f} | {rms:.2f} | {cons} | {db} |")
+    return "\n".join(lines)
+
+
+def counts_comparison(result: dict, triad: str, sensor: str, nominal_offset, nominal_scale) -> str:
+    """Offsets [counts] and scales [counts per SI unit] implied by a calibration of raw counts,
+    against nominal values. The problem's unit declaration (counts -> SI) is undone first."""
+    units = result["units"][f"data_{sensor}"]
+    s0, o0 = np.asarray(units["scale"], float), np.asarray(units["offset"], float)
+    cal = result["triads"][triad][sensor]
+    T, b = np.asarray(cal["T"]), np.asarray(cal["b"])
+    offset = o0 + b / s0
+    scale = np.diag(T) / s0
+    si = "m/s²" if sensor == "accelerometer" else "rad/s"
+    lines = [f"| {sensor} axis | offset castimate [counts] | offset nominal | scale castimate [counts/({si})] | scale nominal |",
+             "|---|---|---|---|---|"]
+    for i, a in enumerate("xyz"):
+        ns = "–" if nominal_scale is None else f"{nominal_scale[i]:.0f}"
+        lines.append(f"| {a} | {offset[i]:.1f} | {nominal_offset[i]:.0f} | {scale[i]:.1f} | {ns} |")
+    return "\n".join(lines)
+
+
+def gravity_norm_rms(acc_si: np.ndarray, T: np.ndarray, b: np.ndarray, g: float) -> float:
+    """RMS over poses of | |T^-1 (y - b)| - g |, m/s²."""
+    f = np.linalg.solve(T, (acc_si - b).T).T
+    return float(np.sqrt(np.mean((np.linalg.norm(f, axis=1) - g) ** 2)))
