@@ -83,6 +83,15 @@ def static_results(outcome) -> dict:
         "poses": {"count": outcome.averages.n_poses, "samples": outcome.averages.n,
                   "t_start": outcome.averages.t_start, "t_end": outcome.averages.t_end},
     }
+    det = outcome.detection
+    if det is not None:
+        doc["detection"] = {
+            "threshold": det.threshold, "threshold_unit": "m/s^2", "gyro_threshold": det.gyro_threshold,
+            "method": det.threshold_method,
+            "rejected": [{"t_start": a, "t_end": b, "reason": r[2]} for (a, b), r in zip(det.rejected_times, det.rejected)],
+            "notes": [{"pose": i + 1, "note": n} for i, n in det.notes],
+        }
+    doc["recording_notes"] = list(outcome.recording.notes)
     if outcome.consistency is not None:
         c = outcome.consistency
         doc["consistency"] = {"before": float(c.before.mean()), "after": float(c.after.mean()),
