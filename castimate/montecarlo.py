@@ -9,7 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .problem.static import ACCELEROMETER_GROUPS, GroupSetting, StaticConfig, TriadConfig, build_static
+from .problem.static import (ACCELEROMETER_GROUPS, DIRECTIONS, GroupSetting, StaticConfig, TriadConfig,
+                             build_static)
 from .segments import pose_averages_from_means
 from .simulate import pose_directions, random_static_truth, static_pose_means
 from .solve import Solver
@@ -54,10 +55,10 @@ def monte_carlo_static(runs: int, n_triads: int = 14, n_poses: int = 20, sigma: 
     solver = Solver(prob.lsq)
     lay = prob.lsq.layout
     true_values = dict(truth.values)
-    true_values.update({f"pose{n + 1}.direction": U[n] for n in range(n_poses)})
+    true_values[DIRECTIONS] = U
     x_true = prob.x0(exact, true_values)
-    calib = np.array([i for i, lab in enumerate(lay.x_labels) if not lab.startswith("pose")])
-    crb = np.sqrt(np.diag(solver.covariance(x_true, data=prob.data_vector(exact))))[calib]
+    calib = solver.theta
+    crb = np.sqrt(np.diag(solver.covariance(x_true, data=prob.data_vector(exact))))
     scale = lay.x_scale[calib]
     errors, z, failures = [], [], 0
     for _ in range(runs):
@@ -68,5 +69,6 @@ def monte_carlo_static(runs: int, n_triads: int = 14, n_poses: int = 20, sigma: 
             continue
         e = (sol.x - x_true)[calib] * scale
         errors.append(e)
-        z.append(e / np.sqrt(np.diag(sol.covariance_x))[calib])
-    return MonteCarloResult([lay.x_labels[i] for i in calib], np.array(errors), np.array(z), crb, failures)
+        z.append(e / np.sqrt(np.diag(sol.covariance)))
+    labels = lay.x_labels
+    return MonteCarloResult([labels[i] for i in calib], np.array(errors), np.array(z), crb, failures)

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 import scipy.sparse as sp
+import scipy.sparse.linalg  # noqa: F401  (sp.linalg.splu)
 
 from .problem.parameters import Layout
 
@@ -82,9 +83,10 @@ class FactorBlock:
         For messages.
     residual
         ``(z, d) -> r``: whitened residual of one instance. ``z`` stacks the values of the
-        instance's parameter groups (physical units), ``d`` its data.
-    groups
-        For each instance, the names of the groups forming ``z``, in order.
+        instance's inputs (physical units), ``d`` its data.
+    inputs
+        ``(group name, rows)`` in the order they stack into ``z``: ``rows`` (N,) picks a row of a
+        matrix group per instance; ``None`` feeds a plain group to every instance.
     data
         (N, nd) data of the instances; they enter the NLP as parameters, so one build serves any
         number of data sets.
@@ -92,12 +94,12 @@ class FactorBlock:
 
     name: str
     residual: ca.Function
-    groups: list[tuple[str, ...]]
+    inputs: list[tuple[str, np.ndarray | None]]
     data: np.ndarray
 
     @property
     def n(self) -> int:
-        return len(self.groups)
+        return self.data.shape[0]
 
     @property
     def n_residuals(self) -> int:
@@ -135,35 +137,55 @@ class Solution:
     chi2: float
     dof: int
     residual: np.ndarray
-    covariance_x: np.ndarray = field(repr=False)
+    covariance: np.ndarray = field(repr=False)  # of the free calibration components (Solver.theta), physical units
 
     @property
     def chi2_per_dof(self) -> float:
         return self.chi2 / self.dof if self.dof > 0 else float("nan")
 
 
-class _Block:
-    """A factor block compiled for the solver: mapped functions and its index arrays."""
+class _Compiled:
+    """Local functions of one factor: residual, Jacobian and the Hessian entries worth assembling."""
 
-    def __init__(self, block: FactorBlock, layout: Layout, hessian: str):
-        fn = block.residual
+    def __init__(self, fn: ca.Function, active: np.ndarray, hessian: str):
         nz, nd = fn.size1_in(0), fn.size1_in(1)
-        self.block, self.nz, self.nd, self.m = block, nz, nd, fn.size1_out(0)
-        self.w_idx = np.array([np.concatenate([layout.w_index(g) for g in gs]) for gs in block.groups], dtype=int)
-        if self.w_idx.shape != (block.n, nz):
-            raise ValueError(f"factor block {block.name}: groups give {self.w_idx.shape[1]} values, the function takes {nz}")
         z, d = ca.SX.sym("z", nz), ca.SX.sym("d", nd)
         r = fn(z, d)
         J = ca.jacobian(r, z)
         H = ca.mtimes(J.T, J)
         if hessian == "exact":
-            for i in range(self.m):  # + sum_i r_i Hess(r_i): the curvature Gauss-Newton leaves out
+            for i in range(r.shape[0]):  # + sum_i r_i Hess(r_i): the curvature Gauss-Newton leaves out
                 H += r[i] * ca.hessian(r[i], z)[0]
-        self.pairs = [(a, b) for b in range(nz) for a in range(b + 1)]
-        H = ca.densify(H)
-        self.hess = ca.Function(f"{block.name}_hess", [z, d], [ca.vertcat(*[H[a, b] for a, b in self.pairs])])
-        self.jac = ca.Function(f"{block.name}_jac", [z, d], [ca.densify(J)])
+        sp_H = H.sparsity()
+        # entries (a <= b) between components that are free somewhere and structurally nonzero
+        self.pairs = [(a, b) for b in range(nz) for a in range(b + 1)
+                      if active[a] and active[b] and sp_H.has_nz(a, b)]
+        self.hess = ca.Function(f"{fn.name()}_hess", [z, d], [ca.vertcat(*[H[a, b] for a, b in self.pairs])
+                                                               if self.pairs else ca.SX(0, 1)])
+        self.jac = ca.Function(f"{fn.name()}_jac", [z, d], [ca.densify(J)])
         self.res = fn
+        self.nz, self.nd, self.m = nz, nd, fn.size1_out(0)
+
+
+class _Block:
+    """A factor block bound to the layout: its index matrix into w and its compiled functions."""
+
+    def __init__(self, block: FactorBlock, layout: Layout, cache: dict, hessian: str):
+        self.block = block
+        cols = []
+        for g, rows in block.inputs:
+            W = layout.w_index(g)
+            cols.append(np.broadcast_to(W[0], (block.n, W.shape[1])) if rows is None else W[np.asarray(rows)])
+        self.w_idx = np.hstack(cols).astype(int)
+        nz = block.residual.size1_in(0)
+        if self.w_idx.shape[1] != nz:
+            raise ValueError(f"factor block {block.name}: inputs give {self.w_idx.shape[1]} values, "
+                             f"the function takes {nz}")
+        active = (self.w_idx < layout.n_x).any(axis=0)
+        key = (id(block.residual), active.tobytes())
+        if key not in cache:
+            cache[key] = _Compiled(block.residual, active, hessian)
+        self.f = cache[key]
 
 
 class Solver:
@@ -174,22 +196,24 @@ class Solver:
         self.problem, self.options = problem, options
         lay = problem.layout
         self.n_x = n = lay.n_x
-        self.blocks = [_Block(b, lay, options.hessian) for b in problem.blocks]
-        n_data = sum(b.block.data.size for b in self.blocks)
+        cache: dict = {}
+        self.blocks = [_Block(b, lay, cache, options.hessian) for b in problem.blocks if b.n]
         x = ca.MX.sym("x", n)
-        p = self._p_sym = ca.MX.sym("p", lay.n_p + n_data)
+        p = self._p_sym = ca.MX.sym("p", lay.n_p + problem.data.size)
         scale = lay.x_scale
         w = ca.vertcat(x * scale, p[: lay.n_p])
 
         # residuals: each block's function mapped over its instances
         residuals, hess_parts, off = [], [], lay.n_p
-        lam_f = ca.MX.sym("lam_f")
         for b in self.blocks:
-            Z = ca.reshape(w[b.w_idx.ravel().tolist()], b.nz, b.block.n)
-            D = ca.reshape(p[off: off + b.nd * b.block.n], b.nd, b.block.n)
-            off += b.nd * b.block.n
-            residuals.append(ca.vec(b.res.map(b.block.n)(Z, D)))
-            hess_parts.append(ca.vec(b.hess.map(b.block.n)(Z, D)))
+            N, f = b.block.n, b.f
+            Z = ca.reshape(w[b.w_idx.ravel().tolist()], f.nz, N)
+            D = ca.reshape(p[off: off + f.nd * N], f.nd, N)
+            b.data_offset = off
+            off += f.nd * N
+            residuals.append(ca.vec(f.res.map(N)(Z, D)))
+            if f.pairs:
+                hess_parts.append(ca.vec(f.hess.map(N)(Z, D)))
         self.n_data_residuals = sum(b.block.n_residuals for b in self.blocks)
         pi, pm, ps = lay.priors()
         self._prior = (pi, pm, ps)
@@ -198,10 +222,19 @@ class Solver:
         r_all = ca.vertcat(r_data, prior_r)
         self.n_residuals = r_all.shape[0]
 
-        # constraints |v|^2 = 1
-        self._unit = [lay.w_index(g.name) for g in lay.unit_norm_groups()]
-        c = ca.vertcat(*[ca.sumsqr(w[i.tolist()]) - 1 for i in self._unit]) if self._unit else ca.MX(0, 1)
-        self.n_constraints = c.shape[0]
+        # constraints |row|^2 = 1, rows grouped by width for vectorisation
+        self._unit = U = lay.unit_norm_rows()
+        self.n_constraints = U.shape[0]
+        c_parts = []
+        self._unit_order = []
+        for width in sorted({int((row >= 0).sum()) for row in U}):
+            sel = np.flatnonzero((U >= 0).sum(axis=1) == width)
+            idx = U[sel][:, :width]
+            c_parts.append(ca.sum1(ca.reshape(w[idx.ravel().tolist()], width, len(sel)) ** 2).T - 1)
+            self._unit_order.append(sel)
+        c = ca.vertcat(*c_parts) if c_parts else ca.MX(0, 1)
+        self._c_perm = np.concatenate(self._unit_order) if self._unit_order else np.zeros(0, int)
+        lam_f = ca.MX.sym("lam_f")
         lam_g = ca.MX.sym("lam_g", self.n_constraints)
 
         # exact Hessian of the Lagrangian, upper triangle, assembled from the local Hessians
@@ -215,6 +248,11 @@ class Solver:
         self.nlp = ca.nlpsol("castimate", "ipopt", nlp, {**options.ipopt(), "hess_lag": hess_lag})
         self._res = ca.Function("data_residual", [x, p], [r_data])
         self._res_all = ca.Function("residual", [x, p], [r_all])
+        nuisance = np.zeros(n, bool)
+        for g in lay.groups:
+            if g.nuisance:
+                nuisance[lay.x_indices(g.name)] = True
+        self.theta = np.flatnonzero(~nuisance)  # reported parameters: their covariance is computed
         self.build_s = time.perf_counter() - t0
 
     def _hessian_pattern(self, lay: Layout, scale, pi, ps):
@@ -224,27 +262,29 @@ class Solver:
         rows, cols, src, val = [], [], [], []
         col0 = 0
         for b in self.blocks:
-            a_idx = np.array([a for a, _ in b.pairs])
-            b_idx = np.array([bb for _, bb in b.pairs])
+            pairs = b.f.pairs
+            if not pairs:
+                continue
+            a_idx = np.array([a for a, _ in pairs])
+            b_idx = np.array([bb for _, bb in pairs])
             gi, gj = b.w_idx[:, a_idx], b.w_idx[:, b_idx]  # (N, n_pairs) positions in w
-            free = (gi < n) & (gj < n)
-            k = np.nonzero(free)
+            k = np.nonzero((gi < n) & (gj < n))
             i, j = gi[k], gj[k]
             rows.append(np.minimum(i, j))
             cols.append(np.maximum(i, j))
             # entry (a, b) of instance t sits at column-major position t * n_pairs + pair index
-            src.append(col0 + k[0] * len(b.pairs) + k[1])
+            src.append(col0 + k[0] * len(pairs) + k[1])
             v = scale[i] * scale[j]
             v[(i == j) & (a_idx[k[1]] != b_idx[k[1]])] *= 2  # both (a,b) and (b,a) land on the diagonal
             val.append(v)
-            col0 += b.block.n * len(b.pairs)
+            col0 += b.block.n * len(pairs)
         # priors: d^2/dx^2 of 1/2 ((x s - m) / std)^2 = (s / std)^2
         rows.append(pi), cols.append(pi), src.append(col0 + np.arange(len(pi))), val.append((scale[pi] / ps) ** 2)
         n_src = col0 + len(pi)
         # unit-norm constraints: d^2/dx^2 of |x s|^2 - 1 = 2 s^2 on the free components
         crow, ccol, cval = [], [], []
-        for j, idx in enumerate(self._unit):
-            f = idx[idx < n]
+        for j, row in enumerate(self._unit[self._c_perm]):
+            f = row[(row >= 0) & (row < n)]
             crow.append(f), ccol.append(np.full(len(f), j)), cval.append(2 * scale[f] ** 2)
         R, C = np.concatenate(rows + crow), np.concatenate(cols + crow)
         pattern = sp.coo_matrix((np.ones(len(R)), (R, C)), shape=(n, n)).tocsc()
@@ -277,80 +317,103 @@ class Solver:
         """All whitened residuals (data, then priors) at scaled x."""
         return np.asarray(self._res_all(x, self._p(p_fixed, data))).ravel()
 
-    def jacobians(self, x, p_fixed=None, data=None) -> tuple[sp.csr_matrix, np.ndarray]:
-        """Jacobians w.r.t. scaled x of the whitened residuals (data, then priors) and of the constraints."""
+    def jacobians(self, x, p_fixed=None, data=None) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+        """Sparse Jacobians w.r.t. scaled x of the whitened residuals (data, then priors) and of the
+        constraints (in the order of ``Layout.unit_norm_rows``)."""
         lay = self.problem.layout
         p = self._p(p_fixed, data)
         n = self.n_x
-        w = np.concatenate([np.asarray(x, float) * lay.x_scale, p[: lay.n_p]])
         scale = lay.x_scale
+        w = np.concatenate([np.asarray(x, float) * scale, p[: lay.n_p]])
         rows, cols, vals = [], [], []
-        row0, off = 0, lay.n_p
+        row0 = 0
         for b in self.blocks:
-            N = b.block.n
+            N, f = b.block.n, b.f
             Z = w[b.w_idx].T
-            D = p[off: off + b.nd * N].reshape(N, b.nd).T
-            off += b.nd * N
-            Jl = np.asarray(b.jac.map(N)(Z, D)).reshape(b.m, b.nz, N, order="F")  # instances side by side
+            D = p[b.data_offset: b.data_offset + f.nd * N].reshape(N, f.nd).T
+            Jl = np.asarray(f.jac.map(N)(Z, D)).reshape(f.m, f.nz, N, order="F")  # instances side by side
             t, a = np.nonzero(b.w_idx < n)
             gi = b.w_idx[t, a]
-            for i in range(b.m):
-                rows.append(row0 + t * b.m + i)
+            for i in range(f.m):
+                rows.append(row0 + t * f.m + i)
                 cols.append(gi)
                 vals.append(Jl[i, a, t] * scale[gi])
-            row0 += N * b.m
+            row0 += N * f.m
         pi, _, ps = self._prior
         rows.append(row0 + np.arange(len(pi))), cols.append(pi), vals.append(scale[pi] / ps)
         J = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                           shape=(self.n_residuals, n))
-        G = np.zeros((self.n_constraints, n))
-        for j, idx in enumerate(self._unit):
-            f = idx[idx < n]
-            G[j, f] = 2 * w[f] * scale[f]
+        gr, gc, gv = [], [], []
+        for j, row in enumerate(self._unit):
+            f = row[(row >= 0) & (row < n)]
+            gr.append(np.full(len(f), j)), gc.append(f), gv.append(2 * w[f] * scale[f])
+        G = sp.csr_matrix((np.concatenate(gv), (np.concatenate(gr), np.concatenate(gc))), shape=(self.n_constraints, n)) \
+            if gr else sp.csr_matrix((0, n))
         return J, G
 
-    def _tangent_fisher(self, x, p_fixed, data) -> tuple[np.ndarray, np.ndarray]:
-        """Fisher information J^T J restricted to the constraint tangent space, and its basis U."""
+    def marginal_information(self, x, p_fixed=None, data=None) -> tuple[np.ndarray, np.ndarray]:
+        """Fisher information of the reported parameters with the nuisance variables marginalised.
+
+        Returns (S, G_theta): S = F_tt - B N^-1 B^T over the reported parameters ``theta`` (scaled
+        x), where N = [[F_nn, G_n^T], [G_n, 0]] is the sparse KKT matrix of the nuisance block
+        (pose directions, motion states) with their own constraints, and G_theta the constraints
+        on theta. Unit-norm constraints act on either block, never both.
+        """
         J, G = self.jacobians(x, p_fixed, data)
-        F = (J.T @ J).toarray()
-        if G.shape[0]:
-            U = np.linalg.qr(G.T, mode="complete")[0][:, G.shape[0]:]
-            return U.T @ F @ U, U
-        return F, np.eye(F.shape[0])
+        F = (J.T @ J).tocsc()
+        t = self.theta
+        nu = np.setdiff1d(np.arange(self.n_x), t)
+        G = G.tocsc()
+        on_theta = np.asarray(abs(G[:, t]).sum(axis=1)).ravel() > 0
+        G_t, G_n = G[on_theta][:, t], G[~on_theta][:, nu]
+        S = F[t][:, t].toarray()
+        if len(nu):
+            K = sp.bmat([[F[nu][:, nu], G_n.T], [G_n, None]], format="csc")
+            Bt = sp.vstack([F[nu][:, t], sp.csc_matrix((G_n.shape[0], len(t)))]).toarray()
+            try:
+                X = sp.linalg.splu(K).solve(Bt)
+            except RuntimeError:  # exactly singular: some nuisance direction is undetermined
+                raise np.linalg.LinAlgError("the nuisance variables are not determined by the data") from None
+            S = S - Bt.T @ X
+        return S, G_t.toarray()
 
     def undetermined(self, x, p_fixed=None, data=None, top: int = 4) -> list[str]:
-        """Directions the data cannot determine at x, each named by its largest components."""
-        Fu, U = self._tangent_fisher(x, p_fixed, data)
-        w, V = np.linalg.eigh(Fu)
+        """Directions of the reported parameters the data cannot determine at x, each named by its
+        largest components."""
+        try:
+            S, G = self.marginal_information(x, p_fixed, data)
+        except np.linalg.LinAlgError as e:
+            return [str(e)]
+        U = np.linalg.qr(G.T, mode="complete")[0][:, G.shape[0]:] if G.shape[0] else np.eye(len(self.theta))
+        w, V = np.linalg.eigh(U.T @ S @ U)
         tol = self.options.identifiability_tol * max(w.max(), 1e-300)
-        out = []
         labels = self.problem.layout.x_labels
+        out = []
         for k in np.flatnonzero(w <= tol):
             d = U @ V[:, k]
             idx = np.argsort(-np.abs(d))[:top]
             idx = [i for i in idx if abs(d[i]) > 0.2 * abs(d[idx[0]])]
-            out.append(" + ".join(f"{d[i]:+.2f}*{labels[i]}" for i in idx))
+            out.append(" + ".join(f"{d[i]:+.2f}*{labels[self.theta[i]]}" for i in idx))
         return out
 
     def covariance(self, x, p_fixed=None, data=None) -> np.ndarray:
-        """Covariance of all free components (physical units): the constrained inverse Fisher information.
+        """Covariance of the reported parameters ``theta`` (physical units), nuisance marginalised.
 
-        Computed as the top-left block of the inverse of the KKT matrix [[J^T J, G^T], [G, 0]],
-        which equals U (U^T J^T J U)^-1 U^T for a basis U of the constraints' tangent space.
+        The top-left block of the inverse of [[S, G^T], [G, 0]] with S the marginal information:
+        U (U^T S U)^-1 U^T for a basis U of the constraints' tangent space.
         """
-        J, G = self.jacobians(x, p_fixed, data)
-        n, c = J.shape[1], G.shape[0]
-        K = np.zeros((n + c, n + c))
-        K[:n, :n] = (J.T @ J).toarray()
-        K[n:, :n], K[:n, n:] = G, G.T
-        rhs = np.zeros((n + c, n))
-        rhs[:n] = np.eye(n)
+        S, G = self.marginal_information(x, p_fixed, data)
+        nt, c = S.shape[0], G.shape[0]
+        K = np.zeros((nt + c, nt + c))
+        K[:nt, :nt], K[nt:, :nt], K[:nt, nt:] = S, G, G.T
+        rhs = np.zeros((nt + c, nt))
+        rhs[:nt] = np.eye(nt)
         try:
-            C = np.linalg.solve(K, rhs)[:n]
+            C = np.linalg.solve(K, rhs)[:nt]
         except np.linalg.LinAlgError:
-            Fu, U = self._tangent_fisher(x, p_fixed, data)  # rank deficient: pseudo-inverse
-            C = U @ np.linalg.pinv(Fu, hermitian=True) @ U.T
-        s = self.problem.layout.x_scale
+            U = np.linalg.qr(G.T, mode="complete")[0][:, c:] if c else np.eye(nt)
+            C = U @ np.linalg.pinv(U.T @ S @ U, hermitian=True) @ U.T
+        s = self.problem.layout.x_scale[self.theta]
         return C * np.outer(s, s)
 
     def solve(self, x0=None, p_fixed=None, data=None) -> Solution:
@@ -366,12 +429,13 @@ class Solver:
         pf, data = p[: lay.n_p], p[lay.n_p:]
         values = lay.unpack(x, pf)
         cov = self.covariance(x, pf, data)
-        sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+        sd = np.full(self.n_x, np.nan)
+        sd[self.theta] = np.sqrt(np.clip(np.diag(cov), 0, None))
         std = {}
         for g in lay.groups:
-            s = np.zeros(g.size)
+            s = np.zeros(g.free.shape)
             s[g.free] = sd[lay.x_indices(g.name)]
-            std[g.name] = s
+            std[g.name] = g.shaped(s)
         cost = float(sol["f"])
         return Solution(
             success=bool(st["success"]),
@@ -385,7 +449,7 @@ class Solver:
             chi2=2.0 * cost,
             dof=int(self.n_residuals - (x.size - self.n_constraints)),
             residual=np.asarray(self._res(x, p)).ravel(),
-            covariance_x=cov,
+            covariance=cov,
         )
 
 

@@ -475,7 +475,7 @@ def test_per_axis_free_mask_reaches_the_nlp(doc, tmp_path):
     assert len(lay.x_labels) == len(lay0.x_labels) - 1  # one fewer decision variable
     assert len(lay.p0()) == len(lay0.p0()) + 1  # ... and its fixed value in p
     g = lay.group("imu2.accelerometer.gain")
-    assert g.free.tolist() == [True, False, True]
+    assert g.shaped(g.free).tolist() == [True, False, True]
     assert "imu2.accelerometer.gain[y]" not in lay.x_labels and "imu2.accelerometer.gain[x]" in lay.x_labels
     assert 1.02 in lay.p0().tolist()
     assert lay.unpack(lay.x0(), lay.p0())["imu2.accelerometer.gain"][1] == 1.02

@@ -58,7 +58,7 @@ def static_results(outcome) -> dict:
                 continue
             sensor, group = g.name.split(".")[1:]
             key = group if sensor == "accelerometer" else f"{sensor}.{group}"
-            params[key] = {"value": sol.values[g.name], "std": sol.std[g.name], "free": g.free,
+            params[key] = {"value": sol.values[g.name], "std": sol.std[g.name], "free": g.shaped(g.free),
                            "unit": g.unit, "components": list(g.components)}
         entry["parameters"] = params
         triads[t.name] = entry

@@ -15,12 +15,16 @@ import numpy as np
 
 @dataclass(frozen=True)
 class Group:
-    """One parameter group, all arrays in physical units.
+    """One parameter group, all arrays in physical units and of shape (rows, components).
+
+    A plain group (a triad's gain) has one row. A *matrix group* has one row per pose or sample
+    (the gravity direction of every pose, ω of every sample), so that problems with many
+    instances stay a handful of groups; factor blocks pick rows by index.
 
     Attributes
     ----------
     name
-        Dotted name, e.g. ``imu2.accelerometer.gain`` or ``pose3.direction``.
+        Dotted name, e.g. ``imu2.accelerometer.gain`` or ``pose.direction``.
     components
         Component labels, e.g. ``("x", "y", "z")``.
     initial, lower, upper
@@ -34,10 +38,12 @@ class Group:
     unit
         Physical unit, for reports.
     unit_norm
-        Constrain |value|^2 = 1 (unit quaternions and unit vectors).
+        Constrain |row|^2 = 1 (unit quaternions and unit vectors).
     nuisance
         A nuisance variable (pose direction, motion state): estimated, marginalised, not reported
         as a calibration parameter.
+    matrix
+        Rows are instances (values unpack to (rows, components)); else one row (unpacks to a vector).
     """
 
     name: str
@@ -52,29 +58,39 @@ class Group:
     unit: str = "-"
     unit_norm: bool = False
     nuisance: bool = False
+    matrix: bool = False
 
     @staticmethod
-    def make(name, components, initial, *, free=True, lower=-np.inf, upper=np.inf,
+    def make(name, components, initial, *, rows: int | None = None, free=True, lower=-np.inf, upper=np.inf,
              prior_mean=np.nan, prior_std=np.nan, scale=1.0, unit="-", unit_norm=False,
              nuisance=False) -> "Group":
-        n = len(components)
+        """A group; ``rows`` makes a matrix group (every argument broadcasts to (rows, components))."""
+        shape = (rows or 1, len(components))
 
-        def vec(v, dtype=float):
-            return np.broadcast_to(np.asarray(v, dtype=dtype), (n,)).copy()
+        def arr(v, dtype=float):
+            return np.broadcast_to(np.asarray(v, dtype=dtype), shape).copy()
 
-        return Group(name, tuple(components), vec(initial), vec(free, bool), vec(lower), vec(upper),
-                     vec(prior_mean), vec(prior_std), vec(scale), unit, unit_norm, nuisance)
+        return Group(name, tuple(components), arr(initial), arr(free, bool), arr(lower), arr(upper),
+                     arr(prior_mean), arr(prior_std), arr(scale), unit, unit_norm, nuisance, rows is not None)
 
     @property
     def size(self) -> int:
         return len(self.components)
+
+    @property
+    def rows(self) -> int:
+        return self.initial.shape[0]
+
+    def shaped(self, v: np.ndarray) -> np.ndarray:
+        """(rows, components) values as the user sees them: a vector for plain groups."""
+        return v if self.matrix else v[0]
 
 
 class Layout:
     """Maps groups onto the decision vector ``x`` and the fixed-value vector ``p``.
 
     Numeric bookkeeping only: free components become ``x`` (``value = x * scale``), fixed ones
-    ``p_fixed`` (``value = p``). The solver gathers each group's values from the stacked vector
+    ``p_fixed`` (``value = p``), row by row. The solver gathers values from the stacked vector
     ``w = [x * scale; p_fixed]`` with :meth:`w_index`. Build it once per problem structure; solve
     with other fixed values by passing another ``p``.
     """
@@ -88,19 +104,23 @@ class Layout:
         self.n_x = sum(int(g.free.sum()) for g in groups)
         self.n_p = sum(int((~g.free).sum()) for g in groups)
         self._w_index: dict[str, np.ndarray] = {}
-        self.x_labels: list[str] = []
         ix, ip = 0, self.n_x
         for g in groups:
-            w = np.empty(g.size, dtype=int)
-            for c, is_free in enumerate(g.free):
-                if is_free:
-                    w[c] = ix
-                    self.x_labels.append(f"{g.name}[{g.components[c]}]")
-                    ix += 1
-                else:
-                    w[c] = ip
-                    ip += 1
-            self._w_index[g.name] = w
+            f = g.free.ravel()
+            w = np.empty(f.size, dtype=int)
+            w[f] = ix + np.arange(f.sum())
+            w[~f] = ip + np.arange((~f).sum())
+            ix, ip = ix + int(f.sum()), ip + int((~f).sum())
+            self._w_index[g.name] = w.reshape(g.free.shape)
+
+    @property
+    def x_labels(self) -> list[str]:
+        """A name per decision variable: ``group[component]`` or ``group[row][component]``."""
+        out = []
+        for g in self.groups:
+            for r, c in zip(*np.nonzero(g.free)):
+                out.append(f"{g.name}[{r}][{g.components[c]}]" if g.matrix else f"{g.name}[{g.components[c]}]")
+        return out
 
     def __contains__(self, name: str) -> bool:
         return name in self._by_name
@@ -109,16 +129,20 @@ class Layout:
         return self._by_name[name]
 
     def w_index(self, name: str) -> np.ndarray:
-        """Positions of a group's components in w = [x * scale; p_fixed]; < n_x means free."""
+        """(rows, components) positions of a group in w = [x * scale; p_fixed]; < n_x means free."""
         return self._w_index[name]
 
     def x_indices(self, name: str) -> np.ndarray:
-        """Positions in x of the free components of a group."""
-        w = self._w_index[name]
+        """Positions in x of the free components of a group (row-major)."""
+        w = self._w_index[name].ravel()
         return w[w < self.n_x]
 
-    def _gather(self, attr: str, free: bool) -> np.ndarray:
-        parts = [getattr(g, attr)[g.free if free else ~g.free] for g in self.groups]
+    def _gather(self, attr: str, free: bool, values: dict | None = None) -> np.ndarray:
+        parts = []
+        for g in self.groups:
+            v = getattr(g, attr) if values is None or g.name not in values else \
+                np.broadcast_to(np.asarray(values[g.name], float), g.free.shape)
+            parts.append(v[g.free if free else ~g.free])
         return np.concatenate(parts) if parts else np.zeros(0)
 
     @property
@@ -127,11 +151,7 @@ class Layout:
 
     def x0(self, initial: dict[str, np.ndarray] | None = None) -> np.ndarray:
         """Initial decision vector, from the groups' initial values or ``initial`` overrides."""
-        vals = []
-        for g in self.groups:
-            v = g.initial if initial is None or g.name not in initial else np.asarray(initial[g.name], float)
-            vals.append(v[g.free] / g.scale[g.free])
-        return np.concatenate(vals) if vals else np.zeros(0)
+        return self._gather("initial", True, initial) / self.x_scale
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         s = self.x_scale
@@ -139,33 +159,40 @@ class Layout:
 
     def p0(self, values: dict[str, np.ndarray] | None = None) -> np.ndarray:
         """Fixed-value vector, from the groups' initial values or ``values`` overrides."""
-        vals = []
-        for g in self.groups:
-            v = g.initial if values is None or g.name not in values else np.asarray(values[g.name], float)
-            vals.append(v[~g.free])
-        return np.concatenate(vals) if vals else np.zeros(0)
+        return self._gather("initial", False, values)
 
     def unpack(self, x: np.ndarray, p: np.ndarray) -> dict[str, np.ndarray]:
         """Physical values of every group from numeric x and p."""
         w = np.concatenate([np.asarray(x, float).ravel() * self.x_scale, np.asarray(p, float).ravel()])
-        return {g.name: w[self._w_index[g.name]] for g in self.groups}
+        return {g.name: g.shaped(w[self._w_index[g.name]]) for g in self.groups}
 
     def priors(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(x index, mean, std) of every free component with a Gaussian prior."""
         idx, mean, std = [], [], []
         for g in self.groups:
-            for c in np.flatnonzero(g.free & np.isfinite(g.prior_std)):
-                idx.append(self._w_index[g.name][c])
-                mean.append(g.prior_mean[c])
-                std.append(g.prior_std[c])
-        return np.array(idx, dtype=int), np.array(mean), np.array(std)
+            m = g.free & np.isfinite(g.prior_std)
+            idx.append(self._w_index[g.name][m])
+            mean.append(g.prior_mean[m])
+            std.append(g.prior_std[m])
+        cat = lambda a, t: np.concatenate(a).astype(t) if a else np.zeros(0, t)  # noqa: E731
+        return cat(idx, int), cat(mean, float), cat(std, float)
 
-    def unit_norm_groups(self) -> list[Group]:
-        """Groups constrained to |value|^2 = 1 that have a free component."""
-        return [g for g in self.groups if g.unit_norm and g.free.any()]
+    def unit_norm_rows(self) -> np.ndarray:
+        """(n_constraints, components) w-positions of every unit-norm row with a free component.
+
+        All unit-norm groups in one problem have the same number of components per kind; rows of
+        different widths are padded with -1.
+        """
+        rows = [self._w_index[g.name][r] for g in self.groups if g.unit_norm
+                for r in range(g.rows) if g.free[r].any()]
+        if not rows:
+            return np.zeros((0, 0), dtype=int)
+        width = max(len(r) for r in rows)
+        return np.array([np.pad(r, (0, width - len(r)), constant_values=-1) for r in rows], dtype=int)
 
     def check_start(self, x0: np.ndarray) -> list[str]:
         """Names of the free components whose initial value lies outside its bounds."""
         lo, hi = self.bounds()
         bad = np.flatnonzero((x0 < lo) | (x0 > hi))
-        return [self.x_labels[i] for i in bad]
+        labels = self.x_labels
+        return [labels[i] for i in bad]

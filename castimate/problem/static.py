@@ -118,19 +118,23 @@ def tilt_quaternion(u: np.ndarray) -> np.ndarray:
     return np.array([np.cos(theta / 2), *(np.sin(theta / 2) * axis), 0.0])
 
 
-def direction_group(n: int, kind: str, u0: np.ndarray) -> Group:
-    """Nuisance group for the specific force direction of pose n, initialised at u0."""
-    u0 = np.asarray(u0, float) / np.linalg.norm(u0)
-    name = f"pose{n + 1}.direction"
+DIRECTIONS = "pose.direction"  # the matrix group of per-pose specific-force directions
+
+
+def directions_group(kind: str, u0: np.ndarray) -> Group:
+    """Nuisance group: the specific-force direction of every pose (one row each), started at u0 (P, 3)."""
+    u0 = np.asarray(u0, float) / np.linalg.norm(u0, axis=1, keepdims=True)
+    P = len(u0)
     if kind == "unit_vector":
-        return Group.make(name, XYZ, u0, unit_norm=True, nuisance=True)
+        return Group.make(DIRECTIONS, XYZ, u0, rows=P, unit_norm=True, nuisance=True)
     if kind == "quaternion":
-        return Group.make(name, ("w", "x", "y", "z"), tilt_quaternion(u0),
+        return Group.make(DIRECTIONS, ("w", "x", "y", "z"), np.array([tilt_quaternion(u) for u in u0]), rows=P,
                           free=[True, True, True, False], unit_norm=True, nuisance=True)
     if kind == "pitch_roll":
-        phi = np.arctan2(-u0[0], np.hypot(u0[1], u0[2]))
-        psi = np.arctan2(u0[1], u0[2])
-        return Group.make(name, ("pitch", "roll"), [phi, psi], unit="rad", nuisance=True)
+        phi = np.arctan2(-u0[:, 0], np.hypot(u0[:, 1], u0[:, 2]))
+        psi = np.arctan2(u0[:, 1], u0[:, 2])
+        return Group.make(DIRECTIONS, ("pitch", "roll"), np.column_stack([phi, psi]), rows=P, unit="rad",
+                          nuisance=True)
     raise ValueError(f"unknown gravity direction parameterisation {kind!r}")
 
 
@@ -189,7 +193,7 @@ def accelerometer_pose_factor(config: StaticConfig) -> ca.Function:
     """
     Tfn = accelerometer_matrix(config.misalignment)
     n_mis = Tfn.size1_in(2)
-    n_dir = direction_group(0, config.gravity_direction, np.array([0, 0, 1.0])).size
+    n_dir = directions_group(config.gravity_direction, np.array([[0, 0, 1.0]])).size
     k, l, m, b = ca.SX.sym("k", 3), ca.SX.sym("l", 3), ca.SX.sym("m", n_mis), ca.SX.sym("b", 3)
     v = ca.SX.sym("direction", n_dir)
     y, sigma, R, g = ca.SX.sym("y", 3), ca.SX.sym("sigma", 3), ca.SX.sym("Rbar", 9), ca.SX.sym("g")
@@ -224,16 +228,14 @@ class StaticProblem:
     n_poses: int
 
     def block_data(self, poses: PoseAverages) -> list[np.ndarray]:
-        """Per-block data arrays: accelerometer (M*P, 16) then gyroscope (Mg*P, 15), triad-major."""
+        """Per-block data: per triad an accelerometer block (P, 16), then per gyroscope triad (P, 15)."""
         P, g = self.n_poses, self.config.gravity
-        acc = [np.hstack([poses.acc_mean[t.name], poses.acc_sigma[t.name],
+        out = [np.hstack([poses.acc_mean[t.name], poses.acc_sigma[t.name],
                           np.tile(t.R_nominal.ravel(order="F"), (P, 1)), np.full((P, 1), g)])
                for t in self.config.triads]
-        out = [np.vstack(acc)]
-        if self.gyro_triads:
-            R = {t.name: t.R_nominal for t in self.config.triads}
-            out.append(np.vstack([np.hstack([poses.gyro_mean[n], poses.gyro_sigma[n],
-                                             np.tile(R[n].ravel(order="F"), (P, 1))]) for n in self.gyro_triads]))
+        R = {t.name: t.R_nominal for t in self.config.triads}
+        out += [np.hstack([poses.gyro_mean[n], poses.gyro_sigma[n], np.tile(R[n].ravel(order="F"), (P, 1))])
+                for n in self.gyro_triads]
         return out
 
     def data_vector(self, poses: PoseAverages) -> np.ndarray:
@@ -244,9 +246,8 @@ class StaticProblem:
 
         ``values`` overrides any group's start (physical units), e.g. the truth in a CRB computation.
         """
-        u0 = initial_directions(self.config, poses)
-        start = {f"pose{n + 1}.direction": direction_group(n, self.config.gravity_direction, u0[n]).initial
-                 for n in range(self.n_poses)}
+        start = {DIRECTIONS: directions_group(self.config.gravity_direction,
+                                              initial_directions(self.config, poses)).initial}
         start.update(values or {})
         return self.lsq.layout.x0(start)
 
@@ -282,15 +283,14 @@ def build_static(config: StaticConfig, poses: PoseAverages) -> StaticProblem:
     groups = []
     for t in config.triads:
         groups += triad_groups(config, t, t.name in gyro_triads)
-    groups += [direction_group(n, config.gravity_direction, u0[n]) for n in range(P)]
-    blocks = [FactorBlock("accelerometer_pose", accelerometer_pose_factor(config),
-                          [tuple(group_name(t.name, "accelerometer", g) for g in ACC_FACTOR_GROUPS)
-                           + (f"pose{n + 1}.direction",) for t in config.triads for n in range(P)],
-                          np.zeros((0, 0)))]
-    if gyro_triads:
-        blocks.append(FactorBlock("gyroscope_pose", gyroscope_pose_factor(),
-                                  [tuple(group_name(name, "gyroscope", g) for g in GYRO_FACTOR_GROUPS)
-                                   for name in gyro_triads for _ in range(P)], np.zeros((0, 0))))
+    groups.append(directions_group(config.gravity_direction, u0))
+    acc_f, gyro_f, poses_idx = accelerometer_pose_factor(config), gyroscope_pose_factor(), np.arange(P)
+    blocks = [FactorBlock(f"{t.name}.accelerometer", acc_f,
+                          [(group_name(t.name, "accelerometer", g), None) for g in ACC_FACTOR_GROUPS]
+                          + [(DIRECTIONS, poses_idx)], np.zeros((P, 0))) for t in config.triads]
+    blocks += [FactorBlock(f"{name}.gyroscope", gyro_f,
+                           [(group_name(name, "gyroscope", g), None) for g in GYRO_FACTOR_GROUPS], np.zeros((P, 0)))
+               for name in gyro_triads]
     problem = StaticProblem(config, LeastSquaresProblem(Layout(groups), blocks), gyro_triads, P)
     for b, d in zip(blocks, problem.block_data(poses)):
         b.data = d

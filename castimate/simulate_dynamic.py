@@ -1,0 +1,434 @@
+"""Ground-truth sessions for the dynamic array models (Carlsson 2017, Schopp 2016), in numpy.
+
+A smooth random rigid-body motion is built in closed form, so that ω̇ is the exact derivative of ω
+at every sample, and the attitude is integrated from ω with RK4 on a fine sub-grid. Accelerometer
+triads read the specific force at their own position,
+
+    f = s + ω×(ω×r) + ω̇×r,        y = T f + b + v,
+
+and gyroscope triads read y_g = T_g ω + b_g + v, clipped at the saturation level like an ADC.
+
+Conventions (DESIGN.md): SI units; ω, ω̇ and s in the body frame; Hamilton quaternions, scalar
+first, for the body→world rotation; s is the specific force at the body origin including gravity,
+s = Rᵀ(a − g_world) with g_world = (0, 0, −g), so a body at rest reads +g along the world's up axis.
+
+This module is an independent numpy implementation (no CasADi), meant as the reference that the
+symbolic models are checked against.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from .simulate import random_rotation
+
+GRAVITY = 9.81
+
+# Carlsson 2017, sec. IV / MIMU4444 board: 4x4 grid on each side of the PCB.
+CARLSSON_PITCH = 6.3e-3  # m, spacing in x and y
+CARLSSON_HALF_THICKNESS = 1.0e-3  # m, top side at +1 mm, bottom side at -1 mm (2 mm apart)
+CARLSSON_BOTTOM_ROTATION = np.array([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+
+# Schopp 2016, Table I: reference positions of the five triads [cm].
+SCHOPP_POSITIONS_CM = np.array([[0.07, -0.24, 3.87],
+                                [0.28, 11.89, 2.47],
+                                [11.93, -0.28, 2.50],
+                                [-0.27, -11.94, 2.51],
+                                [-11.94, 0.29, 2.51]])
+
+
+# ---------------------------------------------------------------------------------------------
+# Rigid-body kinematics and quaternions (numpy)
+# ---------------------------------------------------------------------------------------------
+
+def specific_force_at(s, omega, omega_dot, r) -> np.ndarray:
+    """Specific force at position r of a rigid body: f = s + ω×(ω×r) + ω̇×r.
+
+    All arguments are arrays with a last axis of 3 that broadcast against each other, e.g.
+    s, omega, omega_dot (N, 3) and r (3,) -> (N, 3), or r (K, 1, 3) -> (K, N, 3).
+    """
+    s, omega, omega_dot, r = (np.asarray(x, dtype=float) for x in (s, omega, omega_dot, r))
+    return s + np.cross(omega, np.cross(omega, r)) + np.cross(omega_dot, r)
+
+
+def quaternion_multiply(p, q) -> np.ndarray:
+    """Hamilton product p ⊗ q of (..., 4) arrays, scalar first."""
+    p, q = np.asarray(p, dtype=float), np.asarray(q, dtype=float)
+    pw, pv = p[..., :1], p[..., 1:]
+    qw, qv = q[..., :1], q[..., 1:]
+    w = pw * qw - np.sum(pv * qv, axis=-1, keepdims=True)
+    v = pw * qv + qw * pv + np.cross(pv, qv)
+    return np.concatenate([w, v], axis=-1)
+
+
+def quaternion_to_matrix(q) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) of unit quaternions (..., 4) (Hamilton, scalar first)."""
+    q = np.asarray(q, dtype=float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    R = np.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=-1)
+    return R.reshape(q.shape[:-1] + (3, 3))
+
+
+def matrix_to_quaternion(R) -> np.ndarray:
+    """Unit quaternion (w, x, y, z), w >= 0, of a rotation matrix (3, 3)."""
+    R = np.asarray(R, dtype=float)
+    tr = np.trace(R)
+    if tr > 0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        q = np.array([0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s])
+    else:
+        i = int(np.argmax(np.diag(R)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * np.sqrt(1.0 + R[i, i] - R[j, j] - R[k, k])
+        q = np.empty(4)
+        q[0] = (R[k, j] - R[j, k]) / s
+        q[1 + i] = 0.25 * s
+        q[1 + j] = (R[j, i] + R[i, j]) / s
+        q[1 + k] = (R[k, i] + R[i, k]) / s
+    q = q / np.linalg.norm(q)
+    return q if q[0] >= 0 else -q
+
+
+def rotation_vector_to_matrix(phi) -> np.ndarray:
+    """Rotation matrix exp([φ]×) of a rotation vector φ (3,) [rad] (Rodrigues)."""
+    phi = np.asarray(phi, dtype=float)
+    angle = np.linalg.norm(phi)
+    if angle < 1e-12:
+        return np.eye(3)
+    k = phi / angle
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+def _omega_matrix(omega: np.ndarray) -> np.ndarray:
+    """(M, 4, 4) matrices A with ½ q ⊗ (0, ω) = A q (right multiplication by a pure quaternion)."""
+    x, y, z = omega[:, 0], omega[:, 1], omega[:, 2]
+    o = np.zeros_like(x)
+    A = np.stack([o, -x, -y, -z,
+                  x, o, z, -y,
+                  y, -z, o, x,
+                  z, y, -x, o], axis=-1).reshape(-1, 4, 4)
+    return 0.5 * A
+
+
+def integrate_attitude(omega_fn: Callable[[np.ndarray], np.ndarray], t: np.ndarray, q0=None,
+                       max_angle_step: float = 0.02) -> np.ndarray:
+    """Body→world attitude at the times t, integrated from the body rate ω(t) with classical RK4.
+
+    q̇ = ½ q ⊗ (0, ω). ``omega_fn`` is a vectorised callable (M,) -> (M, 3), evaluated on a fine
+    sub-grid: each sample interval is split so that ‖ω‖ h ≤ ``max_angle_step`` rad, which puts the
+    RK4 error of a constant rate far below 1e-9 rad per second. The quaternion is renormalised after
+    every step. Returns (N, 4) unit quaternions (scalar first), attitude[0] = q0 (identity if None).
+    """
+    t = np.asarray(t, dtype=float)
+    q = np.array([1.0, 0, 0, 0]) if q0 is None else np.asarray(q0, dtype=float) / np.linalg.norm(q0)
+    out = np.empty((len(t), 4))
+    out[0] = q
+    if len(t) < 2:
+        return out
+    dt = np.diff(t)
+    w_max = np.max(np.linalg.norm(omega_fn(t), axis=1))
+    n_sub = max(2, int(np.ceil(w_max * 1.2 * np.max(dt) / max_angle_step)))
+    # Fine grid with half steps: nodes 0, h/2, h, ... per interval (RK4 needs ω at t, t+h/2, t+h).
+    frac = np.arange(2 * n_sub) / (2 * n_sub)
+    tf = np.concatenate([(t[:-1, None] + dt[:, None] * frac[None]).ravel(), t[-1:]])
+    A = _omega_matrix(np.asarray(omega_fn(tf), dtype=float))
+    h = np.repeat(dt / n_sub, n_sub)[:, None, None]  # one per sub-step
+    A1, A2, A3 = A[0:-1:2], A[1::2], A[2::2]
+    eye = np.eye(4)
+    B1 = eye + 0.5 * h * A1
+    B2 = eye + 0.5 * h * A2 @ B1
+    B3 = eye + h * A2 @ B2
+    M = eye + h / 6 * (A1 + 2 * A2 @ B1 + 2 * A2 @ B2 + A3 @ B3)  # one RK4 step of the linear ODE
+    M = M.reshape(len(dt), n_sub, 4, 4)
+    for i in range(len(dt)):
+        for j in range(n_sub):
+            q = M[i, j] @ q
+        q = q / np.linalg.norm(q)
+        out[i + 1] = q
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Motion
+# ---------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Motion:
+    """A sampled rigid-body motion. Body frame unless stated; SI units.
+
+    t (N,) [s]; omega (N, 3) [rad/s]; omega_dot (N, 3) [rad/s²], the exact derivative of omega;
+    s (N, 3) [m/s²], specific force at the body origin including gravity; attitude (N, 4), unit
+    quaternions of the body→world rotation (Hamilton, scalar first); accel_world (N, 3) [m/s²],
+    the acceleration of the origin in the world frame; binding says which bound set the scale of
+    a random motion ("omega" or "omega_dot").
+    """
+
+    t: np.ndarray
+    omega: np.ndarray
+    omega_dot: np.ndarray
+    s: np.ndarray
+    attitude: np.ndarray
+    accel_world: np.ndarray | None = None
+    gravity: float = GRAVITY
+    binding: str = ""
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def rotation_matrices(self) -> np.ndarray:
+        """Body→world rotation matrices (N, 3, 3)."""
+        return quaternion_to_matrix(self.attitude)
+
+    def specific_force_at(self, r) -> np.ndarray:
+        """Specific force (N, 3) at a body position r (3,)."""
+        return specific_force_at(self.s, self.omega, self.omega_dot, r)
+
+
+def rigid_body_motion(t, omega_fn, omega_dot_fn, accel_fn=None, q0=None, gravity: float = GRAVITY,
+                      binding: str = "") -> Motion:
+    """A Motion from closed-form ω(t), ω̇(t) (body frame) and a(t) (world frame, None for zero).
+
+    The attitude is integrated from ``omega_fn`` (see integrate_attitude) and
+    s = Rᵀ (a − g_world), g_world = (0, 0, −gravity).
+    """
+    t = np.asarray(t, dtype=float)
+    attitude = integrate_attitude(omega_fn, t, q0)
+    a = np.zeros((len(t), 3)) if accel_fn is None else np.asarray(accel_fn(t), dtype=float)
+    R = quaternion_to_matrix(attitude)
+    s = np.einsum("nji,nj->ni", R, a + np.array([0.0, 0.0, gravity]))
+    return Motion(t=t, omega=np.asarray(omega_fn(t), dtype=float), omega_dot=np.asarray(omega_dot_fn(t), dtype=float),
+                  s=s, attitude=attitude, accel_world=a, gravity=gravity, binding=binding)
+
+
+def _wandering_axis(rng: np.random.Generator, bandwidth: float):
+    """Unit-peak rate w(τ) = Ω(τ) u(τ) and its derivative w'(τ), in closed form.
+
+    The axis u(τ) = Q Rz(ατ + φ1) Rx(βτ + φ2) e_z sweeps a great circle that itself turns about a
+    second axis, so over a few turns it covers the whole sphere (Q uniformly random). The magnitude
+    Ω(τ) = (1 + μ sin(2π f τ + φ)) / (1 + μ) never vanishes, like a hand twisting back and forth
+    at speed; ‖u'‖ ≤ sqrt(α² + β²).
+    """
+    Q = random_rotation(rng)
+    rho = 2 * np.pi * bandwidth * rng.uniform(0.3, 1.0)
+    gamma = rng.uniform(np.deg2rad(25), np.deg2rad(65))
+    alpha, beta = rho * np.sin(gamma) * rng.choice([-1, 1]), rho * np.cos(gamma) * rng.choice([-1, 1])
+    phi1, phi2, phi_m = rng.uniform(0, 2 * np.pi, 3)
+    mu = rng.uniform(0.1, 0.4)
+    f_m = bandwidth * rng.uniform(0.2, 1.0)
+
+    def parts(tau):
+        tau = np.asarray(tau, dtype=float)
+        psi, th = alpha * tau + phi1, beta * tau + phi2
+        sp, cp, st, ct = np.sin(psi), np.cos(psi), np.sin(th), np.cos(th)
+        u = np.stack([st * sp, -st * cp, ct], axis=-1) @ Q.T
+        du = (alpha * np.stack([st * cp, st * sp, 0 * st], axis=-1)
+              + beta * np.stack([ct * sp, -ct * cp, -st], axis=-1)) @ Q.T
+        arg = 2 * np.pi * f_m * tau + phi_m
+        mag = (1 + mu * np.sin(arg)) / (1 + mu)
+        dmag = mu * 2 * np.pi * f_m * np.cos(arg) / (1 + mu)
+        return u, du, mag, dmag
+
+    def w(tau):
+        u, _, mag, _ = parts(tau)
+        return mag[:, None] * u
+
+    def dw(tau):
+        u, du, mag, dmag = parts(tau)
+        return dmag[:, None] * u + mag[:, None] * du
+
+    return w, dw
+
+
+def smooth_random_motion(n_samples: int, rate: float, max_omega: float, max_omega_dot: float,
+                         rng: np.random.Generator, linear_accel: float = 2.0, *, bandwidth: float = 2.0,
+                         q0=None, gravity: float = GRAVITY) -> Motion:
+    """A smooth random rigid-body motion sampled at ``rate`` Hz (body-frame ω, ω̇, s).
+
+    ω(t) = c·w(λt) with w(τ) = Ω(τ)·u(τ): a magnitude that never vanishes (Ω ∈ [(1−μ)/(1+μ), 1],
+    μ ~ U(0.1, 0.4)) times an axis u that sweeps a great circle which itself turns about a second,
+    random axis, at rates ~ 2π·[0.3, 1]·bandwidth rad/s for λ = 1. So the directions of ω and ω̇
+    cover the sphere (positions observable) once the record lasts a few radians of axis travel.
+    ω̇ = c·λ·w'(λt) is the analytic derivative, exact at every sample.
+
+    Scaling: c makes max‖ω‖ over the samples equal to ``max_omega`` exactly. If then
+    max‖ω̇‖ ≤ ``max_omega_dot``, λ = 1 and ω is the binding bound (``Motion.binding == "omega"``).
+    Otherwise the time axis is slowed down (λ < 1, found by bisection on the sampled
+    max‖ω̇‖ / max‖ω‖, c re-fitted) until max‖ω̇‖ ≤ ``max_omega_dot``, met to about 0.1 %
+    (``binding == "omega_dot"``). That is the case for the paper's 2000 °/s with 2000 °/s²: the
+    axis then travels about max_omega_dot / max_omega = 1 rad/s, so use ≳ 10 s for full coverage.
+
+    The origin's world-frame acceleration is a random three-axis sum of sinusoids (frequencies in
+    [0.1, 1]·bandwidth Hz) with max‖a‖ = ``linear_accel``; s = Rᵀ(a + (0, 0, g)). The initial
+    attitude is uniformly random unless q0 is given. max_omega = 0 with linear_accel = 0 gives a
+    body at rest.
+    """
+    t = np.arange(n_samples) / rate
+    w, dw = _wandering_axis(rng, bandwidth)
+
+    def ratio(lam):  # max‖ω̇‖ / max‖ω‖ for the time scale λ
+        return lam * np.max(np.linalg.norm(dw(lam * t), axis=1)) / np.max(np.linalg.norm(w(lam * t), axis=1))
+
+    if max_omega <= 0:
+        lam, c, binding = 1.0, 0.0, "omega"
+    else:
+        target = max_omega_dot / max_omega
+        if ratio(1.0) <= target:
+            lam, binding = 1.0, "omega"
+        elif target <= 0:
+            lam, binding = 0.0, "omega_dot"
+        else:
+            lo, hi = 0.0, 1.0
+            for _ in range(60):
+                mid = 0.5 * (lo + hi)
+                lo, hi = (mid, hi) if ratio(mid) <= target else (lo, mid)
+                if hi - lo < 1e-4 * hi:
+                    break
+            lam, binding = lo, "omega_dot"
+        c = max_omega / np.max(np.linalg.norm(w(lam * t), axis=1))
+
+    def omega_fn(tt):
+        return c * w(lam * np.asarray(tt, dtype=float))
+
+    def omega_dot_fn(tt):
+        return c * lam * dw(lam * np.asarray(tt, dtype=float))
+
+    # Linear acceleration of the origin, world frame: three-axis sum of sinusoids.
+    n_a = 4
+    a_amp = rng.standard_normal((n_a, 3))
+    a_freq = rng.uniform(0.1 * bandwidth, bandwidth, n_a)
+    a_phase = rng.uniform(0, 2 * np.pi, n_a)
+
+    def accel_raw(tt):
+        return np.sin(2 * np.pi * np.outer(tt, a_freq) + a_phase) @ a_amp
+
+    peak = np.max(np.linalg.norm(accel_raw(t), axis=1)) if n_samples else 0.0
+    a_scale = linear_accel / peak if peak > 0 else 0.0
+
+    def accel_fn(tt):
+        return a_scale * accel_raw(np.asarray(tt, dtype=float))
+
+    if q0 is None:
+        q0 = matrix_to_quaternion(random_rotation(rng))
+    return rigid_body_motion(t, omega_fn, omega_dot_fn, accel_fn, q0, gravity, binding)
+
+
+# ---------------------------------------------------------------------------------------------
+# Geometries
+# ---------------------------------------------------------------------------------------------
+
+def carlsson_geometry(rng: np.random.Generator, position_error: float = 1e-3, reference: str | None = None
+                      ) -> tuple[list[str], np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """The 32-IMU array of Carlsson 2017 (sec. IV, Fig. 2; the MIMU4444 board).
+
+    imu1..imu16: a 4x4 grid at 6.3 mm pitch centred at the origin on the top side, z = +1 mm,
+    nominal rotation I (row-major in x, then y); imu17..imu32: the same grid on the bottom side,
+    z = −1 mm, mounted rotated by [[0,-1,0],[-1,0,0],[0,0,-1]] (body→triad). True positions are
+    nominal + N(0, position_error²) per component, except for ``reference`` (if given), whose
+    true position is its nominal one.
+
+    Note: the origin is the board centre, not a triad; shift all positions by a triad's position
+    to use it as the body origin (s changes accordingly, the relative geometry does not).
+    Returns (names, nominal_positions (32, 3), true_positions (32, 3), nominal_rotations).
+    """
+    g = (np.arange(4) - 1.5) * CARLSSON_PITCH
+    X, Y = np.meshgrid(g, g, indexing="xy")
+    xy = np.column_stack([X.ravel(), Y.ravel()])
+    top = np.column_stack([xy, np.full(16, CARLSSON_HALF_THICKNESS)])
+    bottom = np.column_stack([xy, np.full(16, -CARLSSON_HALF_THICKNESS)])
+    nominal = np.vstack([top, bottom])
+    names = [f"imu{i + 1}" for i in range(32)]
+    rotations = {n: (np.eye(3) if i < 16 else CARLSSON_BOTTOM_ROTATION.copy()) for i, n in enumerate(names)}
+    true = nominal + position_error * rng.standard_normal(nominal.shape)
+    if reference is not None:
+        k = names.index(reference)
+        true[k] = nominal[k]
+    return names, nominal, true, rotations
+
+
+def schopp_geometry(rng: np.random.Generator, position_error: float = 1e-3, orientation_error_deg: float = 0.0,
+                    reference: str | None = None
+                    ) -> tuple[list[str], np.ndarray, np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """The five accelerometer triads of Schopp 2016 (Table I), acc1..acc5, in metres.
+
+    Nominal rotations are the identity. True positions are nominal + N(0, position_error²) per
+    component; true rotations are exp([ξ]×)·R_nominal with ξ ~ N(0, orientation_error_deg²) per
+    component (in degrees, converted to rad). ``reference`` (e.g. "acc1", the triad the paper
+    fixes) keeps its nominal pose.
+    Returns (names, nominal_positions (5, 3), true_positions (5, 3), nominal_rotations,
+    true_rotations).
+    """
+    names = [f"acc{i + 1}" for i in range(5)]
+    nominal = SCHOPP_POSITIONS_CM * 1e-2
+    true = nominal + position_error * rng.standard_normal(nominal.shape)
+    nominal_rot = {n: np.eye(3) for n in names}
+    true_rot = {n: rotation_vector_to_matrix(np.deg2rad(orientation_error_deg) * rng.standard_normal(3))
+                @ nominal_rot[n] for n in names}
+    if reference is not None:
+        k = names.index(reference)
+        true[k] = nominal[k]
+        true_rot[reference] = nominal_rot[reference].copy()
+    return names, nominal, true, nominal_rot, true_rot
+
+
+# ---------------------------------------------------------------------------------------------
+# Measurements
+# ---------------------------------------------------------------------------------------------
+
+_GYRO_KEYS = {"T_g", "b_g", "sigma", "saturation"}
+
+
+def dynamic_measurements(motion: Motion, positions, T, b, rng: np.random.Generator, acc_sigma, gyro=None,
+                         names: list[str] | None = None
+                         ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Raw readings of K triads rigidly attached to the moving body.
+
+    Accelerometers: y = T_k (s + ω×(ω×r_k) + ω̇×r_k) + b_k + v, v ~ N(0, acc_sigma²) (a scalar, or an
+    array broadcastable to (K, 3)). Gyroscopes, if ``gyro`` is given as a dict with keys T_g (K, 3, 3),
+    b_g (K, 3), sigma and saturation [rad/s] (None for no limit): y_g = T_g ω + b_g + v, then clipped
+    to ±saturation per axis, like an ADC at its rails.
+
+    Returns (acc, gyro_readings, saturated): dicts name -> (N, 3); ``saturated`` is a boolean (N, 3)
+    per gyroscope, True where the axis was clipped (empty dicts without gyroscopes).
+    Names default to imu1..imuK.
+    """
+    positions = np.asarray(positions, dtype=float).reshape(-1, 3)
+    K, N = len(positions), len(motion.t)
+    T = np.broadcast_to(np.asarray(T, dtype=float), (K, 3, 3))
+    b = np.broadcast_to(np.asarray(b, dtype=float), (K, 3))
+    sig = np.broadcast_to(np.asarray(acc_sigma, dtype=float), (K, 3))
+    names = list(names) if names is not None else [f"imu{k + 1}" for k in range(K)]
+    if len(names) != K:
+        raise ValueError(f"{len(names)} names for {K} positions")
+    acc: dict[str, np.ndarray] = {}
+    for k, n in enumerate(names):
+        f = motion.specific_force_at(positions[k])
+        acc[n] = f @ T[k].T + b[k] + sig[k] * rng.standard_normal((N, 3))
+    gyro_out: dict[str, np.ndarray] = {}
+    saturated: dict[str, np.ndarray] = {}
+    if gyro is not None:
+        unknown = set(gyro) - _GYRO_KEYS
+        missing = {"T_g", "b_g", "sigma"} - set(gyro)
+        if unknown or missing:
+            raise ValueError(f"gyro: unknown keys {sorted(unknown)}, missing keys {sorted(missing)}; "
+                             f"expected {sorted(_GYRO_KEYS)}")
+        Tg = np.broadcast_to(np.asarray(gyro["T_g"], dtype=float), (K, 3, 3))
+        bg = np.broadcast_to(np.asarray(gyro["b_g"], dtype=float), (K, 3))
+        sg = np.broadcast_to(np.asarray(gyro["sigma"], dtype=float), (K, 3))
+        sat = gyro.get("saturation")
+        for k, n in enumerate(names):
+            y = motion.omega @ Tg[k].T + bg[k] + sg[k] * rng.standard_normal((N, 3))
+            if sat is None:
+                saturated[n] = np.zeros((N, 3), dtype=bool)
+            else:
+                saturated[n] = np.abs(y) >= sat
+                y = np.clip(y, -sat, sat)
+            gyro_out[n] = y
+    return acc, gyro_out, saturated
