@@ -83,6 +83,7 @@ __all__ = [
 ]
 
 _I3 = np.eye(3)
+_EPS = np.finfo(float).eps
 
 
 # ---------------------------------------------------------------------------------------------
@@ -275,22 +276,22 @@ def _validate(acc, gyro, acc_sigma, gyro_sigma, positions, gyro_mask, omega0, po
 
 
 class _Gyro:
-    """Per-sample gyroscope sufficient statistics: w_G |ω|² − 2 ω·b_G + c_G."""
+    """Per-sample gyroscope sufficient statistics: w_G |ω|² − 2 ω·b_G + c_G (component-major)."""
 
     def __init__(self, gyro: np.ndarray, mask: np.ndarray, w_g: np.ndarray):
         wm = mask * w_g[:, None]  # (G, N)
         self.w = wm.sum(axis=0)  # (N,)
-        self.b = np.einsum("gn,gni->ni", wm, gyro)  # (N, 3)
+        self.b = np.einsum("gn,gni->in", wm, gyro)  # (3, N)
         self.c = np.einsum("gn,gni,gni->n", wm, gyro, gyro)  # (N,)
 
     def mean(self) -> np.ndarray:
-        """Weighted mean gyroscope rate, interpolated in time over samples without a valid one."""
+        """Weighted mean gyroscope rate (N, 3), interpolated in time over samples without a valid one."""
         n = self.w.shape[0]
         valid = self.w > 0
         out = np.zeros((n, 3))
         if not np.any(valid):
             return out
-        out[valid] = self.b[valid] / self.w[valid, None]
+        out[valid] = (self.b[:, valid] / self.w[valid]).T
         if not np.all(valid):
             idx = np.arange(n)
             for i in range(3):
@@ -298,10 +299,24 @@ class _Gyro:
         return out
 
 
+def _cross_e(a: int, v: np.ndarray) -> np.ndarray:
+    """e_a × v for v of shape (3, M)."""
+    out = np.zeros_like(v)
+    b, c = (a + 1) % 3, (a + 2) % 3
+    out[b] = -v[c]
+    out[c] = v[b]
+    return out
+
+
 class _Accel:
-    """Accelerometer statistics that the concentrated cost needs, for fixed positions."""
+    """Accelerometer statistics that the concentrated cost needs, for fixed positions.
+
+    Per-sample quantities are stored component-major ((3, N), (3, 3, N)) so that the
+    Levenberg–Marquardt algebra runs on contiguous length-N vectors.
+    """
 
     def __init__(self, acc: np.ndarray, w_a: np.ndarray, positions: np.ndarray, sum_wyy: np.ndarray | None = None):
+        k, n, _ = acc.shape
         wsum = w_a.sum()
         self.rbar = w_a @ positions / wsum
         d = positions - self.rbar
@@ -316,85 +331,105 @@ class _Accel:
                 "needed): the angular acceleration is not observable"
             )
         self.Jinv = np.linalg.inv(jmat)
-        self.ybar = np.einsum("k,kni->ni", w_a, acc) / wsum  # (N, 3)
+        flat = acc.reshape(k, n * 3)
+        self.ybar = (w_a @ flat).reshape(n, 3) / wsum  # (N, 3)
         if sum_wyy is None:
-            sum_wyy = np.einsum("k,kni,kni->n", w_a, acc, acc)
-        self.c = sum_wyy - wsum * _dot(self.ybar, self.ybar)  # (N,)
-        # Q_n = Σ_k w_k d_k y_kᵀ (Σ_k w_k d_k = 0, so centring y is not needed)
-        self.Q = np.tensordot(acc, wd, axes=([0], [0])).transpose(0, 2, 1)  # (N, 3, 3): [n, i(d), j(y)]
-        self.trQ = np.trace(self.Q, axis1=1, axis2=2)
+            sum_wyy = w_a @ np.einsum("kni,kni->kn", acc, acc)
+        self.c = sum_wyy - wsum * np.einsum("ni,ni->n", self.ybar, self.ybar)  # (N,)
+        # Q_n = Σ_k w_k d_k y_kᵀ (Σ_k w_k d_k = 0, so centring y is not needed); Q[i, j, n]
+        self.Q = np.ascontiguousarray((wd.T @ flat).reshape(3, n, 3).transpose(0, 2, 1))
         q = self.Q
-        self.m = np.stack([q[:, 1, 2] - q[:, 2, 1], q[:, 2, 0] - q[:, 0, 2], q[:, 0, 1] - q[:, 1, 0]], axis=1)
-        self.Qs = q + q.transpose(0, 2, 1)
+        self.trQ = q[0, 0] + q[1, 1] + q[2, 2]
+        self.m = np.stack([q[1, 2] - q[2, 1], q[2, 0] - q[0, 2], q[0, 1] - q[1, 0]])  # Σ w d × y, (3, N)
+        self.Qs = q + q.transpose(1, 0, 2)
 
-    def g(self, omega: np.ndarray, idx) -> np.ndarray:
-        return self.m[idx] + np.cross(omega, omega @ self.S.T)
+    @staticmethod
+    def _take(a: np.ndarray, idx):
+        return a if idx is None else a[..., idx]
 
-    def cost(self, omega: np.ndarray, idx, gy: _Gyro) -> np.ndarray:
-        """Concentrated cost f_n(ω) (accelerometers with s, ω̇ eliminated, plus gyroscopes)."""
-        q = _dot(omega, omega)
-        s_om = omega @ self.S.T
-        w_s_w = _dot(omega, s_om)
-        wqw = _dot(omega, _matvec(self.Q[idx], omega))
-        g = self.m[idx] + np.cross(omega, s_om)
-        f = (
-            self.c[idx]
-            - 2.0 * (wqw - q * self.trQ[idx])
-            + q * q * self.trS
-            - q * w_s_w
-            - _dot(g, g @ self.Jinv.T)
+    def cost(self, om: np.ndarray, idx, gy: _Gyro) -> tuple[np.ndarray, np.ndarray]:
+        """Concentrated cost f_n(ω) (s, ω̇ eliminated; plus gyroscopes) and its rounding scale.
+
+        ``om`` is (3, M); ``idx`` selects the M samples (None: all).
+        """
+        take = self._take
+        q = np.einsum("im,im->m", om, om)
+        s_om = self.S @ om
+        w_s_w = np.einsum("im,im->m", om, s_om)
+        wqw = np.einsum("im,ijm,jm->m", om, take(self.Q, idx), om)
+        g = take(self.m, idx) + np.cross(om, s_om, axis=0)
+        terms = (
+            take(self.c, idx),
+            -2.0 * wqw,
+            2.0 * q * take(self.trQ, idx),
+            q * q * self.trS,
+            -q * w_s_w,
+            -np.einsum("im,im->m", g, self.Jinv @ g),
+            take(gy.w, idx) * q,
+            -2.0 * np.einsum("im,im->m", om, take(gy.b, idx)),
+            take(gy.c, idx),
         )
-        f += gy.w[idx] * q - 2.0 * _dot(omega, gy.b[idx]) + gy.c[idx]
-        return f
+        f = sum(terms)
+        # the terms cancel down to the (small) residual cost: its rounding error is about eps·Σ|terms|
+        scale = sum(np.abs(x) for x in terms)
+        return f, scale
 
-    def grad_gn(self, omega: np.ndarray, idx, gy: _Gyro) -> tuple[np.ndarray, np.ndarray]:
-        """Half the gradient of f_n and its Gauss–Newton matrix, (M, 3) and (M, 3, 3)."""
-        S, trS = self.S, self.trS
-        q = _dot(omega, omega)
-        s_om = omega @ S.T
-        w_s_w = _dot(omega, s_om)
-        g = self.m[idx] + np.cross(omega, s_om)
-        jg = g @ self.Jinv.T
-        gw = skew(omega) @ S - skew(s_om)  # ∂g/∂ω, (M, 3, 3)
-        gwt = gw.transpose(0, 2, 1)
+    def grad_gn(self, om: np.ndarray, idx, gy: _Gyro) -> tuple[np.ndarray, np.ndarray]:
+        """Half the gradient of f_n, (3, M), and its Gauss–Newton matrix, (M, 3, 3)."""
+        take = self._take
+        S, trS, Jinv = self.S, self.trS, self.Jinv
+        q = np.einsum("im,im->m", om, om)
+        s_om = S @ om
+        w_s_w = np.einsum("im,im->m", om, s_om)
+        g = take(self.m, idx) + np.cross(om, s_om, axis=0)
+        jg = Jinv @ g
+        wg = take(gy.w, idx)
+        # (∂g/∂ω)ᵀ v = −S (ω × v) + (Sω) × v
+        gwt_jg = -S @ np.cross(om, jg, axis=0) + np.cross(s_om, jg, axis=0)
         half_grad = (
-            -_matvec(self.Qs[idx], omega)
-            + 2.0 * self.trQ[idx, None] * omega
-            + 2.0 * trS * q[:, None] * omega
-            - w_s_w[:, None] * omega
-            - q[:, None] * s_om
-            - _matvec(gwt, jg)
-            + gy.w[idx, None] * omega
-            - gy.b[idx]
+            -np.einsum("ijm,jm->im", take(self.Qs, idx), om)
+            + (2.0 * take(self.trQ, idx) + 2.0 * trS * q - w_s_w + wg) * om
+            - q * s_om
+            - gwt_jg
+            - take(gy.b, idx)
         )
-        oo = omega[:, :, None] * omega[:, None, :]
-        so_o = s_om[:, :, None] * omega[:, None, :]
-        gn = (
-            q[:, None, None] * S
-            + (w_s_w + gy.w[idx])[:, None, None] * _I3
-            + 4.0 * trS * oo
-            - 3.0 * (so_o + so_o.transpose(0, 2, 1))
-            - gwt @ self.Jinv @ gw
-        )
+        # columns of ∂g/∂ω: ω × S e_a + e_a × Sω
+        cols = [np.cross(om, np.broadcast_to(S[:, a : a + 1], om.shape), axis=0) + _cross_e(a, s_om) for a in range(3)]
+        jcols = [Jinv @ c for c in cols]
+        mdim = om.shape[1]
+        gn = np.empty((mdim, 3, 3))
+        diag = w_s_w + wg
+        for a in range(3):
+            for b in range(a, 3):
+                v = (
+                    q * S[a, b]
+                    + 4.0 * trS * om[a] * om[b]
+                    - 3.0 * (s_om[a] * om[b] + om[a] * s_om[b])
+                    - np.einsum("im,im->m", cols[a], jcols[b])
+                )
+                if a == b:
+                    v = v + diag
+                gn[:, a, b] = v
+                gn[:, b, a] = v
         return half_grad, gn
 
-    def motion(self, omega: np.ndarray, positions_ref: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(s, ω̇) eliminated in closed form for the given ω (all samples)."""
-        g = self.m + np.cross(omega, omega @ self.S.T)
-        omega_dot = g @ self.Jinv.T
+    def motion(self, omega: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(s, ω̇), (N, 3) each, eliminated in closed form for the given ω (N, 3)."""
+        om = omega.T
+        g = self.m + np.cross(om, self.S @ om, axis=0)
+        omega_dot = (self.Jinv @ g).T
         rb = self.rbar
-        q = _dot(omega, omega)
-        b_rbar = omega * _dot(omega, rb[None, :])[:, None] - q[:, None] * rb
+        q = np.einsum("ni,ni->n", omega, omega)
+        b_rbar = omega * (omega @ rb)[:, None] - q[:, None] * rb
         s = self.ybar - b_rbar - np.cross(omega_dot, rb)
         return s, omega_dot
 
 
 def _lm_omega(acc_stats: _Accel, gy: _Gyro, omega: np.ndarray, max_iter: int, xtol: float):
-    """Vectorised Levenberg–Marquardt on ω_n for all samples; returns (ω, iterations, converged)."""
-    omega = np.array(omega, dtype=float, copy=True)
-    n = omega.shape[0]
-    all_idx = np.arange(n)
-    f = acc_stats.cost(omega, all_idx, gy)
+    """Vectorised Levenberg–Marquardt on ω_n for all samples; returns (ω (N, 3), iterations, converged)."""
+    om_all = np.array(omega, dtype=float).T.copy()  # (3, N)
+    n = om_all.shape[1]
+    f, _ = acc_stats.cost(om_all, None, gy)
     lam = np.full(n, 1e-4)
     active = np.ones(n, dtype=bool)
     converged = np.zeros(n, dtype=bool)
@@ -405,34 +440,38 @@ def _lm_omega(acc_stats: _Accel, gy: _Gyro, omega: np.ndarray, max_iter: int, xt
         if idx.size == 0:
             break
         it += 1
-        w = omega[idx]
-        half_grad, gn = acc_stats.grad_gn(w, idx, gy)
-        scale = np.maximum(np.trace(gn, axis1=1, axis2=2) / 3.0, tiny)
-        damped = gn + (lam[idx] * scale)[:, None, None] * _I3
-        delta = -np.linalg.solve(damped, half_grad[:, :, None])[:, :, 0]
+        sel = None if idx.size == n else idx
+        w = om_all if sel is None else om_all[:, idx]
+        half_grad, gn = acc_stats.grad_gn(w, sel, gy)
+        scale = np.maximum((gn[:, 0, 0] + gn[:, 1, 1] + gn[:, 2, 2]) / 3.0, tiny)
+        lam_i = lam[idx]
+        for a in range(3):
+            gn[:, a, a] += lam_i * scale
+        delta = -np.linalg.solve(gn, half_grad.T[:, :, None])[:, :, 0].T
         w_new = w + delta
-        f_new = acc_stats.cost(w_new, idx, gy)
-        ok = f_new <= f[idx]
-        small = np.sqrt(_dot(delta, delta)) <= xtol * (1.0 + np.sqrt(_dot(w, w)))
+        f_new, f_scale = acc_stats.cost(w_new, sel, gy)
+        # accept a decrease, or a change within the rounding error of the cost: there the
+        # (accurate) Gauss-Newton step is the better judge, and it only shrinks from then on
+        ok = f_new <= f[idx] + 64.0 * _EPS * f_scale
+        small = np.sqrt(np.einsum("im,im->m", delta, delta)) <= xtol * (1.0 + np.sqrt(np.einsum("im,im->m", w, w)))
         acc_idx = idx[ok]
-        omega[acc_idx] = w_new[ok]
+        om_all[:, acc_idx] = w_new[:, ok]
         f[acc_idx] = f_new[ok]
-        lam[idx] = np.where(ok, np.maximum(lam[idx] * 0.1, 1e-12), lam[idx] * 10.0)
+        lam[idx] = np.where(ok, np.maximum(lam_i * 0.1, 1e-12), lam_i * 10.0)
         done = small | (lam[idx] > 1e10)
         converged[idx[small]] = True
         active[idx[done]] = False
-    return omega, it, converged
+    return om_all.T.copy(), it, converged
 
 
 def _sample_costs(acc, gyro, mask, w_a, w_g, positions, s, omega, omega_dot) -> np.ndarray:
     """Per-sample whitened cost, evaluated directly from the residuals (N,)."""
     a = _a_matrices(omega, omega_dot)
-    pred = s[None, :, :] + np.einsum("nij,kj->kni", a, positions)
-    e = acc - pred
-    cost = np.einsum("k,kni,kni->n", w_a, e, e)
+    e = acc - s[None, :, :] - np.tensordot(positions, a, axes=([1], [2]))  # (K, N, 3)
+    cost = w_a @ np.einsum("kni,kni->kn", e, e)
     if gyro.shape[0]:
         eg = gyro - omega[None, :, :]
-        cost += np.einsum("g,gn,gni,gni->n", w_g, mask, eg, eg)
+        cost += (w_g[:, None] * mask * np.einsum("gni,gni->gn", eg, eg)).sum(axis=0)
     return cost
 
 
@@ -505,11 +544,11 @@ def motion_gram(omega: np.ndarray, omega_dot: np.ndarray) -> np.ndarray:
     if omega.ndim != 2 or omega.shape[1] != 3 or omega_dot.shape != omega.shape:
         raise ValueError(f"omega and omega_dot must both have shape (N, 3); got {omega.shape} and {omega_dot.shape}")
     a = _a_matrices(omega, omega_dot)
-    return np.einsum("nji,njk->ik", a, a)
+    return np.tensordot(a, a, axes=([0, 1], [0, 1]))
 
 
 def _positions_step(acc, s, a, reference, r_ref, sum_a=None):
-    gram = np.einsum("nji,njk->ik", a, a)
+    gram = np.tensordot(a, a, axes=([0, 1], [0, 1]))
     ev = np.linalg.eigvalsh(gram)
     if not np.all(np.isfinite(ev)) or ev[0] <= 1e-12 * max(ev[-1], np.finfo(float).tiny):
         raise ValueError(
@@ -517,7 +556,7 @@ def _positions_step(acc, s, a, reference, r_ref, sum_a=None):
             "(ω_n and ω̇_n must not be parallel for all samples; eq. 9)"
         )
     c = np.linalg.inv(gram)  # shared by all triads (Algorithm 1, line 10)
-    rhs = np.einsum("nji,knj->ki", a, acc) - np.einsum("nji,nj->i", a, s)[None, :]
+    rhs = np.tensordot(acc, a, axes=([1, 2], [0, 1])) - np.tensordot(s, a, axes=([0, 1], [0, 1]))[None, :]
     r = rhs @ c.T
     r[reference] = r_ref
     return r
@@ -623,7 +662,7 @@ def bcd_positions(
 
     k, n, _ = acc.shape
     gy = _Gyro(gyro, mask, w_g)
-    sum_wyy = np.einsum("k,kni,kni->n", w_a, acc, acc)
+    sum_wyy = w_a @ np.einsum("kni,kni->kn", acc, acc)
     omega = gy.mean() if omega0 is None else omega0.copy()
     positions = r0.copy()
     r_ref = r0[reference].copy()

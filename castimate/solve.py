@@ -54,7 +54,7 @@ class SolverOptions:
     """
 
     max_iter: int = 200
-    tol: float = 1e-10
+    tol: float = 1e-8
     linear_solver: str = "mumps"
     print_level: int = 0
     hessian: str = "exact"
@@ -85,8 +85,10 @@ class FactorBlock:
         ``(z, d) -> r``: whitened residual of one instance. ``z`` stacks the values of the
         instance's inputs (physical units), ``d`` its data.
     inputs
-        ``(group name, rows)`` in the order they stack into ``z``: ``rows`` (N,) picks a row of a
-        matrix group per instance; ``None`` feeds a plain group to every instance.
+        ``(group, rows)`` in the order they stack into ``z``. ``group`` is a group name or a tuple
+        of names whose rows are stacked (one plain group per triad, say); ``rows`` (N,) picks a row
+        per instance, ``None`` feeds the single row to every instance. One block per kind of factor
+        keeps CasADi's graph small: one ``map`` node instead of one per triad.
     data
         (N, nd) data of the instances; they enter the NLP as parameters, so one build serves any
         number of data sets.
@@ -94,7 +96,7 @@ class FactorBlock:
 
     name: str
     residual: ca.Function
-    inputs: list[tuple[str, np.ndarray | None]]
+    inputs: list[tuple[str | tuple[str, ...], np.ndarray | None]]
     data: np.ndarray
 
     @property
@@ -174,7 +176,7 @@ class _Block:
         self.block = block
         cols = []
         for g, rows in block.inputs:
-            W = layout.w_index(g)
+            W = layout.w_index(g) if isinstance(g, str) else np.vstack([layout.w_index(n) for n in g])
             cols.append(np.broadcast_to(W[0], (block.n, W.shape[1])) if rows is None else W[np.asarray(rows)])
         self.w_idx = np.hstack(cols).astype(int)
         nz = block.residual.size1_in(0)

@@ -147,7 +147,7 @@ SPEC_CASES = [
     ("missing_kind", {"kind": DELETE}, "(top level)", "missing required key 'kind'"),
     ("missing_data", {"data": DELETE}, "(top level)", "missing required key 'data'"),
     ("missing_array", {"array": DELETE}, "(top level)", "missing required key 'array'"),
-    ("unknown_kind", {"kind": "dynamic_arrray"}, "kind", "expected one of static_array, found 'dynamic_arrray'"),
+    ("unknown_kind", {"kind": "dynamic_arrray"}, "kind", "expected one of static_array, dynamic_array, found 'dynamic_arrray'"),
     ("motion_for_static", {"motion": {"sigma_omega_dot": 1.0}}, "motion", "not used by kind static_array"),
     # data
     ("data_not_mapping", {"data": "data.csv"}, "data", "expected a mapping, found str 'data.csv'"),

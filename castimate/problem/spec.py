@@ -23,7 +23,7 @@ one value per component, in the group's physical unit.
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -36,7 +36,7 @@ from ..segments import DetectionOptions
 from ..solve import SolverOptions
 from .static import QUATERNION_MISALIGNMENT, SENSOR_GROUPS, GroupSetting
 
-KINDS = ("static_array",)
+KINDS = ("static_array", "dynamic_array")
 FORMATS = ("csv", "npz", "mimu", "imutk")
 DIRECTIONS = ("unit_vector", "quaternion", "pitch_roll")
 MISALIGNMENTS = ("small_angle", "rotation")
@@ -44,9 +44,17 @@ MISALIGNMENTS = ("small_angle", "rotation")
 #: Defaults of the static kind: all accelerometer groups free; the gyroscope bias free and its
 #: gain and misalignment fixed, because a static pose does not excite them.
 DEFAULT_FREE = {
-    "accelerometer": {"gain": True, "bias": True, "nonorthogonality": True, "misalignment": True},
-    "gyroscope": {"gain": False, "bias": True, "misalignment": False},
+    "static_array": {
+        "accelerometer": {"gain": True, "bias": True, "nonorthogonality": True, "misalignment": True},
+        "gyroscope": {"gain": False, "bias": True, "misalignment": False},
+    },
+    # Dynamic: the geometry is estimated; intrinsics come from a static calibration (model.intrinsics).
+    "dynamic_array": {
+        "accelerometer": {"gain": False, "bias": False, "nonorthogonality": False, "misalignment": False},
+        "gyroscope": {"gain": False, "bias": True, "misalignment": False},
+    },
 }
+SATURATION = ("auto", "none")
 
 
 @dataclass(frozen=True)
@@ -59,6 +67,7 @@ class DataSpec:
     time_range: tuple[float, float] | None = None
     segments: Any = "auto"  # "auto" | "rows" | tuple of (t0, t1) in seconds
     detection: DetectionOptions = DetectionOptions()
+    saturation: dict = field(default_factory=lambda: {"accelerometer": "auto", "gyroscope": "auto"})
 
 
 @dataclass(frozen=True)
@@ -84,7 +93,18 @@ class ModelSpec:
     gravity: float
     gravity_direction: str
     misalignment: str
-    settings: dict  # (triad, sensor, group) -> GroupSetting
+    settings: dict  # (triad, sensor, group) -> GroupSetting; sensor "position" for positions
+    intrinsics: Path | None = None  # a static results.json whose values start (and by default fix) the intrinsics
+
+
+@dataclass(frozen=True)
+class MotionSpec:
+    """Process model of the dynamic kind (Schopp 2016, eq. 8); σ's in SI units."""
+
+    sigma_s: float = 1e3 ** 0.5
+    sigma_omega_dot: float = 1e3 ** 0.5
+    sigma_integration: float = 1e-7 ** 0.5
+    process_model: bool = True
 
 
 @dataclass(frozen=True)
@@ -105,6 +125,7 @@ class ProblemSpec:
     model: ModelSpec
     noise: NoiseSpec
     solver: SolverOptions
+    motion: MotionSpec | None = None
 
 
 class _Check:
@@ -190,24 +211,27 @@ def parse_problem(raw: Any, path: Path, sha256: str = "") -> ProblemSpec:
     top = c.mapping(raw, "", ("kind", "data", "array", "model", "noise", "motion", "solver"),
                     required=("kind", "data", "array"))
     kind = c.choice(top["kind"], "kind", KINDS)
-    if "motion" in top:
+    if "motion" in top and kind != "dynamic_array":
         c.fail("motion", f"process-model settings are not used by kind {kind}")
     data = _data(c, top["data"], path.parent)
     array = _array(c, top["array"])
-    model = _model(c, top.get("model"), array)
+    model = _model(c, top.get("model"), array, kind, path.parent)
     noise = _noise(c, top.get("noise"), array)
     solver = _solver(c, top.get("solver"))
+    motion = _motion(c, top.get("motion")) if kind == "dynamic_array" else None
     if data.segments == "rows" and noise.accelerometer is None:
         c.fail("noise.accelerometer", "data with one row per pose (segments: rows) needs the σ of each row; found auto")
     if data.segments == "rows" and noise.gyroscope is None and any(t.gyroscope for t in array.triads):
         c.fail("noise.gyroscope", "data with one row per pose (segments: rows) and gyroscope: true need the σ of "
                                   "each gyroscope row; found auto")
-    return ProblemSpec(path, sha256, kind, data, array, model, noise, solver)
+    if kind == "dynamic_array" and data.segments == "rows":
+        c.fail("data.segments", "a dynamic problem needs the raw time series, not one row per pose")
+    return ProblemSpec(path, sha256, kind, data, array, model, noise, solver, motion)
 
 
 def _data(c: _Check, d, base: Path) -> DataSpec:
-    d = c.mapping(d, "data", ("path", "format", "units", "gyro_path", "time_range", "segments", "detection"),
-                  required=("path", "format"))
+    d = c.mapping(d, "data", ("path", "format", "units", "gyro_path", "time_range", "segments", "detection",
+                              "saturation"), required=("path", "format"))
     fmt = c.choice(d["format"], "data.format", FORMATS)
     if not isinstance(d["path"], str):
         c.fail("data.path", f"expected a file path, found {d['path']!r}")
@@ -247,7 +271,14 @@ def _data(c: _Check, d, base: Path) -> DataSpec:
     elif seg not in ("auto", "rows"):
         c.fail("data.segments", f"expected auto, rows or a list of [t_start, t_end], found {seg!r}")
     det = DetectionOptions.from_mapping(d.get("detection"), c.source, "data.detection")
-    return DataSpec(p, fmt, acc_u, gyro_u, gp, tr, seg, det)
+    sat = c.mapping(d.get("saturation"), "data.saturation", ("accelerometer", "gyroscope"))
+    saturation = {}
+    for sensor, unit in (("accelerometer", "m/s^2"), ("gyroscope", "rad/s")):
+        v = sat.get(sensor, "auto")
+        saturation[sensor] = v if v in SATURATION else c.number(v, f"data.saturation.{sensor}", positive=True)
+        if isinstance(v, str) and v not in SATURATION:
+            c.fail(f"data.saturation.{sensor}", f"expected auto, none or a level in {unit}, found {v!r}")
+    return DataSpec(p, fmt, acc_u, gyro_u, gp, tr, seg, det, saturation)
 
 
 def _array(c: _Check, a) -> ArraySpec:
@@ -321,9 +352,17 @@ def _group_setting(c: _Check, v, where, size, base: dict, neutral: tuple) -> dic
     return out
 
 
-def _model(c: _Check, m, array: ArraySpec) -> ModelSpec:
+def _model(c: _Check, m, array: ArraySpec, kind: str = "static_array", base: Path = Path(".")) -> ModelSpec:
+    dynamic = kind == "dynamic_array"
     m = c.mapping(m, "model", ("gravity", "gravity_direction", "misalignment", "accelerometer", "gyroscope",
-                               "triads"))
+                               "triads") + (("position", "intrinsics") if dynamic else ()))
+    intrinsics = None
+    if "intrinsics" in m:
+        if not isinstance(m["intrinsics"], str):
+            c.fail("model.intrinsics", f"expected the path of a static results.json, found {m['intrinsics']!r}")
+        intrinsics = (base / m["intrinsics"]).resolve()
+        if not intrinsics.is_file():
+            c.fail("model.intrinsics", f"results file {intrinsics} does not exist")
     gravity = c.number(m.get("gravity", 9.81), "model.gravity", positive=True)
     direction = c.choice(m.get("gravity_direction", "unit_vector"), "model.gravity_direction", DIRECTIONS)
     mis = c.choice(m.get("misalignment", "small_angle"), "model.misalignment", MISALIGNMENTS)
@@ -344,14 +383,23 @@ def _model(c: _Check, m, array: ArraySpec) -> ModelSpec:
     for sensor, groups in SENSOR_GROUPS.items():
         sec = c.mapping(m.get(sensor), f"model.{sensor}", tuple(groups))
         for g in groups:
-            base = {"free": (DEFAULT_FREE[sensor][g],) * size(sensor, g)}
+            base = {"free": (DEFAULT_FREE[kind][sensor][g],) * size(sensor, g)}
             glob[sensor, g] = _group_setting(c, sec[g], f"model.{sensor}.{g}", size(sensor, g), base,
                                              gdef(sensor, g).neutral) if g in sec else base
             check_quaternion(sensor, g, glob[sensor, g], f"model.{sensor}.{g}")
+    pos_base = {"free": (True,) * 3}
+    if "position" in m:
+        pos_base = _group_setting(c, m["position"], "model.position", 3, pos_base, (0.0, 0.0, 0.0))
     per = c.mapping(m.get("triads"), "model.triads", tuple(array.names))
     settings = {}
     for name in array.names:
-        tsec = c.mapping(per.get(name), f"model.triads.{name}", tuple(SENSOR_GROUPS))
+        tsec = c.mapping(per.get(name), f"model.triads.{name}", tuple(SENSOR_GROUPS) + (("position",) if dynamic else ()))
+        if dynamic:
+            w = f"model.triads.{name}.position"
+            if name == array.reference and "position" in tsec:
+                c.fail(w, "the reference triad is the origin of the body frame; its position is fixed")
+            settings[name, "position", "position"] = GroupSetting(
+                **(_group_setting(c, tsec["position"], w, 3, pos_base, (0.0, 0.0, 0.0)) if "position" in tsec else pos_base))
         for sensor, groups in SENSOR_GROUPS.items():
             ssec = c.mapping(tsec.get(sensor), f"model.triads.{name}.{sensor}", tuple(groups))
             for g in groups:
@@ -366,7 +414,17 @@ def _model(c: _Check, m, array: ArraySpec) -> ModelSpec:
                            f"a prior only acts on free components, but {name}'s {g} has fixed components "
                            f"(free: {list(s['free'])})")
                 settings[name, sensor, g] = GroupSetting(**s)
-    return ModelSpec(gravity, direction, mis, settings)
+    return ModelSpec(gravity, direction, mis, settings, intrinsics)
+
+
+def _motion(c: _Check, m) -> MotionSpec:
+    m = c.mapping(m, "motion", ("sigma_s", "sigma_omega_dot", "sigma_integration", "process_model"))
+    kw = {k: c.number(v, f"motion.{k}", positive=True) for k, v in m.items() if k != "process_model"}
+    if "process_model" in m:
+        if not isinstance(m["process_model"], bool):
+            c.fail("motion.process_model", f"expected true or false, found {m['process_model']!r}")
+        kw["process_model"] = m["process_model"]
+    return MotionSpec(**kw)
 
 
 def _noise(c: _Check, n, array: ArraySpec) -> NoiseSpec:

@@ -73,7 +73,8 @@ class TriadConfig:
     R_nominal: np.ndarray
     accelerometer: dict[str, GroupSetting]
     gyroscope: dict[str, GroupSetting] | None = None
-    position: np.ndarray | None = None
+    position: np.ndarray | None = None  # nominal, body frame [m]
+    position_setting: GroupSetting | None = None  # dynamic problems: free or fixed position
 
 
 @dataclass(frozen=True)
@@ -228,14 +229,15 @@ class StaticProblem:
     n_poses: int
 
     def block_data(self, poses: PoseAverages) -> list[np.ndarray]:
-        """Per-block data: per triad an accelerometer block (P, 16), then per gyroscope triad (P, 15)."""
+        """Per-block data, triad-major: accelerometers (M*P, 16), then gyroscopes (Mg*P, 15) if any."""
         P, g = self.n_poses, self.config.gravity
-        out = [np.hstack([poses.acc_mean[t.name], poses.acc_sigma[t.name],
-                          np.tile(t.R_nominal.ravel(order="F"), (P, 1)), np.full((P, 1), g)])
-               for t in self.config.triads]
+        out = [np.vstack([np.hstack([poses.acc_mean[t.name], poses.acc_sigma[t.name],
+                                     np.tile(t.R_nominal.ravel(order="F"), (P, 1)), np.full((P, 1), g)])
+                          for t in self.config.triads])]
         R = {t.name: t.R_nominal for t in self.config.triads}
-        out += [np.hstack([poses.gyro_mean[n], poses.gyro_sigma[n], np.tile(R[n].ravel(order="F"), (P, 1))])
-                for n in self.gyro_triads]
+        if self.gyro_triads:
+            out.append(np.vstack([np.hstack([poses.gyro_mean[n], poses.gyro_sigma[n],
+                                             np.tile(R[n].ravel(order="F"), (P, 1))]) for n in self.gyro_triads]))
         return out
 
     def data_vector(self, poses: PoseAverages) -> np.ndarray:
@@ -284,13 +286,14 @@ def build_static(config: StaticConfig, poses: PoseAverages) -> StaticProblem:
     for t in config.triads:
         groups += triad_groups(config, t, t.name in gyro_triads)
     groups.append(directions_group(config.gravity_direction, u0))
-    acc_f, gyro_f, poses_idx = accelerometer_pose_factor(config), gyroscope_pose_factor(), np.arange(P)
-    blocks = [FactorBlock(f"{t.name}.accelerometer", acc_f,
-                          [(group_name(t.name, "accelerometer", g), None) for g in ACC_FACTOR_GROUPS]
-                          + [(DIRECTIONS, poses_idx)], np.zeros((P, 0))) for t in config.triads]
-    blocks += [FactorBlock(f"{name}.gyroscope", gyro_f,
-                           [(group_name(name, "gyroscope", g), None) for g in GYRO_FACTOR_GROUPS], np.zeros((P, 0)))
-               for name in gyro_triads]
+    M, Mg = len(config.triads), len(gyro_triads)
+    blocks = [FactorBlock("accelerometer_pose", accelerometer_pose_factor(config),
+                          [(tuple(group_name(t.name, "accelerometer", g) for t in config.triads), np.repeat(np.arange(M), P))
+                           for g in ACC_FACTOR_GROUPS] + [(DIRECTIONS, np.tile(np.arange(P), M))], np.zeros((M * P, 0)))]
+    if gyro_triads:
+        blocks.append(FactorBlock("gyroscope_pose", gyroscope_pose_factor(),
+                                  [(tuple(group_name(n, "gyroscope", g) for n in gyro_triads), np.repeat(np.arange(Mg), P))
+                                   for g in GYRO_FACTOR_GROUPS], np.zeros((Mg * P, 0))))
     problem = StaticProblem(config, LeastSquaresProblem(Layout(groups), blocks), gyro_triads, P)
     for b, d in zip(blocks, problem.block_data(poses)):
         b.data = d

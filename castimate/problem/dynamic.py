@@ -1,0 +1,239 @@
+"""The dynamic array problem: motion states estimated jointly with the array geometry.
+
+Carlsson, Skog, Jaldén 2017 (positions, with gyroscopes) and Schopp et al. 2016 (full poses,
+accelerometers only), composed from the same blocks as the static problem::
+
+    accelerometer triad k, sample n:  y = K L M Rbar (s_n + ω_n×(ω_n×r_k) + ω̇_n×r_k) + b + v
+    gyroscope triad g, sample n:      y = K_g M_g Rbar ω_n + b_g + v
+    process model n -> n+1:           ω_{n+1} = ω_n + ω̇_n Δt,  ω̇ and s random walks (Schopp eq. 8)
+
+The reference triad is fixed at the origin with no misalignment: it defines the body frame.
+Motion states are matrix groups (one row per sample), marginalised in the covariance.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import casadi as ca
+import numpy as np
+
+from ..models import motion as mot
+from ..models import triad as tri
+from ..solve import FactorBlock, LeastSquaresProblem
+from .parameters import Group, Layout
+from .static import (GYRO_FACTOR_GROUPS, ACC_FACTOR_GROUPS, XYZ, GroupSetting, TriadConfig, accelerometer_matrix,
+                     gyroscope_matrix, group_name, triad_groups)
+
+OMEGA, OMEGA_DOT, S = "motion.omega", "motion.omega_dot", "motion.s"
+
+
+@dataclass(frozen=True)
+class MotionSigmas:
+    """Process-model σ's (Schopp 2016, eq. 8; defaults are the values used there:
+    σ_a² = 1e3 (m/s²)², σ_ω̇² = 1e3 (rad/s²)², σ_int² = 1e-7 (rad/s)²)."""
+
+    s: float = 1e3 ** 0.5  # m/s^2, random walk of the specific force
+    omega_dot: float = 1e3 ** 0.5  # rad/s^2, random walk of the angular acceleration
+    integration: float = 1e-7 ** 0.5  # rad/s, error of ω_{n+1} = ω_n + ω̇_n Δt
+
+
+@dataclass(frozen=True)
+class DynamicConfig:
+    """The structure of a dynamic array problem."""
+
+    triads: tuple[TriadConfig, ...]
+    reference: str
+    misalignment: str = "small_angle"  # small_angle | rotation (Schopp's full orientation)
+    motion: MotionSigmas = MotionSigmas()
+    process_model: bool = True
+
+    @property
+    def names(self) -> list[str]:
+        return [t.name for t in self.triads]
+
+
+@dataclass(frozen=True)
+class DynamicData:
+    """A motion recording in SI units with per-sample validity (saturation masks).
+
+    ``acc_sigma``/``gyro_sigma`` are per-sample white-noise σ per axis, (3,).
+    """
+
+    t: np.ndarray
+    acc: dict[str, np.ndarray]
+    acc_sigma: dict[str, np.ndarray]
+    gyro: dict[str, np.ndarray] = field(default_factory=dict)
+    gyro_sigma: dict[str, np.ndarray] = field(default_factory=dict)
+    acc_valid: dict[str, np.ndarray] = field(default_factory=dict)
+    gyro_valid: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def n(self) -> int:
+        return len(self.t)
+
+    def valid(self, kind: str, name: str) -> np.ndarray:
+        m = (self.acc_valid if kind == "acc" else self.gyro_valid).get(name)
+        return np.ones(self.n, bool) if m is None else m
+
+
+def accelerometer_sample_factor(misalignment: str) -> ca.Function:
+    """Whitened residual of one accelerometer triad at one sample (DESIGN.md triad model with the
+    rigid-body specific force, Carlsson 2017 eq. 1). z = [k, l, m, b, r, ω, ω̇, s], d = [y, σ, vec(Rbar)]."""
+    Tfn = accelerometer_matrix(misalignment)
+    k, l, m, b = ca.SX.sym("k", 3), ca.SX.sym("l", 3), ca.SX.sym("m", Tfn.size1_in(2)), ca.SX.sym("b", 3)
+    r, w, wd, s = ca.SX.sym("r", 3), ca.SX.sym("omega", 3), ca.SX.sym("omega_dot", 3), ca.SX.sym("s", 3)
+    y, sigma, R = ca.SX.sym("y", 3), ca.SX.sym("sigma", 3), ca.SX.sym("Rbar", 9)
+    f = mot.specific_force_at(s, w, wd, r)
+    res = (y - tri.triad_output(Tfn(k, l, m, ca.reshape(R, 3, 3)), b, f)) / sigma
+    return ca.Function("accelerometer_sample", [ca.vertcat(k, l, m, b, r, w, wd, s), ca.vertcat(y, sigma, R)], [res])
+
+
+def gyroscope_sample_factor() -> ca.Function:
+    """Whitened residual of one gyroscope triad at one sample: y = T_g ω + b_g (Carlsson 2017, eq. 2,
+    with the DESIGN.md gyroscope model). z = [k_g, m_g, b_g, ω], d = [y, σ, vec(Rbar)]."""
+    k, m, b, w = ca.SX.sym("k", 3), ca.SX.sym("m", 3), ca.SX.sym("b", 3), ca.SX.sym("omega", 3)
+    y, sigma, R = ca.SX.sym("y", 3), ca.SX.sym("sigma", 3), ca.SX.sym("Rbar", 9)
+    res = (y - tri.triad_output(gyroscope_matrix()(k, m, ca.reshape(R, 3, 3)), b, w)) / sigma
+    return ca.Function("gyroscope_sample", [ca.vertcat(k, m, b, w), ca.vertcat(y, sigma, R)], [res])
+
+
+def process_factor() -> ca.Function:
+    """Whitened process-model residual between consecutive samples (Schopp 2016, eq. 14).
+    z = [ω_n, ω̇_n, s_n, ω_n+1, ω̇_n+1, s_n+1], d = [Δt, σ_s, σ_int, σ_ω̇]."""
+    z = [ca.SX.sym(n, 3) for n in ("omega", "omega_dot", "s", "omega_next", "omega_dot_next", "s_next")]
+    d = ca.SX.sym("d", 4)
+    res = mot.process_residual(*z, d[0], d[1], d[2], d[3])
+    return ca.Function("process_model", [ca.vertcat(*z), d], [res])
+
+
+def position_group(config: DynamicConfig, t: TriadConfig) -> Group:
+    """The triad's position (body frame, m); fixed at the origin for the reference triad."""
+    ref = next(x for x in config.triads if x.name == config.reference)
+    nominal = np.zeros(3) if t.position is None else t.position - (ref.position if ref.position is not None else 0)
+    s = t.position_setting or GroupSetting(free=(True,) * 3)
+    if t.name == config.reference:
+        s = GroupSetting(free=(False,) * 3)
+        nominal = np.zeros(3)
+    return Group.make(f"{t.name}.position", XYZ, nominal if s.initial is None else s.initial,
+                      free=s.free, lower=-np.inf if s.lower is None else s.lower,
+                      upper=np.inf if s.upper is None else s.upper,
+                      prior_mean=np.nan if s.prior_mean is None else s.prior_mean,
+                      prior_std=np.nan if s.prior_std is None else s.prior_std, scale=1e-3, unit="m")
+
+
+@dataclass
+class DynamicProblem:
+    config: DynamicConfig
+    lsq: LeastSquaresProblem
+    n_samples: int
+    gyro_triads: list[str]
+    rows: dict  # "acc" | "gyro" -> triad name -> indices of the valid samples
+
+    def block_data(self, data: DynamicData) -> list[np.ndarray]:
+        """Data of every block in problem order (accelerometers, gyroscopes, process model), triad-major."""
+        R = {t.name: t.R_nominal for t in self.config.triads}
+
+        def stack(names, kind, y, sigma):
+            return np.vstack([np.hstack([y[n][self.rows[kind][n]], np.broadcast_to(sigma[n], (len(self.rows[kind][n]), 3)),
+                                         np.tile(R[n].ravel(order="F"), (len(self.rows[kind][n]), 1))]) for n in names])
+
+        out = [stack(self.config.names, "acc", data.acc, data.acc_sigma)]
+        if self.gyro_triads:
+            out.append(stack(self.gyro_triads, "gyro", data.gyro, data.gyro_sigma))
+        if self.config.process_model:
+            m = self.config.motion
+            dt = np.diff(data.t)
+            out.append(np.column_stack([dt, np.full_like(dt, m.s), np.full_like(dt, m.integration),
+                                        np.full_like(dt, m.omega_dot)]))
+        return out
+
+    def data_vector(self, data: DynamicData) -> np.ndarray:
+        return self.lsq.pack(self.block_data(data))
+
+    def calibration(self, values: dict) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """(T, b) of every accelerometer triad: raw = T f + b with f in the body frame."""
+        Tfn = accelerometer_matrix(self.config.misalignment)
+        v = lambda n, g: values[group_name(n, "accelerometer", g)]  # noqa: E731
+        return {t.name: (np.asarray(Tfn(v(t.name, "gain"), v(t.name, "nonorthogonality"), v(t.name, "misalignment"),
+                                        t.R_nominal)), v(t.name, "bias")) for t in self.config.triads}
+
+    def gyro_calibration(self, values: dict) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        Tfn = gyroscope_matrix()
+        R = {t.name: t.R_nominal for t in self.config.triads}
+        v = lambda n, g: values[group_name(n, "gyroscope", g)]  # noqa: E731
+        return {n: (np.asarray(Tfn(v(n, "gain"), v(n, "misalignment"), R[n])), v(n, "bias")) for n in self.gyro_triads}
+
+
+def initial_motion(config: DynamicConfig, data: DynamicData, gyro_triads: list[str]) -> dict[str, np.ndarray]:
+    """Start of the motion states (Schopp 2016, sec. VI-B, and gyro-aided when gyros exist).
+
+    s: the reference triad's compensated reading (it sits at the origin, so it measures s).
+    ω: the mean compensated gyroscope reading, interpolated over saturated samples; zero without gyros,
+    so that the sign of the rotation is not predetermined. ω̇: the derivative of that ω.
+    """
+    ref = next(t for t in config.triads if t.name == config.reference)
+    init = lambda t, sensor, g, dflt: (t.accelerometer if sensor == "accelerometer" else t.gyroscope)[g].initial \
+        if (t.accelerometer if sensor == "accelerometer" else t.gyroscope)[g].initial is not None else dflt  # noqa: E731
+    T = accelerometer_matrix(config.misalignment)(init(ref, "accelerometer", "gain", [1, 1, 1]),
+                                                   init(ref, "accelerometer", "nonorthogonality", [0, 0, 0]),
+                                                   [1, 0, 0, 0] if config.misalignment == "rotation" else [0, 0, 0],
+                                                   ref.R_nominal)
+    b = np.asarray(init(ref, "accelerometer", "bias", [0, 0, 0]), float)
+    s = np.linalg.solve(np.asarray(T), (data.acc[ref.name] - b).T).T
+    omega = np.zeros((data.n, 3))
+    if gyro_triads:
+        est, weight = np.zeros((data.n, 3)), np.zeros(data.n)
+        for name in gyro_triads:
+            t = next(t for t in config.triads if t.name == name)
+            Tg = gyroscope_matrix()(init(t, "gyroscope", "gain", [1, 1, 1]), init(t, "gyroscope", "misalignment", [0, 0, 0]),
+                                    t.R_nominal)
+            w = np.linalg.solve(np.asarray(Tg), (data.gyro[name] - np.asarray(init(t, "gyroscope", "bias", [0, 0, 0]))).T).T
+            ok = data.valid("gyro", name)
+            est[ok] += w[ok]
+            weight[ok] += 1
+        good = weight > 0
+        if good.any():
+            omega = np.column_stack([np.interp(data.t, data.t[good], est[good, i] / weight[good]) for i in range(3)])
+    omega_dot = np.gradient(omega, data.t, axis=0) if data.n > 1 else np.zeros_like(omega)
+    return {OMEGA: omega, OMEGA_DOT: omega_dot, S: s}
+
+
+def build_dynamic(config: DynamicConfig, data: DynamicData, start: dict | None = None) -> DynamicProblem:
+    """Compose the dynamic problem; data and fixed values are NLP parameters."""
+    N = data.n
+    gyro_triads = [t.name for t in config.triads if t.gyroscope is not None and t.name in data.gyro]
+    start = {**initial_motion(config, data, gyro_triads), **(start or {})}
+    groups = []
+    for t in config.triads:
+        groups += triad_groups(config, t, t.name in gyro_triads)
+        groups.append(position_group(config, t))
+    groups += [Group.make(OMEGA, XYZ, start[OMEGA], rows=N, unit="rad/s", nuisance=True),
+               Group.make(OMEGA_DOT, XYZ, start[OMEGA_DOT], rows=N, scale=10.0, unit="rad/s^2", nuisance=True),
+               Group.make(S, XYZ, start[S], rows=N, unit="m/s^2", nuisance=True)]
+    rows = {"acc": {n: np.flatnonzero(data.valid("acc", n)) for n in config.names},
+            "gyro": {n: np.flatnonzero(data.valid("gyro", n)) for n in gyro_triads}}
+
+    def instances(kind, names):  # (triad index, sample index) of every instance, triad-major
+        return (np.concatenate([np.full(len(rows[kind][n]), k) for k, n in enumerate(names)]),
+                np.concatenate([rows[kind][n] for n in names]))
+
+    k, n = instances("acc", config.names)
+    blocks = [FactorBlock("accelerometer_sample", accelerometer_sample_factor(config.misalignment),
+                          [(tuple(group_name(t, "accelerometer", g) for t in config.names), k) for g in ACC_FACTOR_GROUPS]
+                          + [(tuple(f"{t}.position" for t in config.names), k), (OMEGA, n), (OMEGA_DOT, n), (S, n)],
+                          np.zeros((len(k), 0)))]
+    if gyro_triads:
+        k, n = instances("gyro", gyro_triads)
+        blocks.append(FactorBlock("gyroscope_sample", gyroscope_sample_factor(),
+                                  [(tuple(group_name(t, "gyroscope", g) for t in gyro_triads), k) for g in GYRO_FACTOR_GROUPS]
+                                  + [(OMEGA, n)], np.zeros((len(k), 0))))
+    if config.process_model and N > 1:
+        a, b = np.arange(N - 1), np.arange(1, N)
+        blocks.append(FactorBlock("process_model", process_factor(),
+                                  [(OMEGA, a), (OMEGA_DOT, a), (S, a), (OMEGA, b), (OMEGA_DOT, b), (S, b)],
+                                  np.zeros((N - 1, 0))))
+    problem = DynamicProblem(config, LeastSquaresProblem(Layout(groups), blocks), N, gyro_triads, rows)
+    for blk, d in zip(blocks, problem.block_data(data)):
+        blk.data = d
+    return problem
