@@ -15,18 +15,28 @@ def _log(msg: str) -> None:
 
 
 def cmd_solve(args) -> int:
-    from .calibrate import calibrate_static
-    from .io.results import static_results, write_json
+    from .io.results import dynamic_results, static_results, write_json
     from .problem.spec import load_problem
-    from .report.data import write_details
-    from .summary import static_summary
+    from .report.data import write_details, write_dynamic_details
+    from .summary import dynamic_summary, static_summary
 
     spec = load_problem(args.problem)
-    outcome = calibrate_static(spec, log=_log if not args.quiet else (lambda m: None))
+    log = _log if not args.quiet else (lambda m: None)
     out = Path(args.output)
-    write_details(out / "details.npz", outcome)
-    write_json(out / "results.json", static_results(outcome))
-    print(static_summary(outcome))
+    if spec.kind == "dynamic_array":
+        from .calibrate_dynamic import calibrate_dynamic
+
+        outcome = calibrate_dynamic(spec, log=log)
+        write_dynamic_details(out / "details.npz", outcome)
+        write_json(out / "results.json", dynamic_results(outcome))
+        print(dynamic_summary(outcome))
+    else:
+        from .calibrate import calibrate_static
+
+        outcome = calibrate_static(spec, log=log)
+        write_details(out / "details.npz", outcome)
+        write_json(out / "results.json", static_results(outcome))
+        print(static_summary(outcome))
     print(f"wrote {out / 'results.json'}")
     return 0
 

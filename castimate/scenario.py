@@ -37,8 +37,25 @@ def simulate_scenario(path: str | Path, out: str | Path) -> dict[str, Path]:
     except yaml.YAMLError as e:
         raise InputError(path, "", f"not valid YAML ({e})") from None
     c = _Check(path)
+    if not isinstance(raw, dict):
+        c.fail("", f"expected a mapping, found {type(raw).__name__} {raw!r}")
+    if "kind" not in raw:
+        c.fail("(top level)", "missing required key 'kind'")
+    kind = c.choice(raw["kind"], "kind", ("static_array", "dynamic_array"))
+    if kind == "dynamic_array":
+        return _dynamic_scenario(c, raw, path, out)
+    return _static_scenario(c, raw, path, out)
+
+
+def _seed(c: _Check, s: dict) -> np.random.Generator:
+    seed = c.number(s.get("seed", 0), "seed", integer=True)
+    if seed < 0:
+        c.fail("seed", f"expected a non-negative integer, found {seed}")
+    return np.random.default_rng(seed)
+
+
+def _static_scenario(c: _Check, raw: dict, path: Path, out: Path) -> dict[str, Path]:
     s = c.mapping(raw, "", SCENARIO_KEYS, required=("kind",))
-    c.choice(s["kind"], "kind", ("static_array",))
     seed = c.number(s.get("seed", 0), "seed", integer=True)
     if seed < 0:
         c.fail("seed", f"expected a non-negative integer, found {seed}")
@@ -103,6 +120,81 @@ def simulate_scenario(path: str | Path, out: str | Path) -> dict[str, Path]:
     doc.update({"directions": U, "static_intervals_s": intervals, "noise": {"accelerometer": sigma, "gyroscope": gsigma},
                 "samples_per_pose": n_samp})
     write_json(out / "truth.json", doc)
+    header = f"# Simulated from {path.name}; the truth is in truth.json.\n"
+    write_atomic(out / "problem.yaml", header + yaml.safe_dump(problem, sort_keys=False))
+    return {"data": out / "data.csv", "truth": out / "truth.json", "problem": out / "problem.yaml"}
+
+
+DYNAMIC_KEYS = ("kind", "seed", "geometry", "samples", "rate", "max_omega", "max_omega_dot", "noise", "gyroscope",
+                "saturation", "position_error", "orientation_error", "motion", "euler_consistent", "linear_accel")
+
+
+def _dynamic_scenario(c: _Check, raw: dict, path: Path, out: Path) -> dict[str, Path]:
+    """A hand-twisted dynamic session with known geometry (Carlsson 2017 or Schopp 2016 layout).
+
+    Angles in the scenario file are in degrees (max_omega in deg/s, max_omega_dot in deg/s^2,
+    orientation_error and saturation in deg and deg/s); lengths in metres.
+    """
+    from .simulate_dynamic import (carlsson_geometry, dynamic_measurements, euler_consistent,
+                                   schopp_geometry, smooth_random_motion)
+
+    s = c.mapping(raw, "", DYNAMIC_KEYS, required=("kind", "geometry"))
+    rng = _seed(c, s)
+    geometry = c.choice(s["geometry"], "geometry", ("carlsson", "schopp"))
+    N = c.number(s.get("samples", 1000), "samples", positive=True, integer=True)
+    rate = c.number(s.get("rate", 100.0), "rate", positive=True)
+    w_max = np.radians(c.number(s.get("max_omega", 2000.0), "max_omega", positive=True))
+    wd_max = np.radians(c.number(s.get("max_omega_dot", 2000.0), "max_omega_dot", positive=True))
+    noise = c.mapping(s.get("noise"), "noise", ("accelerometer", "gyroscope"))
+    acc_sigma = c.number(noise.get("accelerometer", 0.04), "noise.accelerometer", positive=True)
+    gyro_sigma = np.radians(c.number(noise.get("gyroscope", 0.06), "noise.gyroscope", positive=True))
+    pos_err = c.number(s.get("position_error", 1e-3), "position_error")
+    if geometry == "carlsson":
+        names, nominal, true, R = carlsson_geometry(rng, pos_err, reference="imu1")
+        true_R = R
+        gyro = _flag(c, s, "gyroscope") if "gyroscope" in s else True
+    else:
+        names, nominal, true, R, true_R = schopp_geometry(
+            rng, pos_err, orientation_error_deg=c.number(s.get("orientation_error", 0.0), "orientation_error"),
+            reference="acc1")
+        gyro = _flag(c, s, "gyroscope") if "gyroscope" in s else False
+    motion = smooth_random_motion(N, rate, w_max, wd_max, rng, linear_accel=c.number(s.get("linear_accel", 2.0), "linear_accel"))
+    if _flag(c, s, "euler_consistent") if "euler_consistent" in s else True:
+        motion = euler_consistent(motion)
+    K = len(names)
+    sat = s.get("saturation")
+    gyro_model = {"T_g": np.stack([true_R[n] for n in names]), "b_g": np.zeros((K, 3)), "sigma": gyro_sigma,
+                  "saturation": np.radians(c.number(sat, "saturation", positive=True)) if sat is not None else None} \
+        if gyro else None
+    origin = true[0]
+    acc, gy, saturated = dynamic_measurements(motion, true - origin, np.stack([true_R[n] for n in names]),
+                                              np.zeros((K, 3)), rng, acc_sigma, gyro=gyro_model, names=names)
+    rec = Recording(t=motion.t, acc=acc, gyro=gy, source="simulation")
+    msec = c.mapping(s.get("motion"), "motion", ("sigma_s", "sigma_omega_dot", "sigma_integration", "process_model"))
+    problem: dict[str, Any] = {
+        "kind": "dynamic_array",
+        "data": {"path": "data.csv", "format": "csv"},
+        "array": {"reference": names[0], "triads": [
+            {"name": n, "position": [float(v) for v in nominal[i]], "rotation": R[n].astype(int).tolist()}
+            for i, n in enumerate(names)]},
+        "model": {"misalignment": "rotation" if geometry == "schopp" else "small_angle"},
+        "noise": {"accelerometer": acc_sigma, **({"gyroscope": float(gyro_sigma)} if gyro else {})},
+    }
+    if geometry == "schopp":
+        problem["model"]["accelerometer"] = {"misalignment": "free"}
+    if msec:
+        problem["motion"] = msec
+    out.mkdir(parents=True, exist_ok=True)
+    write_csv(out / "data.csv", rec)
+    write_json(out / "truth.json", {
+        "format": "castimate.truth/1", "kind": "dynamic_array", "geometry": geometry, "reference": names[0],
+        "triads": {n: {"position": true[i] - origin, "nominal_position": nominal[i] - nominal[0],
+                       "R": true_R[n]} for i, n in enumerate(names)},
+        "motion": {"max_omega": float(np.linalg.norm(motion.omega, axis=1).max()),
+                   "max_omega_dot": float(np.linalg.norm(motion.omega_dot, axis=1).max()), "binding": motion.binding},
+        "noise": {"accelerometer": acc_sigma, "gyroscope": float(gyro_sigma) if gyro else None},
+        "saturated_samples": int(saturated.any(axis=1).sum()) if gyro else 0,
+    })
     header = f"# Simulated from {path.name}; the truth is in truth.json.\n"
     write_atomic(out / "problem.yaml", header + yaml.safe_dump(problem, sort_keys=False))
     return {"data": out / "data.csv", "truth": out / "truth.json", "problem": out / "problem.yaml"}

@@ -18,7 +18,7 @@ symbolic models are checked against.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable
 
 import numpy as np
@@ -432,3 +432,12 @@ def dynamic_measurements(motion: Motion, positions, T, b, rng: np.random.Generat
                 y = np.clip(y, -sat, sat)
             gyro_out[n] = y
     return acc, gyro_out, saturated
+
+
+def euler_consistent(motion: Motion) -> Motion:
+    """The same motion with ω re-integrated from ω̇ by the process model's Euler step,
+    ω_{n+1} = ω_n + ω̇_n Δt (Schopp 2016, eq. 7), so that simulation and model agree exactly and
+    Monte Carlo errors can be compared with the Cramér-Rao bound. s is kept (it is free per sample)."""
+    dt = np.diff(motion.t)[:, None]
+    omega = np.vstack([motion.omega[:1], motion.omega[:1] + np.cumsum(motion.omega_dot[:-1] * dt, axis=0)])
+    return replace(motion, omega=omega)

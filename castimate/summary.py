@@ -36,3 +36,23 @@ def static_summary(outcome) -> str:
         lines.append(f"  array consistency (Nilsson sec. IV): {np.sqrt(c.before.mean()) * 1e3:.1f} -> "
                      f"{np.sqrt(c.after.mean()) * 1e3:.1f} mm/s^2, {c.ratio_db:+.1f} dB")
     return "\n".join(lines)
+
+
+def dynamic_summary(outcome) -> str:
+    sol = outcome.solution
+    lines = [f"{outcome.spec.path.name}: {sol.message} in {sol.iterations} iterations "
+             f"({len(outcome.attempts)} attempt(s)), {sol.wall_s:.2f} s solve + {outcome.solver.build_s:.2f} s build",
+             f"  {outcome.data.n} samples, {len(outcome.config.triads)} triads, chi2/dof = {sol.chi2_per_dof:.3f}"]
+    masked = {k: v for k, v in outcome.saturation.items() if v}
+    if masked:
+        lines.append("  saturated samples masked: " + ", ".join(f"{k} {v}" for k, v in masked.items()))
+    lines.append("  position [mm] (body frame, origin at the reference triad)  estimate ± σ   | nominal")
+    for n in outcome.config.names:
+        r, s = outcome.positions[n]
+        nom = outcome.nominal[n]
+        est = ", ".join(f"{a * 1e3:+8.3f}±{b * 1e3:.3f}" if b > 0 else f"{a * 1e3:+8.3f} (fixed)" for a, b in zip(r, s))
+        lines.append(f"    {n:8s} [{est}] | [{', '.join(f'{x * 1e3:+.3f}' for x in nom)}]")
+    for g in outcome.problem.lsq.layout.groups:
+        if not g.nuisance and "position" not in g.name and g.free.any():
+            lines.append(f"    {g.name:32s} {_fmt(sol.values[g.name], sol.std[g.name], g.unit)}")
+    return "\n".join(lines)

@@ -610,7 +610,7 @@ SCENARIO_CASES = [
     ("unknown_key", "kind: static_array\ntriad: 3\n", "triad", "unknown key; expected one of gravity"),
     ("missing_kind", "triads: 3\n", "(top level)", "missing required key 'kind'"),
     ("not_mapping", "- kind\n", "", "expected a mapping, found list"),
-    ("bad_kind", "kind: dynamic\n", "kind", "expected one of static_array, found 'dynamic'"),
+    ("bad_kind", "kind: dynamic\n", "kind", "expected one of static_array, dynamic_array, found 'dynamic'"),
     ("seed_fraction", "kind: static_array\nseed: 1.5\n", "seed", "expected an integer, found 1.5"),
     ("seed_negative", "kind: static_array\nseed: -1\n", "seed", "expected a non-negative integer, found -1"),
     ("gravity_zero", "kind: static_array\ngravity: 0\n", "gravity", "expected a positive finite number, found 0"),

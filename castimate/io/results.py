@@ -101,6 +101,62 @@ def static_results(outcome) -> dict:
     return doc
 
 
+def _parameters(layout, sol, name: str) -> dict:
+    """The estimated or fixed parameter groups of one triad, with σ and units."""
+    params = {}
+    for g in layout.groups:
+        if g.nuisance or not g.name.startswith(name + "."):
+            continue
+        sensor, group = (g.name.split(".")[1:] + [""])[:2]
+        key = sensor if not group else group if sensor == "accelerometer" else f"{sensor}.{group}"
+        params[key] = {"value": sol.values[g.name], "std": sol.std[g.name], "free": g.shaped(g.free),
+                       "unit": g.unit, "components": list(g.components)}
+    return params
+
+
+def dynamic_results(outcome) -> dict:
+    """The results.json document of a dynamic calibration outcome."""
+    from ..calibrate_dynamic import orientation_quaternion
+
+    sol, cfg, spec = outcome.solution, outcome.config, outcome.spec
+    lay = outcome.problem.lsq.layout
+    triads = {}
+    for t in cfg.triads:
+        T, b = outcome.calibration[t.name]
+        r, r_std = outcome.positions[t.name]
+        entry = {"accelerometer": {"T": T, "b": b}, "R_nominal": t.R_nominal, "position": r, "position_std": r_std,
+                 "nominal_position": outcome.nominal[t.name], "orientation": orientation_quaternion(outcome, t.name)}
+        if t.name in outcome.gyro_calibration:
+            Tg, bg = outcome.gyro_calibration[t.name]
+            entry["gyroscope"] = {"T": Tg, "b": bg}
+        entry["parameters"] = _parameters(lay, sol, t.name)
+        triads[t.name] = entry
+    rms = lambda r: np.sqrt(np.nanmean(r ** 2, axis=0))  # noqa: E731
+    m = spec.motion
+    return {
+        "format": FORMAT,
+        "kind": spec.kind,
+        "problem": str(spec.path),
+        "problem_sha256": spec.sha256,
+        "status": {"success": sol.success, "message": sol.message, "iterations": sol.iterations,
+                   "wall_s": sol.wall_s, "build_s": outcome.solver.build_s, "attempts": outcome.attempts},
+        "reference": cfg.reference,
+        "units": {"accelerometer": "m/s^2", "gyroscope": "rad/s", "position": "m", "angles": "rad",
+                  "data_accelerometer": spec.data.acc_units.to_dict() if spec.data.acc_units else None,
+                  "data_gyroscope": spec.data.gyro_units.to_dict() if spec.data.gyro_units else None,
+                  "data_format": spec.data.format},
+        "samples": outcome.data.n,
+        "saturated_samples_masked": outcome.saturation,
+        "motion_model": {"process_model": m.process_model, "sigma_s": m.sigma_s, "sigma_omega_dot": m.sigma_omega_dot,
+                         "sigma_integration": m.sigma_integration},
+        "noise": {"accelerometer": outcome.data.acc_sigma, "gyroscope": outcome.data.gyro_sigma},
+        "triads": triads,
+        "residuals": {"chi2": sol.chi2, "dof": sol.dof, "chi2_per_dof": sol.chi2_per_dof,
+                      "rms": {n: rms(r) for n, r in outcome.residual_acc.items()}, "rms_unit": "m/s^2",
+                      "gyro_rms": {n: rms(r) for n, r in outcome.residual_gyro.items()}},
+    }
+
+
 def read_results(path: str | Path) -> dict:
     """Read and check a results.json (format, successful status, T and b of every triad)."""
     path = Path(path)

@@ -308,7 +308,7 @@ def _array(c: _Check, a) -> ArraySpec:
     ref = a["reference"]
     if not isinstance(ref, str) or ref not in seen:
         c.fail("array.reference", f"unknown triad {ref!r}; triads are {', '.join(t.name for t in triads)}")
-    if next(t for t in triads if t.name == ref).rotation == "auto":
+    if isinstance(next(t for t in triads if t.name == ref).rotation, str) and next(t for t in triads if t.name == ref).rotation == "auto":
         c.fail("array.reference", "the reference triad defines the body frame; its rotation cannot be auto")
     return ArraySpec(ref, tuple(triads))
 

@@ -33,3 +33,25 @@ def write_details(path: Path, outcome) -> None:
     buf = io.BytesIO()
     np.savez(buf, **arrays)
     write_atomic(path, buf.getvalue())
+
+
+def write_dynamic_details(path: Path, outcome) -> None:
+    """Time series of a dynamic outcome: motion estimate, residuals per triad, positions."""
+    names = outcome.config.names
+    v = outcome.solution.values
+    arrays = {
+        "triads": np.array(names), "t": outcome.data.t,
+        "omega": v["motion.omega"], "omega_dot": v["motion.omega_dot"], "s": v["motion.s"],
+        "residual_acc": np.stack([outcome.residual_acc[n] for n in names]),  # (K, N, 3) m/s^2, NaN = masked
+        "acc_sigma": np.stack([outcome.data.acc_sigma[n] for n in names]),
+        "position": np.stack([outcome.positions[n][0] for n in names]),
+        "position_std": np.stack([outcome.positions[n][1] for n in names]),
+        "nominal_position": np.stack([outcome.nominal[n] for n in names]),
+    }
+    if outcome.residual_gyro:
+        g = list(outcome.residual_gyro)
+        arrays["gyro_triads"] = np.array(g)
+        arrays["residual_gyro"] = np.stack([outcome.residual_gyro[n] for n in g])
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    write_atomic(path, buf.getvalue())

@@ -1,0 +1,303 @@
+"""From a validated dynamic problem spec to an outcome: read, mask, start, solve, check, restart.
+
+Initialisation and local minima follow Schopp 2016, sec. VI: start from zero angular motion (or the
+gyroscopes, when present) and the nominal poses; after solving, look for the diverged minima of
+Schopp's Table III (positions -> 0 or inf, angular motion -> 0 or inf) and for sign-trapped angular
+rates; restart from the estimated poses when one is found. Every attempt is reported.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, replace
+from typing import Callable
+
+import numpy as np
+
+from .calibrate import load_recording
+from .errors import InputError, NotConvergedError
+from .io.readers import read_recording
+from .io.recording import Recording
+from .models.rotation import rotation_to_quaternion
+from .problem.dynamic import OMEGA, DynamicConfig, DynamicData, MotionSigmas, build_dynamic
+from .problem.spec import ProblemSpec
+from .problem.static import TriadConfig, recover_nominal_rotation
+from .segments import average_poses, detect_static
+from .solve import Solution, Solver
+
+Log = Callable[[str], None]
+ACC_GROUPS = ("gain", "bias", "nonorthogonality", "misalignment")
+GYRO_GROUPS = ("gain", "bias", "misalignment")
+
+
+def _quiet(msg: str) -> None:
+    pass
+
+
+def saturation_mask(y: np.ndarray, level) -> np.ndarray:
+    """Samples (N,) with any axis at the clipping level.
+
+    ``auto``: an axis is clipped where it sits at its largest magnitude in the recording and that
+    value repeats (a plateau of at least 3 samples): an ADC's rail. ``none``: no masking. A number:
+    |y| >= level.
+    """
+    if level == "none":
+        return np.zeros(len(y), bool)
+    if level != "auto":
+        return (np.abs(y) >= level).any(axis=1)
+    out = np.zeros(len(y), bool)
+    for i in range(3):
+        a = np.abs(y[:, i])
+        top = a.max()
+        at_top = a >= top * (1 - 1e-9)
+        if at_top.sum() >= 3:
+            out |= at_top
+    return out
+
+
+def read_full(spec: ProblemSpec) -> Recording:
+    d = spec.data
+    return read_recording(d.format, d.path, acc_units=d.acc_units, gyro_units=d.gyro_units, gyro_path=d.gyro_path)
+
+
+def noise_from_static(spec: ProblemSpec, full: Recording, log: Log) -> tuple[dict, dict]:
+    """Per-sample σ (3,) per triad: from the problem file, else from the static segments of the whole recording."""
+    names = spec.array.names
+    acc, gyro = spec.noise.accelerometer, spec.noise.gyroscope
+    out_a = {n: np.full(3, acc[n]) for n in names} if acc else None
+    out_g = {n: np.full(3, gyro[n]) for n in names if n in full.gyro} if gyro else None
+    if out_a is None or (out_g is None and full.gyro):
+        det = detect_static(full, spec.data.detection, triads=names)
+        if not det.segments:
+            raise InputError(spec.path, "noise.accelerometer" if out_a is None else "noise.gyroscope",
+                             "auto needs static segments in the recording to estimate the noise; none were found; "
+                             "give σ per sample instead")
+        avg = average_poses(full, det, triads=names)
+        log(f"noise estimated from {avg.n_poses} static segments of the recording")
+        out_a = out_a or dict(avg.acc_sigma_sample)
+        out_g = out_g if out_g is not None else dict(avg.gyro_sigma_sample)
+    return out_a, out_g or {}
+
+
+def read_intrinsics(spec: ProblemSpec) -> dict:
+    """Per triad: {(sensor, group): value} and R_nominal from a static results.json."""
+    path = spec.model.intrinsics
+    if path is None:
+        return {}
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise InputError(path, "", f"cannot read the intrinsics results file ({e})") from None
+    if doc.get("format") != "castimate.results/1" or not doc.get("status", {}).get("success"):
+        raise InputError(path, "status.success", "expected a successful castimate results file")
+    out = {}
+    for name in spec.array.names:
+        t = doc.get("triads", {}).get(name)
+        if t is None:
+            raise InputError(spec.path, "model.intrinsics", f"{path.name} has no triad {name!r}")
+        vals = {}
+        for key, p in t.get("parameters", {}).items():
+            sensor, group = ("accelerometer", key) if "." not in key else key.split(".", 1)
+            vals[sensor, group] = np.asarray(p["value"], float)
+        out[name] = {"values": vals, "R_nominal": np.asarray(t.get("R_nominal", np.eye(3)), float)}
+    return out
+
+
+def _misalignment_as(value: np.ndarray, kind: str) -> np.ndarray:
+    """Convert a misalignment between small-angle ξ (3) and quaternion (4) forms."""
+    if kind == "rotation" and value.size == 3:
+        q = np.concatenate([[1.0], value / 2])
+        return q / np.linalg.norm(q)
+    if kind == "small_angle" and value.size == 4:
+        return 2 * value[1:] * np.sign(value[0] or 1)
+    return value
+
+
+def dynamic_config(spec: ProblemSpec, full: Recording, log: Log) -> DynamicConfig:
+    """Triads with nominal rotations, positions and settings; intrinsics start from a static results.json."""
+    intr = read_intrinsics(spec)
+    s, mis = spec.model.settings, spec.model.misalignment
+    ref_spec = next(t for t in spec.array.triads if t.name == spec.array.reference)
+    auto = [t.name for t in spec.array.triads if isinstance(t.rotation, str) and t.rotation == "auto" and t.name not in intr]
+    means = None
+    if auto:  # recover mounting rotations from the recording's static segments
+        det = detect_static(full, spec.data.detection, triads=spec.array.names)
+        if len(det.segments) < 3:
+            raise InputError(spec.path, "array.triads", f"rotation: auto for {', '.join(auto)} needs static segments "
+                             "(or model.intrinsics); the recording has fewer than 3")
+        means = average_poses(full, det, triads=spec.array.names).acc_mean
+    R_ref = intr[ref_spec.name]["R_nominal"] if ref_spec.name in intr else \
+        (np.eye(3) if isinstance(ref_spec.rotation, str) else ref_spec.rotation)
+    triads = []
+    for t in spec.array.triads:
+        if t.name in intr:
+            R = intr[t.name]["R_nominal"]
+        elif isinstance(t.rotation, np.ndarray):
+            R = t.rotation
+        elif t.rotation == "auto":
+            W, _ = recover_nominal_rotation(means[ref_spec.name], means[t.name])
+            R = W @ R_ref
+            log(f"  {t.name}: nominal rotation recovered from the static segments: {np.round(R).astype(int).tolist()}")
+        else:
+            R = np.eye(3)
+        vals = intr.get(t.name, {}).get("values", {})
+
+        def setting(sensor, g):
+            st = s[t.name, sensor, g]
+            if st.initial is None and (sensor, g) in vals:
+                v = vals[sensor, g]
+                v = _misalignment_as(v, mis) if (sensor, g) == ("accelerometer", "misalignment") else v
+                st = replace(st, initial=tuple(v))
+            return st
+
+        has_gyro = t.name in full.gyro if t.gyroscope is None else t.gyroscope
+        triads.append(TriadConfig(t.name, R, {g: setting("accelerometer", g) for g in ACC_GROUPS},
+                                  {g: setting("gyroscope", g) for g in GYRO_GROUPS} if has_gyro else None,
+                                  t.position, s[t.name, "position", "position"]))
+    m = spec.motion
+    return DynamicConfig(tuple(triads), spec.array.reference, mis,
+                         MotionSigmas(m.sigma_s, m.sigma_omega_dot, m.sigma_integration), m.process_model)
+
+
+# ---------------------------------------------------------------------------------------------
+# Local minima (Schopp 2016, sec. VI-A)
+# ---------------------------------------------------------------------------------------------
+
+def sign_flips(omega: np.ndarray, min_rate: float = 1.0) -> int:
+    """Samples where ω reverses between consecutive samples at a rate no smooth motion reaches:
+    the signature of a sign-trapped estimate (ω enters ω×(ω×r) quadratically)."""
+    a, b = omega[:-1], omega[1:]
+    na, nb = np.linalg.norm(a, axis=1), np.linalg.norm(b, axis=1)
+    return int(((np.einsum("ij,ij->i", a, b) < -0.5 * na * nb) & (np.minimum(na, nb) > min_rate)).sum())
+
+
+def minimum_checks(config: DynamicConfig, values: dict, nominal: dict[str, np.ndarray]) -> list[str]:
+    """Names of the local-minimum signatures found in a solution (empty if none)."""
+    issues = []
+    ratios = [np.linalg.norm(values[f"{n}.position"]) / np.linalg.norm(nominal[n])
+              for n in config.names if n != config.reference and np.linalg.norm(nominal[n]) > 0]
+    if ratios and np.median(ratios) < 0.2:
+        issues.append(f"positions collapsed towards zero (median |r|/|r_nominal| = {np.median(ratios):.2g})")
+    if ratios and np.median(ratios) > 5:
+        issues.append(f"positions diverged (median |r|/|r_nominal| = {np.median(ratios):.2g})")
+    w_rms = float(np.sqrt(np.mean(values[OMEGA] ** 2)))
+    if w_rms > 1e3:
+        issues.append(f"angular motion diverged (RMS |ω| = {w_rms:.3g} rad/s)")
+    if w_rms < 1e-3:
+        issues.append(f"angular motion collapsed to zero (RMS |ω| = {w_rms:.3g} rad/s)")
+    flips = sign_flips(values[OMEGA])
+    if flips:
+        issues.append(f"{flips} sign-trapped angular-rate samples")
+    return issues
+
+
+@dataclass
+class DynamicOutcome:
+    spec: ProblemSpec
+    data: DynamicData
+    config: DynamicConfig
+    problem: object
+    solver: Solver
+    solution: Solution
+    attempts: list[dict]
+    saturation: dict
+    calibration: dict
+    gyro_calibration: dict
+    residual_acc: dict  # name -> (N, 3) m/s^2, NaN where masked
+    residual_gyro: dict
+    nominal: dict  # name -> nominal position in the body frame
+
+    @property
+    def positions(self) -> dict:
+        return {n: (self.solution.values[f"{n}.position"], self.solution.std[f"{n}.position"]) for n in self.config.names}
+
+
+def calibrate_dynamic(spec: ProblemSpec, log: Log = _quiet, max_restarts: int = 2) -> DynamicOutcome:
+    """Run a dynamic array calibration end to end. Raises InputError or NotConvergedError."""
+    log(f"reading {spec.data.path.name} ({spec.data.format})")
+    full = read_full(spec)
+    rec = load_recording(spec)
+    acc_sigma, gyro_sigma = noise_from_static(spec, full, log)
+    config = dynamic_config(spec, full, log)
+    sat, acc_valid, gyro_valid = {}, {}, {}
+    for n in config.names:
+        m = saturation_mask(rec.acc[n], spec.data.saturation["accelerometer"])
+        acc_valid[n] = ~m
+        sat[f"{n}.accelerometer"] = int(m.sum())
+        if n in rec.gyro:
+            m = saturation_mask(rec.gyro[n], spec.data.saturation["gyroscope"])
+            gyro_valid[n] = ~m
+            sat[f"{n}.gyroscope"] = int(m.sum())
+    masked = {k: v for k, v in sat.items() if v}
+    log(f"{len(rec.t)} samples; saturated samples masked out of the likelihood: "
+        + (", ".join(f"{k} {v}" for k, v in masked.items()) if masked else "none"))
+    data = DynamicData(rec.t, {n: rec.acc[n] for n in config.names}, acc_sigma,
+                       {n: rec.gyro[n] for n in config.names if n in rec.gyro}, gyro_sigma, acc_valid, gyro_valid)
+    nominal = {t.name: (t.position - next(x for x in config.triads if x.name == config.reference).position)
+               if t.position is not None else np.zeros(3) for t in config.triads}
+
+    attempts, best = [], None
+    start_values: dict = {}
+    for attempt in range(max_restarts + 1):
+        problem = build_dynamic(config, data)
+        lay = problem.lsq.layout
+        has_gyro = bool(problem.gyro_triads)
+        log(f"attempt {attempt + 1}: {lay.n_x} variables, {'gyro-aided start' if has_gyro else 'zero angular motion'}"
+            + (", poses from the previous attempt" if start_values else ", nominal poses"))
+        x0 = lay.x0(start_values) if start_values else None
+        lam = None
+        if not has_gyro and spec.solver.hessian == "exact":
+            # Gauss-Newton steps first: robust from zero motion (the exact Hessian is indefinite there)
+            gn = Solver(problem.lsq, replace(spec.solver, hessian="gauss_newton"))
+            first = gn.solve(x0)
+            log(f"  Gauss-Newton: {first.message} in {first.iterations} iterations, {first.wall_s:.2f} s")
+            x0, lam = first.x, first.lam_g
+        solver = Solver(problem.lsq, spec.solver)
+        sol = solver.solve(x0, lam_g0=lam)
+        issues = minimum_checks(config, sol.values, nominal)
+        attempts.append({"attempt": attempt + 1, "success": sol.success, "message": sol.message,
+                         "iterations": sol.iterations, "cost": sol.cost, "issues": issues,
+                         "start": "previous poses" if start_values else "nominal poses"})
+        log(f"  {sol.message} in {sol.iterations} iterations, {sol.wall_s:.2f} s, cost {sol.cost:.6g}"
+            + (f"; found: {'; '.join(issues)}" if issues else ""))
+        if sol.success and (best is None or sol.cost < best[2].cost):
+            best = (problem, solver, sol)
+        if sol.success and not issues:
+            break
+        # restart from the estimated poses with zero (or gyro) motion, as Schopp 2016 suggests
+        start_values = {g.name: sol.values[g.name] for g in lay.groups if not g.nuisance
+                        and ("position" in g.name or "misalignment" in g.name) and np.all(np.isfinite(sol.values[g.name]))}
+        if any("diverged" in i or "collapsed" in i for i in issues):
+            start_values = {}
+    if best is None:
+        raise NotConvergedError(f"{spec.path}: IPOPT did not converge in {len(attempts)} attempts: "
+                                f"{attempts[-1]['message']}")
+    problem, solver, sol = best
+    if minimum_checks(config, sol.values, nominal):
+        raise NotConvergedError(f"{spec.path}: every attempt ended in a local minimum: "
+                                + "; ".join(", ".join(a["issues"]) for a in attempts))
+    cal, gcal = problem.calibration(sol.values), problem.gyro_calibration(sol.values)
+    res_acc, res_gyro = _residuals(problem, data, sol)
+    return DynamicOutcome(spec, data, config, problem, solver, sol, attempts, sat, cal, gcal, res_acc, res_gyro, nominal)
+
+
+def _residuals(problem, data: DynamicData, sol: Solution) -> tuple[dict, dict]:
+    """Residuals y - model per triad and sample (m/s^2, rad/s), NaN where a sample was masked."""
+    r = sol.residual
+    out_a, out_g, off = {}, {}, 0
+    for kind, names, sig, out in (("acc", problem.config.names, data.acc_sigma, out_a),
+                                  ("gyro", problem.gyro_triads, data.gyro_sigma, out_g)):
+        for n in names:
+            rows = problem.rows[kind][n]
+            full = np.full((data.n, 3), np.nan)
+            full[rows] = r[off: off + 3 * len(rows)].reshape(-1, 3) * sig[n]
+            off += 3 * len(rows)
+            out[n] = full
+    return out_a, out_g
+
+
+def orientation_quaternion(outcome: DynamicOutcome, name: str) -> np.ndarray:
+    """Body -> triad rotation of a triad as a unit quaternion (misalignment times nominal)."""
+    T, _ = outcome.calibration[name]
+    U, _, Vt = np.linalg.svd(T)
+    return rotation_to_quaternion(U @ Vt)
