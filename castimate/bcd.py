@@ -627,7 +627,7 @@ def bcd_positions(
     r0: np.ndarray,
     reference: int = 0,
     gyro_mask: np.ndarray | None = None,
-    max_iter: int = 50,
+    max_iter: int = 1000,
     tol: float = 1e-9,
     progress: Callable[[int, float, float], object] | None = None,
     omega0: np.ndarray | None = None,

@@ -193,7 +193,7 @@ def _dynamic_scenario(c: _Check, raw: dict, path: Path, out: Path) -> dict[str, 
         "motion": {"max_omega": float(np.linalg.norm(motion.omega, axis=1).max()),
                    "max_omega_dot": float(np.linalg.norm(motion.omega_dot, axis=1).max()), "binding": motion.binding},
         "noise": {"accelerometer": acc_sigma, "gyroscope": float(gyro_sigma) if gyro else None},
-        "saturated_samples": int(saturated.any(axis=1).sum()) if gyro else 0,
+        "saturated_samples": {n: int(m.any(axis=1).sum()) for n, m in saturated.items()} if gyro else {},
     })
     header = f"# Simulated from {path.name}; the truth is in truth.json.\n"
     write_atomic(out / "problem.yaml", header + yaml.safe_dump(problem, sort_keys=False))
