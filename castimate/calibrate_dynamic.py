@@ -19,7 +19,7 @@ from .errors import InputError, NotConvergedError
 from .io.readers import read_recording
 from .io.recording import Recording
 from .models.rotation import rotation_to_quaternion
-from .problem.dynamic import OMEGA, DynamicConfig, DynamicData, MotionSigmas, build_dynamic
+from .problem.dynamic import OMEGA, OMEGA_DOT, DynamicConfig, DynamicData, MotionSigmas, build_dynamic
 from .problem.spec import ProblemSpec
 from .problem.static import TriadConfig, recover_nominal_rotation
 from .segments import average_poses, detect_static
@@ -163,15 +163,41 @@ def dynamic_config(spec: ProblemSpec, full: Recording, log: Log) -> DynamicConfi
 # Local minima (Schopp 2016, sec. VI-A)
 # ---------------------------------------------------------------------------------------------
 
-def sign_flips(omega: np.ndarray, min_rate: float = 1.0) -> int:
-    """Samples where ω reverses between consecutive samples at a rate no smooth motion reaches:
-    the signature of a sign-trapped estimate (ω enters ω×(ω×r) quadratically)."""
+def sign_flips(t: np.ndarray, omega: np.ndarray, omega_dot: np.ndarray, determined: np.ndarray | None = None,
+               min_rate: float = 1.0) -> int:
+    """Sample pairs where ω reverses and the jump is not explained by ω̇: the signature of a
+    sign-trapped estimate (ω enters ω×(ω×r) quadratically, while ω̇ enters the Euler term
+    linearly, so ω̇ keeps the true sign). A fast but real zero crossing has Δω ≈ ω̇ Δt.
+
+    ``determined`` (N,) marks samples whose sign the likelihood fixes (a valid gyroscope reading,
+    or a process model); only pairs of such samples count. Elsewhere the sign of ω is genuinely
+    ambiguous, and a reversal is not a local minimum.
+    """
     a, b = omega[:-1], omega[1:]
     na, nb = np.linalg.norm(a, axis=1), np.linalg.norm(b, axis=1)
-    return int(((np.einsum("ij,ij->i", a, b) < -0.5 * na * nb) & (np.minimum(na, nb) > min_rate)).sum())
+    jump = b - a
+    explained = 0.5 * (omega_dot[:-1] + omega_dot[1:]) * np.diff(t)[:, None]
+    unexplained = np.linalg.norm(jump - explained, axis=1) > 0.5 * np.linalg.norm(jump, axis=1)
+    flip = (np.einsum("ij,ij->i", a, b) < -0.5 * na * nb) & (np.minimum(na, nb) > min_rate) & unexplained
+    if determined is not None:
+        flip &= determined[:-1] & determined[1:]
+    return int(flip.sum())
 
 
-def minimum_checks(config: DynamicConfig, values: dict, nominal: dict[str, np.ndarray]) -> list[str]:
+def sign_determined(config: DynamicConfig, data: DynamicData, gyro_triads: list[str]) -> np.ndarray:
+    """Samples where a sign trap is possible: the sign of ω there comes from the process model
+    alone (no valid gyroscope reading). Where a gyroscope reads, it fixes the sign; without a
+    process model and gyroscope the sign is ambiguous rather than trapped."""
+    if not config.process_model:
+        return np.zeros(data.n, bool)
+    out = np.ones(data.n, bool)
+    for n in gyro_triads:
+        out &= ~data.valid("gyro", n)
+    return out
+
+
+def minimum_checks(config: DynamicConfig, values: dict, nominal: dict[str, np.ndarray], t: np.ndarray,
+                   determined: np.ndarray | None = None) -> list[str]:
     """Names of the local-minimum signatures found in a solution (empty if none)."""
     issues = []
     ratios = [np.linalg.norm(values[f"{n}.position"]) / np.linalg.norm(nominal[n])
@@ -185,7 +211,7 @@ def minimum_checks(config: DynamicConfig, values: dict, nominal: dict[str, np.nd
         issues.append(f"angular motion diverged (RMS |ω| = {w_rms:.3g} rad/s)")
     if w_rms < 1e-3:
         issues.append(f"angular motion collapsed to zero (RMS |ω| = {w_rms:.3g} rad/s)")
-    flips = sign_flips(values[OMEGA])
+    flips = sign_flips(t, values[OMEGA], values[OMEGA_DOT], determined)
     if flips:
         issues.append(f"{flips} sign-trapped angular-rate samples")
     return issues
@@ -245,6 +271,12 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = _quiet, max_restarts: int = 
         log(f"attempt {attempt + 1}: {lay.n_x} variables, {'gyro-aided start' if has_gyro else 'zero angular motion'}"
             + (", poses from the previous attempt" if start_values else ", nominal poses"))
         x0 = lay.x0(start_values) if start_values else None
+        determined = sign_determined(config, data, problem.gyro_triads)
+        if attempt == 0:
+            bad = Solver(problem.lsq, replace(spec.solver, hessian="gauss_newton")).undetermined(lay.x0())
+            if bad:
+                raise InputError(spec.path, "model", f"the data cannot determine {len(bad)} direction(s): "
+                                 f"{'; '.join(bad[:3])}; fix these parameters, give them priors, or enable the process model")
         lam = None
         if not has_gyro and spec.solver.hessian == "exact":
             # Gauss-Newton steps first: robust from zero motion (the exact Hessian is indefinite there)
@@ -254,7 +286,7 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = _quiet, max_restarts: int = 
             x0, lam = first.x, first.lam_g
         solver = Solver(problem.lsq, spec.solver)
         sol = solver.solve(x0, lam_g0=lam)
-        issues = minimum_checks(config, sol.values, nominal)
+        issues = minimum_checks(config, sol.values, nominal, data.t, determined)
         attempts.append({"attempt": attempt + 1, "success": sol.success, "message": sol.message,
                          "iterations": sol.iterations, "cost": sol.cost, "issues": issues,
                          "start": "previous poses" if start_values else "nominal poses"})
@@ -273,7 +305,7 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = _quiet, max_restarts: int = 
         raise NotConvergedError(f"{spec.path}: IPOPT did not converge in {len(attempts)} attempts: "
                                 f"{attempts[-1]['message']}")
     problem, solver, sol = best
-    if minimum_checks(config, sol.values, nominal):
+    if minimum_checks(config, sol.values, nominal, data.t, sign_determined(config, data, problem.gyro_triads)):
         raise NotConvergedError(f"{spec.path}: every attempt ended in a local minimum: "
                                 + "; ".join(", ".join(a["issues"]) for a in attempts))
     cal, gcal = problem.calibration(sol.values), problem.gyro_calibration(sol.values)

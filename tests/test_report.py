@@ -115,3 +115,153 @@ def test_figures_are_figures():
     assert isinstance(figures.consistency(np.full(P, 1e-3), np.full(P, 1e-5)), Figure)
     assert isinstance(figures.gravity_norm(np.abs(r[..., 0]) * 100, np.abs(r[..., 1]), names), Figure)
     assert isinstance(figures.misalignment_map({"triads": {}}), Figure)
+
+
+# ---------------------------------------------------------------------------------------------
+# Dynamic array (kind dynamic_array)
+# ---------------------------------------------------------------------------------------------
+
+DYNAMIC_SCENARIO = ("kind: dynamic_array\nseed: 3\ngeometry: carlsson\nsamples: 200\nrate: 100\nmax_omega: 1500\n"
+                    "max_omega_dot: 2000\nnoise: {accelerometer: 0.04, gyroscope: 0.06}\n"
+                    "motion: {process_model: false}\n")
+
+
+@pytest.fixture(scope="module")
+def dynamic_solved(tmp_path_factory) -> Path:
+    """A small simulated Carlsson board (32 triads on two sides, 200 samples), solved."""
+    root = tmp_path_factory.mktemp("report_dynamic")
+    scenario = root / "scenario.yaml"
+    scenario.write_text(DYNAMIC_SCENARIO)
+    assert main(["simulate", str(scenario), "-o", str(root / "sim")]) == 0
+    assert main(["solve", str(root / "sim" / "problem.yaml"), "-o", str(root / "out"), "-q"]) == 0
+    return root / "out"
+
+
+@pytest.fixture(scope="module")
+def dynamic_report(dynamic_solved) -> str:
+    assert main(["report", str(dynamic_solved)]) == 0
+    return (dynamic_solved / "report.html").read_text()
+
+
+def test_dynamic_report_is_self_contained(dynamic_report):
+    assert dynamic_report.lstrip().startswith("<!DOCTYPE html>")
+    assert len(re.findall(r'<img [^>]*src="data:image/png;base64,[A-Za-z0-9+/=]+"', dynamic_report)) == 4
+    assert not re.search(r'(src|href)="(https?:)?//', dynamic_report)
+    assert "<link" not in dynamic_report and "<script" not in dynamic_report
+    assert dynamic_report.rstrip().endswith("</html>")
+
+
+def test_dynamic_report_content(dynamic_solved, dynamic_report):
+    from castimate.report.html import format_pm
+
+    doc = json.loads((dynamic_solved / "results.json").read_text())
+    assert doc["kind"] == "dynamic_array" and "dynamic_array" in dynamic_report
+    assert doc["status"]["message"] in dynamic_report
+    assert f"{doc['residuals']['chi2_per_dof']:.3f}" in dynamic_report
+    assert f"{doc['samples']} over" in dynamic_report
+    assert "local-minimum checks" in dynamic_report  # one row per attempt
+    assert dynamic_report.count('<td class="name">nominal poses</td>') + \
+        dynamic_report.count('<td class="name">previous poses</td>') == len(doc["status"]["attempts"])
+    assert "accelerometer samples masked" in dynamic_report and "gyroscope σ x, y, z [deg/s]" in dynamic_report
+    assert len(doc["triads"]) == 32
+    for name in doc["triads"]:
+        assert re.search(rf">{re.escape(name)}\b", dynamic_report), name
+    # the gyroscope biases are estimated: shown with σ like in the static report
+    g = doc["triads"]["imu2"]["parameters"]["gyroscope.bias"]
+    assert format_pm(g["value"][0], g["std"][0]) in dynamic_report
+
+
+def test_dynamic_report_positions_table(dynamic_solved, dynamic_report):
+    doc = json.loads((dynamic_solved / "results.json").read_text())
+    assert "estimate ± σ [mm]" in dynamic_report and "estimate − nominal [µm]" in dynamic_report
+    table = dynamic_report[dynamic_report.index("<h2>Positions</h2>"):dynamic_report.index("<h2>Orientation</h2>")]
+    for name, t in doc["triads"].items():
+        row = re.search(rf'<tr><td class="name">{re.escape(name)}( <small>\(reference\)</small>)?</td>(.*?)</tr>',
+                        table)
+        assert row, name
+        cells = re.findall(r"<td[^>]*>([^<]*)</td>", row.group(2))
+        assert len(cells) == 10, cells
+        assert [float(c) for c in cells[:3]] == pytest.approx(np.array(t["nominal_position"]) * 1e3, abs=5e-4)
+        for k in range(3):
+            if name == doc["reference"]:
+                assert cells[3 + k].endswith("fixed")
+                continue
+            # the estimate in mm with 3–4 decimals and its σ, the values of results.json
+            m = re.fullmatch(r"(-?\d+\.(\d{3,4})) ± (\d+\.\d+)", cells[3 + k])
+            assert m, cells[3 + k]
+            decimals = len(m.group(2))
+            assert float(m.group(1)) == pytest.approx(t["position"][k] * 1e3, abs=0.51 * 10 ** -decimals)
+            assert float(m.group(3)) == pytest.approx(t["position_std"][k] * 1e3, rel=0.05, abs=0.51 * 10 ** -decimals)
+            diff_um = float(cells[6 + k].split(" ± ")[0])
+            assert diff_um == pytest.approx((t["position"][k] - t["nominal_position"][k]) * 1e6, abs=1.0)
+
+
+def test_dynamic_report_figure_titles(dynamic_solved, dynamic_report):
+    """The RMS in the figure titles (also the images' alt text), recomputed from the outputs."""
+    doc = json.loads((dynamic_solved / "results.json").read_text())
+    est = [t for n, t in doc["triads"].items() if n != doc["reference"]]
+    d = np.array([np.linalg.norm(np.subtract(t["position"], t["nominal_position"])) for t in est])
+    rms_um = np.sqrt(np.mean(d ** 2)) * 1e6
+    assert f'alt="Triad positions: RMS distance estimated–nominal {rms_um:.1f} µm (31 estimated triads)"' \
+        in dynamic_report
+    assert f'alt="Position errors: RMS |estimate − nominal| {rms_um:.1f} µm"' in dynamic_report
+    with np.load(dynamic_solved / "details.npz") as z:
+        w = z["residual_acc"] / z["acc_sigma"][:, None, :]
+    assert f'alt="Accelerometer residuals over time: RMS of residual/σ {np.sqrt(np.nanmean(w ** 2)):.3f}"' \
+        in dynamic_report
+    assert 'alt="Estimated motion of the body frame' in dynamic_report
+
+
+def test_dynamic_report_quaternion_orientation(dynamic_solved):
+    """An estimated misalignment quaternion (Schopp 2016) is shown as a rotation in degrees."""
+    from castimate.report.html import _orientation_table, _other_parameters, format_pm, parameter_tables
+
+    doc = json.loads((dynamic_solved / "results.json").read_text())
+    intro, table = _orientation_table(doc, list(doc["triads"]))
+    assert "not estimated" in intro and "misalignment rotation" not in table  # the Carlsson board
+    half = np.radians(0.05) / 2  # 0.05 deg about x
+    doc["triads"]["imu2"]["parameters"]["misalignment"] = {
+        "value": [np.cos(half), np.sin(half), 0.0, 0.0], "std": [1e-8, 1e-5, 1e-5, 1e-5],
+        "free": [True] * 4, "unit": "-", "components": ["w", "x", "y", "z"]}
+    intro, table = _orientation_table(doc, list(doc["triads"]))
+    assert "misalignment rotation [deg]" in table
+    assert f"<td>{format_pm(0.05, np.degrees(2e-5))}</td>" in table
+    # and it is not repeated among the other parameters as a dimensionless quaternion
+    other = parameter_tables(_other_parameters(doc))
+    assert not any("<th>w</th>" in "".join(head) for _, head, _, _ in other)
+
+
+def test_dynamic_report_missing_array(dynamic_solved, tmp_path, capsys):
+    (tmp_path / "results.json").write_text((dynamic_solved / "results.json").read_text())
+    with np.load(dynamic_solved / "details.npz") as z:
+        np.savez(tmp_path / "details.npz", **{k: z[k] for k in z.files if k != "position"})
+    assert main(["report", str(tmp_path)]) == EXIT_INVALID_INPUT
+    err = capsys.readouterr().err
+    assert "details.npz" in err and "position" in err
+
+
+def test_dynamic_figures():
+    from matplotlib.figure import Figure
+
+    from castimate.report import figures
+
+    rng = np.random.default_rng(1)
+    names = ["a", "b", "c", "d"]
+    nominal = np.array([[0, 0, 0], [0.01, 0, 0], [0, 0.01, 0], [0, 0, -0.002]])
+    err = rng.normal(size=(4, 3)) * 1e-4
+    err[0] = 0
+    std = np.full((4, 3), 1e-5)
+    std[0] = 0
+    # the largest error is drawn at about a third of the 10 mm spacing, never shrunk
+    f = figures.exaggeration(nominal, nominal + err)
+    assert 1 / 3 / 1.6 < f * np.linalg.norm(err, axis=1).max() / 0.01 < 1 / 3 * 1.6
+    assert figures.exaggeration(nominal, nominal + 100 * err) == 1
+    assert isinstance(figures.positions_on_board(names, nominal, nominal + err, std), Figure)
+    assert isinstance(figures.position_errors(names, err, std), Figure)
+    t = np.arange(50) / 100
+    assert isinstance(figures.motion_over_time(t, *rng.normal(size=(3, 50, 3))), Figure)
+    r = rng.normal(size=(4, 50, 3)) * 0.01
+    r[1, 10:20] = np.nan  # masked samples
+    r[2] = np.nan  # a triad masked throughout
+    fig = figures.residuals_over_time(t, r, np.full((4, 3), 0.01), names)
+    assert isinstance(fig, Figure) and "RMS of residual/σ" in fig.get_suptitle()

@@ -125,6 +125,9 @@ def dynamic_results(outcome) -> dict:
         T, b = outcome.calibration[t.name]
         r, r_std = outcome.positions[t.name]
         entry = {"accelerometer": {"T": T, "b": b}, "R_nominal": t.R_nominal, "position": r, "position_std": r_std,
+                 # σ scaled by sqrt(χ²/dof) when the residual exceeds the noise model: the honest
+                 # figure on real data with unmodelled effects
+                 "position_std_scaled": r_std * np.sqrt(max(1.0, sol.chi2_per_dof)),
                  "nominal_position": outcome.nominal[t.name], "orientation": orientation_quaternion(outcome, t.name)}
         if t.name in outcome.gyro_calibration:
             Tg, bg = outcome.gyro_calibration[t.name]

@@ -278,3 +278,340 @@ def misalignment_map(results: dict) -> Figure:
     any_fixed = any(g is not None and not all(g["free"]) for _, _, gs in panels for g in gs.values())
     fig.suptitle("Estimated angles (±1σ error bars" + ("; hollow = fixed)" if any_fixed else ")"))
     return fig
+
+
+# ---------------------------------------------------------------------------------------------
+# Dynamic array (Carlsson 2017 positions, Schopp 2016 poses)
+# ---------------------------------------------------------------------------------------------
+
+def _nice_factor(x: float) -> float:
+    """The 1-2-5 number nearest to *x* on a log scale (1 for a non-finite or non-positive x)."""
+    if not np.isfinite(x) or x <= 0:
+        return 1.0
+    e = np.floor(np.log10(x))
+    cands = np.array([1, 2, 5, 10]) * 10.0 ** e
+    return float(cands[np.argmin(np.abs(np.log(cands / x)))])
+
+
+def _format_factor(f: float) -> str:
+    return f"{f:.0f}" if f >= 1 else f"{f:.3g}"
+
+
+def triad_spacing(nominal: np.ndarray) -> float:
+    """Typical triad spacing, m: the median distance to the nearest triad at a different x–y
+    position (triads stacked on the two sides of a board share x–y), else in 3-D; 0 if undefined."""
+    p = np.asarray(nominal, float)
+    if len(p) < 2:
+        return 0.0
+    for cols in ((0, 1), (0, 1, 2)):
+        d = np.linalg.norm(p[:, None, cols] - p[None, :, cols], axis=-1)
+        tol = 1e-3 * max(float(d.max()), 1e-12)
+        d[d <= tol] = np.inf
+        nn = d.min(axis=1)
+        nn = nn[np.isfinite(nn)]
+        if nn.size:
+            return float(np.median(nn))
+    return 0.0
+
+
+def exaggeration(nominal: np.ndarray, estimated: np.ndarray) -> float:
+    """A 1-2-5 factor that draws the largest position error at about a third of the triad spacing
+    (at least 1: errors already that large are drawn true to scale)."""
+    err = np.linalg.norm(np.asarray(estimated, float) - np.asarray(nominal, float), axis=1)
+    err = err[np.isfinite(err)]
+    spacing = triad_spacing(nominal)
+    if not err.size or err.max() <= 0 or spacing <= 0:
+        return 1.0
+    return max(1.0, _nice_factor(spacing / 3 / err.max()))  # never shrink the errors
+
+
+def position_rms_um(nominal: np.ndarray, estimated: np.ndarray, std: np.ndarray) -> float:
+    """RMS distance estimated–nominal in µm over the estimated triads (those with a σ > 0; a triad
+    fixed at its nominal position, such as the reference, would only dilute it)."""
+    d = np.linalg.norm(np.asarray(estimated, float) - np.asarray(nominal, float), axis=1)
+    est = np.any(np.asarray(std, float) > 0, axis=1)
+    d = d[est & np.isfinite(d)] if est.any() else d[np.isfinite(d)]
+    return float(np.sqrt(np.mean(d ** 2)) * 1e6) if d.size else float("nan")
+
+
+def positions_title(nominal: np.ndarray, estimated: np.ndarray, std: np.ndarray) -> str:
+    n = int(np.any(np.asarray(std, float) > 0, axis=1).sum())
+    return (f"Triad positions: RMS distance estimated–nominal {position_rms_um(nominal, estimated, std):.1f} µm"
+            f" ({n} estimated triad{'' if n == 1 else 's'})")
+
+
+def _levels(z: np.ndarray, tol: float) -> np.ndarray:
+    """Index of the z level (board side) of each triad: sorted z values split at gaps > tol."""
+    order = np.argsort(z)
+    lev = np.zeros(len(z), int)
+    k = 0
+    for a, b in zip(order[:-1], order[1:]):
+        if z[b] - z[a] > tol:
+            k += 1
+        lev[b] = k
+    return lev.max() - lev  # 0 = the highest level (top side)
+
+
+def positions_on_board(names: Sequence[str], nominal: np.ndarray, estimated: np.ndarray, std: np.ndarray) -> Figure:
+    """Nominal and estimated triad positions, from above (x–y) and from the side (x–z).
+
+    Parameters
+    ----------
+    names
+        The K triad names.
+    nominal, estimated, std
+        (K, 3) nominal position, estimate and its σ in the body frame, m.
+
+    Nominal positions are open markers, estimates filled markers at nominal + f·(estimate −
+    nominal) with the factor f chosen so the largest error is about a third of the triad spacing
+    (stated in the legend); the ±1σ ellipses are drawn at the same factor. Colour = board side
+    (z level). The title gives the RMS distance estimated–nominal in µm.
+    """
+    from matplotlib.patches import Ellipse
+
+    names = list(names)
+    nom = np.asarray(nominal, float) * 1e3  # mm
+    est = np.asarray(estimated, float) * 1e3
+    sd = np.asarray(std, float) * 1e3
+    K = len(names)
+    f = exaggeration(nominal, estimated)
+    shown = nom + f * (est - nom)
+    spacing = triad_spacing(nominal) * 1e3
+    lev = _levels(nom[:, 2], max(0.5, 0.05 * spacing)) if K else np.zeros(0, int)
+    n_lev = int(lev.max()) + 1 if K else 1
+    side_colors = ["#1f77b4", "#d62728", "#2ca02c", "#9467bd"]
+    colors = [side_colors[v] if n_lev <= len(side_colors) else "#1f77b4" for v in lev]
+
+    # limits in mm: nominal, shown estimates and ellipses, with a margin for the labels
+    pts = np.concatenate([nom, shown + f * sd, shown - f * sd]) if K else np.zeros((1, 3))
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    span = max(float((hi - lo)[:2].max()), spacing, 1e-3)
+    margin = 0.06 * span + 0.2 * spacing
+    lo, hi = lo - margin, hi + margin
+    # both views at the same scale (equal aspect): panel heights follow the data extents, the side
+    # view padded in z to a readable minimum height
+    width = 9.5
+    plot_w = width - 1.3
+    scale = plot_w / (hi[0] - lo[0])  # inch per mm
+    if (hi[1] - lo[1]) * scale > 8.5:  # a tall board: limit the height, narrower panels
+        scale = 8.5 / (hi[1] - lo[1])
+    zmin_span = 1.5 / scale
+    if hi[2] - lo[2] < zmin_span:
+        mid = (hi[2] + lo[2]) / 2
+        lo[2], hi[2] = mid - zmin_span / 2, mid + zmin_span / 2
+    top_h, side_h = (hi[1] - lo[1]) * scale, (hi[2] - lo[2]) * scale
+    fig = _new_figure(width, top_h + side_h + 2.0)
+    gs = fig.add_gridspec(2, 1, height_ratios=[top_h, side_h])
+    ax_top = fig.add_subplot(gs[0])
+    ax_side = fig.add_subplot(gs[1], sharex=ax_top)
+
+    for ax, (a, b) in ((ax_top, (0, 1)), (ax_side, (0, 2))):
+        for i in range(K):
+            c = colors[i]
+            ax.plot([nom[i, a], shown[i, a]], [nom[i, b], shown[i, b]], "-", color=c, lw=1.0, alpha=0.8)
+            if np.isfinite(sd[i, [a, b]]).all() and (sd[i, [a, b]] > 0).any():
+                ax.add_patch(Ellipse((shown[i, a], shown[i, b]), 2 * f * sd[i, a], 2 * f * sd[i, b],
+                                     fill=False, ec=c, lw=0.9, ls="--"))
+            ax.plot(nom[i, a], nom[i, b], "o", mfc="white", mec=c, ms=6.5, mew=1.2)
+            ax.plot(shown[i, a], shown[i, b], "o", color=c, ms=4)
+        ax.set_aspect("equal", adjustable="box")
+        ax.grid(alpha=0.25)
+    ax_top.set_xlim(lo[0], hi[0])
+    ax_top.set_ylim(lo[1], hi[1])
+    ax_side.set_ylim(lo[2], hi[2])
+    # names beside the nominal markers (below the markers, so these stay visible); triads on the
+    # two sides of a board share an x–y position, so the sides get opposite corners
+    fs = 8 if K <= 16 else 7
+    for i, n in enumerate(names):
+        up = lev[i] % 2 == 0
+        ax_top.annotate(n, (nom[i, 0], nom[i, 1]), xytext=(-5, 4 if up else -4), textcoords="offset points",
+                        ha="right", va="bottom" if up else "top", fontsize=fs, color=colors[i], zorder=1.5,
+                        bbox=dict(boxstyle="round,pad=0.1", fc="white", ec="none", alpha=0.75))
+    ax_top.set_ylabel("y [mm]")
+    ax_top.set_title("Top view (x–y)", fontsize=10)
+    ax_top.tick_params(labelbottom=False)
+    ax_side.set_xlabel("x [mm]")
+    ax_side.set_ylabel("z [mm]")
+    ax_side.set_title("Side view (x–z)", fontsize=10)
+
+    fs_ = _format_factor(f)
+    handles = [Line2D([], [], ls="", marker="o", mfc="white", mec="k", ms=6.5, mew=1.2),
+               Line2D([], [], ls="-", marker="o", color="k", ms=4, lw=1.0),
+               Line2D([], [], ls="--", color="k", lw=0.9)]
+    labels = ["nominal", f"estimate, error ×{fs_}" + (" (true scale)" if f == 1 else ""), f"±1σ ellipse, ×{fs_}"]
+    if 1 < n_lev <= len(side_colors):
+        for v in range(n_lev):
+            z = np.median(nom[lev == v, 2])
+            handles.append(Line2D([], [], ls="", marker="s", color=side_colors[v], ms=7))
+            labels.append(f"nominal z ≈ {z:.1f} mm")
+    fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 5), fontsize=8, frameon=False)
+    fig.suptitle(positions_title(nominal, estimated, std))
+    return fig
+
+
+def position_errors(names: Sequence[str], diff: np.ndarray, std: np.ndarray) -> Figure:
+    """Estimated minus nominal position per triad and axis with ±1σ error bars, µm.
+
+    Parameters
+    ----------
+    names
+        The K triad names.
+    diff, std
+        (K, 3) estimate − nominal and the σ of the estimate, m.
+
+    Top: the differences (one marker per axis, grouped by triad); triads whose position was not
+    estimated (σ = 0, such as the reference) are labelled instead. Bottom: the σ's as bars, since
+    they are often far smaller than the differences and their error bars then vanish.
+    """
+    names = list(names)
+    d = np.asarray(diff, float) * 1e6
+    s = np.asarray(std, float) * 1e6
+    K = len(names)
+    fixed = ~np.any(s > 0, axis=1)
+    x = np.arange(K)
+    offs = (np.arange(3) - 1) * 0.22
+    fig = _new_figure(max(8.0, min(16.0, 0.42 * K + 3)), 6.2)
+    ax, ax_s = fig.subplots(2, 1, sharex=True, height_ratios=[3.2, 1.6])
+    for k in range(3):
+        sel = ~fixed
+        ax.errorbar(x[sel] + offs[k], d[sel, k], yerr=s[sel, k], fmt="o", color=AXIS_COLORS[k], ms=4,
+                    capsize=2.5, elinewidth=1.2, label=AXES[k])
+        ax_s.bar(x[sel] + offs[k], s[sel, k], 0.22, color=AXIS_COLORS[k])
+    for i in np.flatnonzero(fixed):
+        for a in (ax, ax_s):
+            a.text(x[i], 0.5, "fixed", rotation=90, ha="center", va="center", fontsize=8, color="0.45",
+                   transform=a.get_xaxis_transform())
+    for a in (ax, ax_s):
+        for i in range(K - 1):
+            a.axvline(i + 0.5, color="0.9", lw=0.8, zorder=0)
+        a.grid(axis="y", alpha=0.3)
+        a.set_xlim(-0.6, K - 0.4)
+    ax.axhline(0, color="0.6", lw=0.8, zorder=0)
+    ax.set_ylabel("estimate − nominal [µm]")
+    ax.legend(title="axis", title_fontsize=8, fontsize=8, loc="upper left", bbox_to_anchor=(1.005, 1.0),
+              frameon=False)
+    ax.set_title("Difference to the nominal position (±1σ error bars)", fontsize=10)
+    top = np.nanmax(s[~fixed]) if (~fixed).any() else 0.0
+    ax_s.set_ylim(0, top * 1.15 if np.isfinite(top) and top > 0 else 1)
+    ax_s.set_ylabel("σ [µm]")
+    ax_s.set_title("Standard deviation of the estimate", fontsize=10)
+    _triad_ticks(ax_s, names)
+    ax_s.set_xlabel("triad")
+    fig.suptitle(f"Position errors: RMS |estimate − nominal| "
+                 f"{position_rms_um(np.zeros_like(d), np.asarray(diff, float), std):.1f} µm")
+    return fig
+
+
+def motion_over_time(t: np.ndarray, omega: np.ndarray, omega_dot: np.ndarray, s: np.ndarray) -> Figure:
+    """The estimated body motion: ω [deg/s], ω̇ [deg/s²] and the specific force s at the body
+    origin [m/s²], stacked over a shared time axis in s. Inputs in SI units: t (N,), the rest (N, 3)."""
+    t = np.asarray(t, float)
+    series = ((np.asarray(omega, float) * DEG, "angular rate ω [deg/s]"),
+              (np.asarray(omega_dot, float) * DEG, "angular acceleration ω̇ [deg/s²]"),
+              (np.asarray(s, float), "specific force s [m/s²]"))
+    fig = _new_figure(11.0, 7.5)
+    axes = fig.subplots(3, 1, sharex=True)
+    lw = 1.0 if len(t) <= 2000 else 0.6
+    for ax, (y, label) in zip(axes, series):
+        for k in range(3):
+            ax.plot(t, y[:, k], color=AXIS_COLORS[k], lw=lw, label=AXES[k])
+        ax.set_ylabel(label, fontsize=9)
+        ax.grid(alpha=0.3)
+        ax.axhline(0, color="0.6", lw=0.6, zorder=0)
+    axes[0].legend(ncols=3, fontsize=8, loc="upper right", bbox_to_anchor=(1.0, 1.22), frameon=False)
+    if len(t):
+        axes[-1].set_xlim(t[0], t[-1])
+    axes[-1].set_xlabel("time [s]")
+    fig.suptitle("Estimated motion of the body frame (specific force at the reference triad)")
+    return fig
+
+
+def whitened_rms(residual: np.ndarray, sigma: np.ndarray) -> float:
+    """RMS of residual/σ over triads, samples and axes, ignoring masked (NaN) samples."""
+    r = np.asarray(residual, float)
+    sg = np.asarray(sigma, float)[:, None, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.where(sg > 0, r / sg, np.nan)
+    w = w[np.isfinite(w)]
+    return float(np.sqrt(np.mean(w ** 2))) if w.size else float("nan")
+
+
+def residuals_title(residual: np.ndarray, sigma: np.ndarray) -> str:
+    return f"Accelerometer residuals over time: RMS of residual/σ {whitened_rms(residual, sigma):.3f}"
+
+
+def residuals_over_time(t: np.ndarray, residual: np.ndarray, sigma: np.ndarray, names: Sequence[str]) -> Figure:
+    """Whitened accelerometer residuals of a dynamic calibration over time, and their RMS per triad.
+
+    Parameters
+    ----------
+    t
+        (N,) sample times, s.
+    residual
+        (K, N, 3) residual y − model, m/s²; NaN where a sample was masked (saturated).
+    sigma
+        (K, 3) per-sample noise σ per triad and axis, m/s².
+    names
+        The K triad names.
+
+    One heatmap per sensor axis (triads × time) of residual/σ on a diverging scale symmetric around
+    0, masked samples grey; below, the residual RMS per triad and axis in mm/s² with the noise σ as
+    black ticks. The title gives the RMS of residual/σ over everything (≈ 1 for a consistent fit).
+    """
+    import warnings
+
+    t = np.asarray(t, float)
+    r = np.asarray(residual, float)
+    sg = np.asarray(sigma, float)
+    names = list(names)
+    K, N, _ = r.shape
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.where(sg[:, None, :] > 0, r / sg[:, None, :], np.nan)
+    finite = np.abs(w[np.isfinite(w)])
+    vmax = max(3.0, float(np.quantile(finite, 0.995))) if finite.size else 3.0
+    clipped = bool(finite.size and finite.max() > vmax)
+    cmap = plt.get_cmap("RdBu_r").with_extremes(bad="#bdbdbd")
+    dt = float(np.median(np.diff(t))) if N > 1 else 1.0
+    extent = (t[0] - dt / 2, t[-1] + dt / 2, K - 0.5, -0.5) if N else (0, 1, K - 0.5, -0.5)
+
+    heat_h = max(1.2, 0.085 * K + 0.55)
+    fig = _new_figure(11.0, 3 * heat_h + 3.4)
+    gs = fig.add_gridspec(4, 1, height_ratios=[heat_h] * 3 + [2.8])
+    axes = [fig.add_subplot(gs[0])]
+    axes += [fig.add_subplot(gs[k], sharex=axes[0]) for k in (1, 2)]
+    step = 1 if K <= 12 else int(np.ceil(K / 12))
+    im = None
+    for k, ax in enumerate(axes):
+        im = ax.imshow(w[:, :, k], cmap=cmap, vmin=-vmax, vmax=vmax, aspect="auto", extent=extent,
+                       interpolation="nearest" if N <= 3000 else "antialiased")
+        ax.set_yticks(np.arange(0, K, step))
+        ax.set_yticklabels(names[::step], fontsize=8 if K > 8 else None)
+        ax.set_ylabel(f"{AXES[k]} axis\ntriad", fontsize=9)
+        if k < 2:
+            ax.tick_params(labelbottom=False)
+    axes[-1].set_xlabel("time [s]")
+    cb = fig.colorbar(im, ax=axes, extend="both" if clipped else "neither", fraction=0.03, pad=0.01)
+    cb.set_label("residual / σ  (grey: masked)")
+
+    ax = fig.add_subplot(gs[3])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a triad masked throughout has no RMS
+        rms = np.sqrt(np.nanmean(r ** 2, axis=1)) * 1e3  # (K, 3) mm/s^2
+    x = np.arange(K)
+    width = 0.8 / 3
+    for k in range(3):
+        ax.bar(x + (k - 1) * width, rms[:, k], width, color=AXIS_COLORS[k], label=f"{AXES[k]} axis")
+        ax.hlines(sg[:, k] * 1e3, x + (k - 1.5) * width, x + (k - 0.5) * width, color="k", lw=1.5,
+                  label="noise σ" if k == 0 else None)
+    _triad_ticks(ax, names)
+    pad = max(0.6, (4 - K) / 2 + 0.1)
+    ax.set_xlim(-pad, K - 1 + pad)
+    ax.set_ylabel("residual RMS [mm/s²]")
+    ax.set_title("Residual RMS over time per triad and axis (black: noise σ)", fontsize=10)
+    ax.legend(ncols=4, fontsize=8, loc="upper left", frameon=False)
+    top = np.nanmax(np.concatenate([rms.ravel(), sg.ravel() * 1e3])) if K else 1.0
+    ax.set_ylim(0, top * 1.35 if np.isfinite(top) and top > 0 else 1)
+    ax.grid(axis="y", alpha=0.3)
+    fig.suptitle(residuals_title(residual, sigma))
+    return fig
