@@ -262,6 +262,12 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = _quiet, max_restarts: int = 
     nominal = {t.name: (t.position - next(x for x in config.triads if x.name == config.reference).position)
                if t.position is not None else np.zeros(3) for t in config.triads}
 
+    if spec.solver.method == "bcd":
+        problem, solver, sol, attempts = _solve_bcd(spec, config, data, log)
+        cal, gcal = problem.calibration(sol.values), problem.gyro_calibration(sol.values)
+        res_acc, res_gyro = _residuals(problem, data, sol)
+        return DynamicOutcome(spec, data, config, problem, solver, sol, attempts, sat, cal, gcal, res_acc, res_gyro,
+                              nominal)
     attempts, best = [], None
     start_values: dict = {}
     for attempt in range(max_restarts + 1):
@@ -272,18 +278,21 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = _quiet, max_restarts: int = 
             + (", poses from the previous attempt" if start_values else ", nominal poses"))
         x0 = lay.x0(start_values) if start_values else None
         determined = sign_determined(config, data, problem.gyro_triads)
-        if attempt == 0:
-            bad = Solver(problem.lsq, replace(spec.solver, hessian="gauss_newton")).undetermined(lay.x0())
-            if bad:
-                raise InputError(spec.path, "model", f"the data cannot determine {len(bad)} direction(s): "
-                                 f"{'; '.join(bad[:3])}; fix these parameters, give them priors, or enable the process model")
         lam = None
+        gn = Solver(problem.lsq, replace(spec.solver, hessian="gauss_newton")) \
+            if attempt == 0 or (not has_gyro and spec.solver.hessian == "exact") else None
         if not has_gyro and spec.solver.hessian == "exact":
             # Gauss-Newton steps first: robust from zero motion (the exact Hessian is indefinite there)
-            gn = Solver(problem.lsq, replace(spec.solver, hessian="gauss_newton"))
             first = gn.solve(x0)
             log(f"  Gauss-Newton: {first.message} in {first.iterations} iterations, {first.wall_s:.2f} s")
             x0, lam = first.x, first.lam_g
+        if attempt == 0:
+            # at a point with motion: the gyro-aided start, or the Gauss-Newton solution (at zero
+            # angular motion nothing about the geometry is observable)
+            bad = gn.undetermined(lay.x0() if x0 is None else x0)
+            if bad:
+                raise InputError(spec.path, "model", f"the data cannot determine {len(bad)} direction(s): "
+                                 f"{'; '.join(bad[:3])}; fix these parameters, give them priors, or enable the process model")
         solver = Solver(problem.lsq, spec.solver)
         sol = solver.solve(x0, lam_g0=lam)
         issues = minimum_checks(config, sol.values, nominal, data.t, determined)
@@ -311,6 +320,56 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = _quiet, max_restarts: int = 
     cal, gcal = problem.calibration(sol.values), problem.gyro_calibration(sol.values)
     res_acc, res_gyro = _residuals(problem, data, sol)
     return DynamicOutcome(spec, data, config, problem, solver, sol, attempts, sat, cal, gcal, res_acc, res_gyro, nominal)
+
+
+def _solve_bcd(spec: ProblemSpec, config: DynamicConfig, data: DynamicData, log: Log):
+    """Carlsson 2017, Algorithm 1, on the same problem: calibrated readings, then alternate the
+    per-sample ML motion and the closed-form positions (eq. 9). σ's from the same Fisher information."""
+    from .bcd import bcd_positions
+
+    problem = build_dynamic(config, data)
+    lay = problem.lsq.layout
+    free = {g.name for g in lay.groups if g.free.any() and not g.nuisance}
+    if not problem.gyro_triads or config.process_model or any(not n.endswith(".position") for n in free):
+        raise InputError(spec.path, "solver.method", "bcd (Carlsson 2017, Algorithm 1) needs gyroscopes, "
+                         "motion.process_model: false and only positions free")
+    start = lay.unpack(lay.x0(), lay.p0())
+    acc_cal = problem.calibration(start)
+    gyro_cal = problem.gyro_calibration(start)
+    acc = np.stack([np.linalg.solve(acc_cal[n][0], (data.acc[n] - acc_cal[n][1]).T).T for n in config.names])
+    gyro = np.stack([np.linalg.solve(gyro_cal[n][0], (data.gyro[n] - gyro_cal[n][1]).T).T for n in problem.gyro_triads])
+    mask = np.stack([data.valid("gyro", n) for n in problem.gyro_triads])
+    r0 = np.stack([start[f"{n}.position"] for n in config.names])
+    ref = config.names.index(config.reference)
+    res = bcd_positions(acc, gyro, np.stack([data.acc_sigma[n] for n in config.names]).mean(axis=1),
+                        np.stack([data.gyro_sigma[n] for n in problem.gyro_triads]).mean(axis=1), r0, reference=ref,
+                        gyro_mask=mask, progress=lambda it, cost, dr: log(f"  BCD iteration {it}: cost {cost:.6g}, "
+                                                                           f"max position change {dr * 1e6:.3g} µm")
+                        if it % 25 == 0 else None)
+    values = {f"{n}.position": res.positions[k] for k, n in enumerate(config.names)}
+    values.update({OMEGA: res.omega, OMEGA_DOT: res.omega_dot, "motion.s": res.s})
+    solver = Solver(problem.lsq, spec.solver)
+    x = lay.x0(values)
+    p = lay.p0()
+    cov = solver.covariance(x)
+    sd = np.full(lay.n_x, np.nan)
+    sd[solver.theta] = np.sqrt(np.clip(np.diag(cov), 0, None))
+    vals = lay.unpack(x, p)
+    std = {}
+    for g in lay.groups:
+        s_ = np.zeros(g.free.shape)
+        s_[g.free] = sd[lay.x_indices(g.name)]
+        std[g.name] = g.shaped(s_)
+    r = solver.residuals(x)[: solver.n_data_residuals]
+    chi2 = float(r @ r)
+    message = "BCD converged" if res.converged else f"BCD stopped after {res.iterations} iterations without converging"
+    sol = Solution(res.converged, message, res.iterations, res.wall_s, x, vals, std, 0.5 * chi2, chi2,
+                   int(solver.n_residuals - (x.size - solver.n_constraints)), r, cov)
+    log(f"  {message} in {res.wall_s:.2f} s")
+    if not res.converged:
+        raise NotConvergedError(f"{spec.path}: {message}")
+    return problem, solver, sol, [{"attempt": 1, "success": True, "message": message, "iterations": res.iterations,
+                                   "cost": sol.cost, "issues": [], "start": "nominal poses (BCD)"}]
 
 
 def _residuals(problem, data: DynamicData, sol: Solution) -> tuple[dict, dict]:

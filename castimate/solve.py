@@ -51,8 +51,12 @@ class SolverOptions:
     identifiability_tol
         Relative eigenvalue of the Fisher information below which a direction counts as not
         determined by the data.
+    method
+        ``ipopt`` (default) or ``bcd``: Carlsson 2017's block coordinate descent (Algorithm 1), a
+        baseline for dynamic problems with gyroscopes where only positions are free.
     """
 
+    method: str = "ipopt"
     max_iter: int = 200
     tol: float = 1e-8
     linear_solver: str = "mumps"

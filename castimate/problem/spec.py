@@ -455,6 +455,8 @@ def _solver(c: _Check, s) -> SolverOptions:
             kw[k] = c.choice(v, w, ("mumps", "spral"))
         elif k == "hessian":
             kw[k] = c.choice(v, w, ("exact", "gauss_newton"))
+        elif k == "method":
+            kw[k] = c.choice(v, w, ("ipopt", "bcd"))
         elif isinstance(default, int):
             kw[k] = c.number(v, w, integer=True)
             if k == "max_iter" and kw[k] < 1:

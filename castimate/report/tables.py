@@ -72,3 +72,31 @@ def gravity_norm_rms(acc_si: np.ndarray, T: np.ndarray, b: np.ndarray, g: float)
     """RMS over poses of | |T^-1 (y - b)| - g |, m/s²."""
     f = np.linalg.solve(T, (acc_si - b).T).T
     return float(np.sqrt(np.mean((np.linalg.norm(f, axis=1) - g) ** 2)))
+
+
+def dynamic_summary_table(results: list[dict], sessions: list[str]) -> str:
+    """Per session of a dynamic calibration: samples, masked gyro samples, attempts, χ²/dof, residual RMS."""
+    lines = ["| session | samples | gyro samples masked (saturated) | attempts | iterations | χ²/dof | "
+             "accelerometer residual RMS [m/s²] |", "|---|---|---|---|---|---|---|"]
+    for s, r in zip(sessions, results):
+        masked = sum(v for k, v in r["saturated_samples_masked"].items() if k.endswith("gyroscope"))
+        rms = np.sqrt(np.mean([np.mean(np.square(v)) for v in r["residuals"]["rms"].values()]))
+        lines.append(f"| {s} | {r['samples']} | {masked} | {len(r['status']['attempts'])} | {r['status']['iterations']} | "
+                     f"{r['residuals']['chi2_per_dof']:.0f} | {rms:.3f} |")
+    return "\n".join(lines)
+
+
+def position_spread(results: list[dict], sessions: list[str]) -> str:
+    """Estimated positions per triad: nominal, mean over sessions, range, σ (white-noise and scaled)."""
+    lines = [f"Positions in mm, body frame (origin at the reference triad); mean and range (max - min) over "
+             f"{', '.join(sessions)}; σ is the median over sessions, white-noise model / scaled by √(χ²/dof).", "",
+             "| triad | nominal x, y, z | mean x, y, z | range x, y, z [µm] | σ [µm] | σ scaled [µm] |", "|---|---|---|---|---|---|"]
+    for t in results[0]["triads"]:
+        nom = np.asarray(results[0]["triads"][t]["nominal_position"]) * 1e3
+        est = np.array([r["triads"][t]["position"] for r in results]) * 1e3
+        sd = np.median([np.mean(r["triads"][t]["position_std"]) for r in results]) * 1e6
+        sds = np.median([np.mean(r["triads"][t]["position_std_scaled"]) for r in results]) * 1e6
+        f3 = lambda v: ", ".join(f"{x:+.3f}" for x in v)  # noqa: E731
+        lines.append(f"| {t} | {f3(nom)} | {f3(est.mean(axis=0))} | "
+                     f"{', '.join(f'{x:.0f}' for x in (est.max(axis=0) - est.min(axis=0)) * 1e3)} | {sd:.1f} | {sds:.0f} |")
+    return "\n".join(lines)
