@@ -275,9 +275,9 @@ def _data(c: _Check, d, base: Path) -> DataSpec:
     saturation = {}
     for sensor, unit in (("accelerometer", "m/s^2"), ("gyroscope", "rad/s")):
         v = sat.get(sensor, "auto")
-        saturation[sensor] = v if v in SATURATION else c.number(v, f"data.saturation.{sensor}", positive=True)
         if isinstance(v, str) and v not in SATURATION:
             c.fail(f"data.saturation.{sensor}", f"expected auto, none or a level in {unit}, found {v!r}")
+        saturation[sensor] = v if v in SATURATION else c.number(v, f"data.saturation.{sensor}", positive=True)
     return DataSpec(p, fmt, acc_u, gyro_u, gp, tr, seg, det, saturation)
 
 
