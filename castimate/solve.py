@@ -376,9 +376,10 @@ class Solver:
         S = F[t][:, t].toarray()
         if len(nu):
             K = sp.bmat([[F[nu][:, nu], G_n.T], [G_n, None]], format="csc")
-            Bt = sp.vstack([F[nu][:, t], sp.csc_matrix((G_n.shape[0], len(t)))]).toarray()
+            # C order: SuperLU's solve is orders of magnitude slower on a Fortran-ordered right-hand side
+            Bt = np.ascontiguousarray(sp.vstack([F[nu][:, t], sp.csc_matrix((G_n.shape[0], len(t)))]).toarray())
             try:
-                X = sp.linalg.splu(K).solve(Bt)
+                X = _factor(K).solve(Bt)
             except RuntimeError:  # exactly singular: some nuisance direction is undetermined
                 raise np.linalg.LinAlgError("the nuisance variables are not determined by the data") from None
             S = S - Bt.T @ X
@@ -483,10 +484,17 @@ class Solver:
         n, c = J.shape[1], G.shape[0]
         K = sp.bmat([[J.T @ J, G.T], [G, None]], format="csc")
         try:
-            step = sp.linalg.splu(K).solve(np.concatenate([g, np.zeros(c)]))[:n]
+            step = _factor(K).solve(np.concatenate([g, np.zeros(c)]))[:n]
         except RuntimeError:
             return float("inf")
         return float(g @ step)
+
+
+def _factor(K: sp.spmatrix):
+    """Sparse LU of a symmetric (KKT) matrix. The minimum-degree ordering on K + K^T keeps the
+    triangular solves fast: with SuperLU's default COLAMD, solving for 100 right-hand sides on a
+    block-diagonal motion block of 18 000 rows took 31 s instead of 0.17 s."""
+    return sp.linalg.splu(sp.csc_matrix(K), permc_spec="MMD_AT_PLUS_A")
 
 
 def _dm(M: sp.spmatrix) -> ca.DM:

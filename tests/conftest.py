@@ -1,8 +1,11 @@
 import os
-from pathlib import Path
 
-import matplotlib
-import pytest
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as the CLI does, before numpy loads (see castimate/cli.py)
+
+from pathlib import Path  # noqa: E402
+
+import matplotlib  # noqa: E402
+import pytest  # noqa: E402
 
 matplotlib.use("Agg")
 

@@ -31,7 +31,7 @@ def write_details(path: Path, outcome) -> None:
         arrays["consistency_before"] = outcome.consistency.before
         arrays["consistency_after"] = outcome.consistency.after
     buf = io.BytesIO()
-    np.savez(buf, **arrays)
+    np.savez_compressed(buf, **arrays)
     write_atomic(path, buf.getvalue())
 
 
@@ -53,5 +53,5 @@ def write_dynamic_details(path: Path, outcome) -> None:
         arrays["gyro_triads"] = np.array(g)
         arrays["residual_gyro"] = np.stack([outcome.residual_gyro[n] for n in g])
     buf = io.BytesIO()
-    np.savez(buf, **arrays)
+    np.savez_compressed(buf, **arrays)
     write_atomic(path, buf.getvalue())

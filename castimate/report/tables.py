@@ -76,7 +76,7 @@ def gravity_norm_rms(acc_si: np.ndarray, T: np.ndarray, b: np.ndarray, g: float)
 
 def dynamic_summary_table(results: list[dict], sessions: list[str]) -> str:
     """Per session of a dynamic calibration: samples, masked gyro samples, attempts, χ²/dof, residual RMS."""
-    lines = ["| session | samples | gyro samples masked (saturated) | attempts | iterations | χ²/dof | "
+    lines = ["| session | samples | gyro samples masked (saturated, summed over gyroscopes) | attempts | iterations | χ²/dof | "
              "accelerometer residual RMS [m/s²] |", "|---|---|---|---|---|---|---|"]
     for s, r in zip(sessions, results):
         masked = sum(v for k, v in r["saturated_samples_masked"].items() if k.endswith("gyroscope"))
