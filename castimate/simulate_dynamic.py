@@ -23,6 +23,7 @@ from typing import Callable
 
 import numpy as np
 
+from .models.rotation import rotation_to_quaternion
 from .simulate import random_rotation
 
 GRAVITY = 9.81
@@ -74,26 +75,6 @@ def quaternion_to_matrix(q) -> np.ndarray:
         2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
         2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=-1)
     return R.reshape(q.shape[:-1] + (3, 3))
-
-
-def matrix_to_quaternion(R) -> np.ndarray:
-    """Unit quaternion (w, x, y, z), w >= 0, of a rotation matrix (3, 3)."""
-    R = np.asarray(R, dtype=float)
-    tr = np.trace(R)
-    if tr > 0:
-        s = 2.0 * np.sqrt(tr + 1.0)
-        q = np.array([0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s])
-    else:
-        i = int(np.argmax(np.diag(R)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * np.sqrt(1.0 + R[i, i] - R[j, j] - R[k, k])
-        q = np.empty(4)
-        q[0] = (R[k, j] - R[j, k]) / s
-        q[1 + i] = 0.25 * s
-        q[1 + j] = (R[j, i] + R[i, j]) / s
-        q[1 + k] = (R[k, i] + R[i, k]) / s
-    q = q / np.linalg.norm(q)
-    return q if q[0] >= 0 else -q
 
 
 def rotation_vector_to_matrix(phi) -> np.ndarray:
@@ -316,7 +297,7 @@ def smooth_random_motion(n_samples: int, rate: float, max_omega: float, max_omeg
         return a_scale * accel_raw(np.asarray(tt, dtype=float))
 
     if q0 is None:
-        q0 = matrix_to_quaternion(random_rotation(rng))
+        q0 = rotation_to_quaternion(random_rotation(rng))
     return rigid_body_motion(t, omega_fn, omega_dot_fn, accel_fn, q0, gravity, binding)
 
 

@@ -39,6 +39,19 @@ def write_json(path: str | Path, obj: dict) -> None:
     write_atomic(path, json.dumps(_jsonable(obj), indent=1) + "\n")
 
 
+def _parameters(layout, sol, name: str) -> dict:
+    """The estimated or fixed parameter groups of one triad, with σ and units."""
+    params = {}
+    for g in layout.groups:
+        if g.nuisance or not g.name.startswith(name + "."):
+            continue
+        sensor, group = (g.name.split(".")[1:] + [""])[:2]
+        key = sensor if not group else group if sensor == "accelerometer" else f"{sensor}.{group}"
+        params[key] = {"value": sol.values[g.name], "std": sol.std[g.name], "free": g.shaped(g.free),
+                       "unit": g.unit, "components": list(g.components)}
+    return params
+
+
 def static_results(outcome) -> dict:
     """The results.json document of a static calibration outcome."""
     sol, cfg, spec = outcome.solution, outcome.config, outcome.spec
@@ -52,15 +65,7 @@ def static_results(outcome) -> dict:
             entry["gyroscope"] = {"T": Tg, "b": bg}
         if t.position is not None:
             entry["position"] = t.position
-        params = {}
-        for g in lay.groups:
-            if not g.name.startswith(t.name + "."):
-                continue
-            sensor, group = g.name.split(".")[1:]
-            key = group if sensor == "accelerometer" else f"{sensor}.{group}"
-            params[key] = {"value": sol.values[g.name], "std": sol.std[g.name], "free": g.shaped(g.free),
-                           "unit": g.unit, "components": list(g.components)}
-        entry["parameters"] = params
+        entry["parameters"] = _parameters(lay, sol, t.name)
         triads[t.name] = entry
     rms = {n: np.sqrt((r ** 2).mean(axis=0)) for n, r in outcome.residual_acc.items()}
     doc = {
@@ -99,19 +104,6 @@ def static_results(outcome) -> dict:
                               "definition": "mean over poses of the trace of the across-triad covariance "
                                             "of the compensated specific force (Nilsson 2014, sec. IV)"}
     return doc
-
-
-def _parameters(layout, sol, name: str) -> dict:
-    """The estimated or fixed parameter groups of one triad, with σ and units."""
-    params = {}
-    for g in layout.groups:
-        if g.nuisance or not g.name.startswith(name + "."):
-            continue
-        sensor, group = (g.name.split(".")[1:] + [""])[:2]
-        key = sensor if not group else group if sensor == "accelerometer" else f"{sensor}.{group}"
-        params[key] = {"value": sol.values[g.name], "std": sol.std[g.name], "free": g.shaped(g.free),
-                       "unit": g.unit, "components": list(g.components)}
-    return params
 
 
 def dynamic_results(outcome) -> dict:
@@ -160,8 +152,8 @@ def dynamic_results(outcome) -> dict:
     }
 
 
-def read_results(path: str | Path) -> dict:
-    """Read and check a results.json (format, successful status, T and b of every triad)."""
+def load_results_json(path: str | Path) -> dict:
+    """A results.json parsed, with its format checked (the status is not enforced here)."""
     path = Path(path)
     try:
         doc = json.loads(path.read_text())
@@ -171,6 +163,13 @@ def read_results(path: str | Path) -> dict:
         raise InputError(path, f"line {e.lineno}", f"not valid JSON ({e.msg})") from None
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise InputError(path, "format", f"expected {FORMAT!r}, found {doc.get('format') if isinstance(doc, dict) else doc!r}")
+    return doc
+
+
+def read_results(path: str | Path) -> dict:
+    """Read and check a results.json (format, successful status, T and b of every triad)."""
+    path = Path(path)
+    doc = load_results_json(path)
     status = doc.get("status")
     if not isinstance(status, dict) or status.get("success") is not True:
         raise InputError(path, "status.success", "the calibration did not converge; refusing to use it")

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import base64
 import io
-import json
 import math
 import zipfile
 from html import escape
@@ -16,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
-from ..io.results import FORMAT, write_atomic
+from ..io.results import load_results_json, write_atomic
 from . import figures
 
 DEG = 180 / np.pi
@@ -65,16 +64,7 @@ def load_results(directory: Path) -> dict:
     path = directory / "results.json"
     if not path.is_file():
         raise InputError(path, "", "not found; expected the output directory of `castimate solve PROBLEM.yaml -o DIR`")
-    try:
-        doc = json.loads(path.read_text())
-    except OSError as e:
-        raise InputError(path, "", f"cannot read ({e.strerror})") from None
-    except json.JSONDecodeError as e:
-        raise InputError(path, f"line {e.lineno}", f"not valid JSON ({e.msg})") from None
-    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
-        found = doc.get("format") if isinstance(doc, dict) else type(doc).__name__
-        raise InputError(path, "format", f"expected {FORMAT!r}, found {found!r}")
-    return doc
+    return load_results_json(path)
 
 
 def load_details(directory: Path, required: tuple[str, ...] = REQUIRED_DETAILS) -> dict[str, np.ndarray]:
