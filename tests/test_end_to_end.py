@@ -3,7 +3,6 @@
 import json
 
 import numpy as np
-import pytest
 
 from castimate.cli import main
 from castimate.io.readers import read_csv
