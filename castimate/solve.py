@@ -358,13 +358,14 @@ class Solver:
             if gr else sp.csr_matrix((0, n))
         return J, G
 
-    def marginal_information(self, x, p_fixed=None, data=None) -> tuple[np.ndarray, np.ndarray]:
-        """Fisher information of the reported parameters with the nuisance variables marginalised.
+    def _eliminate(self, x, p_fixed=None, data=None, g: np.ndarray | None = None):
+        """Eliminate the nuisance block from the Gauss-Newton KKT system at x.
 
-        Returns (S, G_theta): S = F_tt - B N^-1 B^T over the reported parameters ``theta`` (scaled
-        x), where N = [[F_nn, G_n^T], [G_n, 0]] is the sparse KKT matrix of the nuisance block
-        (pose directions, motion states) with their own constraints, and G_theta the constraints
-        on theta. Unit-norm constraints act on either block, never both.
+        With F = J^T J split into reported parameters t and nuisance n, and N = [[F_nn, G_n^T],
+        [G_n, 0]] the sparse KKT matrix of the nuisance block with its own constraints, returns
+        S = F_tt - B N^-1 B^T, the constraints G_t on t, and, for a gradient g, the reduced
+        gradient g_t - B N^-1 g_n and g_n^T N^-1 g_n. Unit-norm constraints act on either block,
+        never both.
         """
         J, G = self.jacobians(x, p_fixed, data)
         F = (J.T @ J).tocsc()
@@ -374,16 +375,27 @@ class Solver:
         on_theta = np.asarray(abs(G[:, t]).sum(axis=1)).ravel() > 0
         G_t, G_n = G[on_theta][:, t], G[~on_theta][:, nu]
         S = F[t][:, t].toarray()
+        g_t, g_nn = (None, 0.0) if g is None else (g[t].copy(), 0.0)
         if len(nu):
             K = sp.bmat([[F[nu][:, nu], G_n.T], [G_n, None]], format="csc")
             # C order: SuperLU's solve is orders of magnitude slower on a Fortran-ordered right-hand side
             Bt = np.ascontiguousarray(sp.vstack([F[nu][:, t], sp.csc_matrix((G_n.shape[0], len(t)))]).toarray())
             try:
-                X = _factor(K).solve(Bt)
+                lu = _factor(K)
             except RuntimeError:  # exactly singular: some nuisance direction is undetermined
                 raise np.linalg.LinAlgError("the nuisance variables are not determined by the data") from None
-            S = S - Bt.T @ X
-        return S, G_t.toarray()
+            S = S - Bt.T @ lu.solve(Bt)
+            if g is not None:
+                y = lu.solve(np.concatenate([g[nu], np.zeros(G_n.shape[0])]))
+                g_t -= Bt.T @ y
+                g_nn = float(g[nu] @ y[: len(nu)])
+        return S, G_t.toarray(), g_t, g_nn
+
+    def marginal_information(self, x, p_fixed=None, data=None) -> tuple[np.ndarray, np.ndarray]:
+        """Fisher information of the reported parameters with the nuisance variables marginalised:
+        (S, G_theta), see :meth:`_eliminate`."""
+        S, G_t, _, _ = self._eliminate(x, p_fixed, data)
+        return S, G_t
 
     def undetermined(self, x, p_fixed=None, data=None, top: int = 4) -> list[str]:
         """Directions of the reported parameters the data cannot determine at x, each named by its
@@ -474,20 +486,25 @@ class Solver:
 
     def newton_decrement(self, x, lam_g, p_fixed=None, data=None) -> float:
         """g^T H^-1 g of the Lagrangian gradient with the Gauss-Newton Hessian on the constraints'
-        tangent space: twice the χ² decrease a full Newton step would still achieve."""
+        tangent space: twice the χ² decrease a full Newton step would still achieve. The nuisance
+        block is eliminated first (:meth:`_eliminate`), so this costs what the covariance costs."""
         J, G = self.jacobians(x, p_fixed, data)
         r = self.residuals(x, p_fixed, data)
-        # CasADi's multipliers are ordered like its constraint vector (grouped by width)
         lam = np.zeros(self.n_constraints)
-        lam[self._c_perm] = lam_g
+        lam[self._c_perm] = lam_g  # CasADi's multipliers follow its constraint order (grouped by width)
         g = J.T @ r + G.T @ lam
-        n, c = J.shape[1], G.shape[0]
-        K = sp.bmat([[J.T @ J, G.T], [G, None]], format="csc")
         try:
-            step = _factor(K).solve(np.concatenate([g, np.zeros(c)]))[:n]
-        except RuntimeError:
+            S, G_t, g_t, g_nn = self._eliminate(x, p_fixed, data, g)
+        except np.linalg.LinAlgError:
             return float("inf")
-        return float(g @ step)
+        nt, c = S.shape[0], G_t.shape[0]
+        K = np.zeros((nt + c, nt + c))
+        K[:nt, :nt], K[nt:, :nt], K[:nt, nt:] = S, G_t, G_t.T
+        try:
+            step = np.linalg.solve(K, np.concatenate([g_t, np.zeros(c)]))[:nt]
+        except np.linalg.LinAlgError:
+            return float("inf")
+        return g_nn + float(g_t @ step)
 
 
 def _factor(K: sp.spmatrix):
