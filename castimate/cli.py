@@ -72,6 +72,16 @@ def cmd_report(args) -> int:
     return 0
 
 
+def cmd_codegen(args) -> int:
+    from .codegen import generate_c
+
+    files = generate_c(args.results, args.output)
+    for name, path in files.items():
+        print(f"wrote {path}")
+    print(f"build and test with: make -C {args.output} check")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="castimate", description="Calibrate inertial sensor arrays.")
     sub = p.add_subparsers(dest="verb", required=True)
@@ -93,6 +103,10 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("report", help="write DIR/report.html from a solved DIR")
     s.add_argument("directory")
     s.set_defaults(func=cmd_report)
+    s = sub.add_parser("codegen", help="write C99 code of the compensation function of a results.json into DIR")
+    s.add_argument("results", help="a results.json (solve the problem first)")
+    s.add_argument("-o", "--output", required=True, help="output directory")
+    s.set_defaults(func=cmd_codegen)
     return p
 
 
