@@ -19,7 +19,8 @@ from .errors import InputError, NotConvergedError
 from .io.readers import read_recording
 from .io.recording import Recording
 from .models.rotation import rotation_to_quaternion
-from .problem.dynamic import OMEGA, OMEGA_DOT, DynamicConfig, DynamicData, MotionSigmas, build_dynamic
+from .problem.dynamic import (OMEGA, OMEGA_DOT, DynamicConfig, DynamicData, MotionSigmas, build_dynamic,
+                              build_joint)
 from .problem.spec import ProblemSpec
 from .problem.static import TriadConfig, recover_nominal_rotation
 from .segments import average_poses, detect_static
@@ -245,6 +246,9 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = _quiet, max_restarts: int = 
     rec = load_recording(spec)
     acc_sigma, gyro_sigma = noise_from_static(spec, full, log)
     config = dynamic_config(spec, full, log)
+    static_problem = None
+    if spec.data.static_range is not None:
+        static_problem, config = _static_phase(spec, full, config, log)
     sat, acc_valid, gyro_valid = {}, {}, {}
     for n in config.names:
         m = saturation_mask(rec.acc[n], spec.data.saturation["accelerometer"])
@@ -271,7 +275,7 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = _quiet, max_restarts: int = 
     attempts, best = [], None
     start_values: dict = {}
     for attempt in range(max_restarts + 1):
-        problem = build_dynamic(config, data)
+        problem = build_joint(static_problem, config, data) if static_problem else build_dynamic(config, data)
         lay = problem.lsq.layout
         has_gyro = bool(problem.gyro_triads)
         log(f"attempt {attempt + 1}: {lay.n_x} variables, {'gyro-aided start' if has_gyro else 'zero angular motion'}"
@@ -320,6 +324,29 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = _quiet, max_restarts: int = 
     cal, gcal = problem.calibration(sol.values), problem.gyro_calibration(sol.values)
     res_acc, res_gyro = _residuals(problem, data, sol)
     return DynamicOutcome(spec, data, config, problem, solver, sol, attempts, sat, cal, gcal, res_acc, res_gyro, nominal)
+
+
+def _static_phase(spec: ProblemSpec, full: Recording, config: DynamicConfig, log: Log):
+    """The static poses of ``data.static.time_range`` as a static problem for a joint solve.
+
+    Returns the static problem and the dynamic config with the mounting rotations recovered from
+    those poses, so both phases share one set of triads."""
+    from .calibrate import static_config
+    from .problem.static import build_static
+
+    t0, t1 = spec.data.static_range
+    part = full.select((full.t >= t0) & (full.t <= t1))
+    det = detect_static(part, spec.data.detection, triads=spec.array.names)
+    avg = average_poses(part, det, triads=spec.array.names)
+    if avg.n_poses < 3:
+        raise InputError(spec.path, "data.static.time_range", f"found {avg.n_poses} static poses in "
+                         f"{t0:g}-{t1:g} s; a joint problem needs the static phase's poses")
+    log(f"joint problem: {avg.n_poses} static poses in {t0:g}-{t1:g} s share the intrinsics")
+    scfg, _ = static_config(spec, avg)
+    R = {t.name: t.R_nominal for t in scfg.triads}
+    config = replace(config, triads=tuple(replace(t, R_nominal=R[t.name]) for t in config.triads))
+    scfg = replace(scfg, misalignment=config.misalignment)
+    return build_static(scfg, avg), config
 
 
 def _solve_bcd(spec: ProblemSpec, config: DynamicConfig, data: DynamicData, log: Log):

@@ -237,3 +237,21 @@ def build_dynamic(config: DynamicConfig, data: DynamicData, start: dict | None =
     for blk, d in zip(blocks, problem.block_data(data)):
         blk.data = d
     return problem
+
+
+@dataclass
+class JointProblem(DynamicProblem):
+    """Static poses and the dynamic phase of one recording in a single problem: the triads'
+    intrinsics are shared, the static blocks (Nilsson 2014) determine them from gravity, the dynamic
+    blocks add the geometry. Dynamic blocks come first, so residuals split as in a dynamic problem."""
+
+    static: object = None  # the StaticProblem whose blocks and pose directions are included
+
+
+def build_joint(static_problem, config: DynamicConfig, data: DynamicData) -> JointProblem:
+    """Merge a static problem (built on the static poses) and a dynamic problem of the same triads."""
+    dyn = build_dynamic(config, data)
+    names = {g.name for g in dyn.lsq.layout.groups}
+    groups = dyn.lsq.layout.groups + [g for g in static_problem.lsq.layout.groups if g.name not in names]
+    lsq = LeastSquaresProblem(Layout(groups), dyn.lsq.blocks + static_problem.lsq.blocks)
+    return JointProblem(config, lsq, dyn.n_samples, dyn.gyro_triads, dyn.rows, static_problem)

@@ -68,6 +68,7 @@ class DataSpec:
     segments: Any = "auto"  # "auto" | "rows" | tuple of (t0, t1) in seconds
     detection: DetectionOptions = DetectionOptions()
     saturation: dict = field(default_factory=lambda: {"accelerometer": "auto", "gyroscope": "auto"})
+    static_range: tuple[float, float] | None = None  # dynamic kind: static poses of the same recording (joint problem)
 
 
 @dataclass(frozen=True)
@@ -214,8 +215,10 @@ def parse_problem(raw: Any, path: Path, sha256: str = "") -> ProblemSpec:
     if "motion" in top and kind != "dynamic_array":
         c.fail("motion", f"process-model settings are not used by kind {kind}")
     data = _data(c, top["data"], path.parent)
+    if data.static_range is not None and kind != "dynamic_array":
+        c.fail("data.static", f"a static phase beside the dynamic one is for kind dynamic_array, not {kind}")
     array = _array(c, top["array"])
-    model = _model(c, top.get("model"), array, kind, path.parent)
+    model = _model(c, top.get("model"), array, kind, path.parent, joint=data.static_range is not None)
     noise = _noise(c, top.get("noise"), array)
     solver = _solver(c, top.get("solver"))
     motion = _motion(c, top.get("motion")) if kind == "dynamic_array" else None
@@ -231,7 +234,7 @@ def parse_problem(raw: Any, path: Path, sha256: str = "") -> ProblemSpec:
 
 def _data(c: _Check, d, base: Path) -> DataSpec:
     d = c.mapping(d, "data", ("path", "format", "units", "gyro_path", "time_range", "segments", "detection",
-                              "saturation"), required=("path", "format"))
+                              "saturation", "static"), required=("path", "format"))
     fmt = c.choice(d["format"], "data.format", FORMATS)
     if not isinstance(d["path"], str):
         c.fail("data.path", f"expected a file path, found {d['path']!r}")
@@ -278,7 +281,16 @@ def _data(c: _Check, d, base: Path) -> DataSpec:
         if isinstance(v, str) and v not in SATURATION:
             c.fail(f"data.saturation.{sensor}", f"expected auto, none or a level in {unit}, found {v!r}")
         saturation[sensor] = v if v in SATURATION else c.number(v, f"data.saturation.{sensor}", positive=True)
-    return DataSpec(p, fmt, acc_u, gyro_u, gp, tr, seg, det, saturation)
+    static_range = None
+    if "static" in d:
+        st = c.mapping(d["static"], "data.static", ("time_range",), required=("time_range",))
+        v = st["time_range"]
+        if not (isinstance(v, list) and len(v) == 2):
+            c.fail("data.static.time_range", f"expected [start, end] in seconds, found {v!r}")
+        static_range = (c.number(v[0], "data.static.time_range[0]"), c.number(v[1], "data.static.time_range[1]"))
+        if static_range[1] <= static_range[0]:
+            c.fail("data.static.time_range", f"end must be after start, found {list(static_range)}")
+    return DataSpec(p, fmt, acc_u, gyro_u, gp, tr, seg, det, saturation, static_range)
 
 
 def _array(c: _Check, a) -> ArraySpec:
@@ -352,8 +364,11 @@ def _group_setting(c: _Check, v, where, size, base: dict, neutral: tuple) -> dic
     return out
 
 
-def _model(c: _Check, m, array: ArraySpec, kind: str = "static_array", base: Path = Path(".")) -> ModelSpec:
+def _model(c: _Check, m, array: ArraySpec, kind: str = "static_array", base: Path = Path("."),
+           joint: bool = False) -> ModelSpec:
+    """``joint``: a dynamic problem with a static phase, whose intrinsics default to free as in the static kind."""
     dynamic = kind == "dynamic_array"
+    defaults = DEFAULT_FREE["static_array" if joint else kind]
     m = c.mapping(m, "model", ("gravity", "gravity_direction", "misalignment", "accelerometer", "gyroscope",
                                "triads") + (("position", "intrinsics") if dynamic else ()))
     intrinsics = None
@@ -383,7 +398,7 @@ def _model(c: _Check, m, array: ArraySpec, kind: str = "static_array", base: Pat
     for sensor, groups in SENSOR_GROUPS.items():
         sec = c.mapping(m.get(sensor), f"model.{sensor}", tuple(groups))
         for g in groups:
-            base = {"free": (DEFAULT_FREE[kind][sensor][g],) * size(sensor, g)}
+            base = {"free": (defaults[sensor][g],) * size(sensor, g)}
             glob[sensor, g] = _group_setting(c, sec[g], f"model.{sensor}.{g}", size(sensor, g), base,
                                              gdef(sensor, g).neutral) if g in sec else base
             check_quaternion(sensor, g, glob[sensor, g], f"model.{sensor}.{g}")
