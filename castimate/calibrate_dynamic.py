@@ -274,6 +274,7 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = _quiet, max_restarts: int = 
                               nominal)
     attempts, best = [], None
     start_values: dict = {}
+    diverged = False
     for attempt in range(max_restarts + 1):
         problem = build_joint(static_problem, config, data) if static_problem else build_dynamic(config, data)
         lay = problem.lsq.layout
@@ -282,11 +283,13 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = _quiet, max_restarts: int = 
             + (", poses from the previous attempt" if start_values else ", nominal poses"))
         x0 = lay.x0(start_values) if start_values else None
         determined = sign_determined(config, data, problem.gyro_triads)
-        lam = None
+        lam, first = None, None
+        # Gauss-Newton steps first: robust from zero motion (the exact Hessian is indefinite there).
+        # After a diverged attempt the other path is tried: the exact Hessian from the start.
+        gauss_newton_first = not has_gyro and spec.solver.hessian == "exact" and not diverged
         gn = Solver(problem.lsq, replace(spec.solver, hessian="gauss_newton")) \
-            if attempt == 0 or (not has_gyro and spec.solver.hessian == "exact") else None
-        if not has_gyro and spec.solver.hessian == "exact":
-            # Gauss-Newton steps first: robust from zero motion (the exact Hessian is indefinite there)
+            if attempt == 0 or gauss_newton_first else None
+        if gauss_newton_first:
             first = gn.solve(x0)
             log(f"  Gauss-Newton: {first.message} in {first.iterations} iterations, {first.wall_s:.2f} s")
             x0, lam = first.x, first.lam_g
@@ -299,6 +302,11 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = _quiet, max_restarts: int = 
                                  f"{'; '.join(bad[:3])}; fix these parameters, give them priors, or enable the process model")
         solver = Solver(problem.lsq, spec.solver)
         sol = solver.solve(x0, lam_g0=lam)
+        if not sol.success and first is not None and first.success and \
+                solver.newton_decrement(first.x, first.lam_g) < 1e-6:
+            # the polish failed at a point that already satisfies the optimality conditions
+            log(f"  exact-Hessian polish: {sol.message}; the Gauss-Newton optimum is kept (Newton decrement < 1e-6)")
+            sol = replace(first, message=f"{first.message} (Gauss-Newton; exact-Hessian polish: {sol.message})")
         issues = minimum_checks(config, sol.values, nominal, data.t, determined)
         attempts.append({"attempt": attempt + 1, "success": sol.success, "message": sol.message,
                          "iterations": sol.iterations, "cost": sol.cost, "issues": issues,
@@ -312,7 +320,8 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = _quiet, max_restarts: int = 
         # restart from the estimated poses with zero (or gyro) motion, as Schopp 2016 suggests
         start_values = {g.name: sol.values[g.name] for g in lay.groups if not g.nuisance
                         and ("position" in g.name or "misalignment" in g.name) and np.all(np.isfinite(sol.values[g.name]))}
-        if any("diverged" in i or "collapsed" in i for i in issues):
+        diverged = any("diverged" in i or "collapsed" in i for i in issues)
+        if diverged:
             start_values = {}
     if best is None:
         raise NotConvergedError(f"{spec.path}: IPOPT did not converge in {len(attempts)} attempts: "
