@@ -152,22 +152,27 @@ class Solution:
 
 
 class _Compiled:
-    """Local functions of one factor: residual, Jacobian and the Hessian entries worth assembling."""
+    """Local functions of one factor: residual, Jacobian and the Hessian entries worth assembling.
+
+    Derivatives are taken only with respect to the components that are free in some instance
+    (``active``): fixed intrinsics feed the residual but are never differentiated, which cut the
+    exact local Hessian of a Schopp accelerometer factor from about 6500 to about 2400 instructions.
+    """
 
     def __init__(self, fn: ca.Function, active: np.ndarray, hessian: str):
         nz, nd = fn.size1_in(0), fn.size1_in(1)
         z, d = ca.SX.sym("z", nz), ca.SX.sym("d", nd)
         r = fn(z, d)
-        J = ca.jacobian(r, z)
-        H = ca.mtimes(J.T, J)
-        if hessian == "exact":
-            for i in range(r.shape[0]):  # + sum_i r_i Hess(r_i): the curvature Gauss-Newton leaves out
-                H += r[i] * ca.hessian(r[i], z)[0]
+        self.act = act = np.flatnonzero(active)
+        za = ca.vertcat(*[z[int(i)] for i in act]) if len(act) else ca.SX(0, 1)
+        J = ca.jacobian(r, za)
+        # exact: the Hessian of 1/2 |r|^2 = J^T J + sum_i r_i Hess(r_i); Gauss-Newton leaves out the sum
+        H = ca.hessian(0.5 * ca.sumsqr(r), za)[0] if hessian == "exact" else ca.mtimes(J.T, J)
         sp_H = H.sparsity()
-        # entries (a <= b) between components that are free somewhere and structurally nonzero
-        self.pairs = [(a, b) for b in range(nz) for a in range(b + 1)
-                      if active[a] and active[b] and sp_H.has_nz(a, b)]
-        self.hess = ca.Function(f"{fn.name()}_hess", [z, d], [ca.vertcat(*[H[a, b] for a, b in self.pairs])
+        # entries (a <= b), as indices into z, that are structurally nonzero
+        self.pairs = [(int(act[a]), int(act[b])) for b in range(len(act)) for a in range(b + 1) if sp_H.has_nz(a, b)]
+        loc = {int(i): k for k, i in enumerate(act)}
+        self.hess = ca.Function(f"{fn.name()}_hess", [z, d], [ca.vertcat(*[H[loc[a], loc[b]] for a, b in self.pairs])
                                                                if self.pairs else ca.SX(0, 1)])
         self.jac = ca.Function(f"{fn.name()}_jac", [z, d], [ca.densify(J)])
         self.res = fn
@@ -338,9 +343,10 @@ class Solver:
             N, f = b.block.n, b.f
             Z = w[b.w_idx].T
             D = p[b.data_offset: b.data_offset + f.nd * N].reshape(N, f.nd).T
-            Jl = np.asarray(f.jac.map(N)(Z, D)).reshape(f.m, f.nz, N, order="F")  # instances side by side
-            t, a = np.nonzero(b.w_idx < n)
-            gi = b.w_idx[t, a]
+            na = len(f.act)
+            Jl = np.asarray(f.jac.map(N)(Z, D)).reshape(f.m, na, N, order="F")  # instances side by side
+            t, a = np.nonzero(b.w_idx[:, f.act] < n)  # a indexes the active components
+            gi = b.w_idx[t, f.act[a]]
             for i in range(f.m):
                 rows.append(row0 + t * f.m + i)
                 cols.append(gi)
