@@ -40,11 +40,6 @@ def quaternion_to_rotation(q):
     )
 
 
-def quaternion_norm_residual(q):
-    """Equality constraint |q|^2 - 1 = 0 that keeps a quaternion on the unit sphere."""
-    return ca.sumsqr(q) - 1
-
-
 def pitch_roll_direction(phi, psi):
     """Unit direction s(phi, psi) = [-sin phi, cos phi sin psi, cos phi cos psi] (Nilsson 2014, sec. II).
 

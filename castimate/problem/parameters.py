@@ -189,10 +189,3 @@ class Layout:
             return np.zeros((0, 0), dtype=int)
         width = max(len(r) for r in rows)
         return np.array([np.pad(r, (0, width - len(r)), constant_values=-1) for r in rows], dtype=int)
-
-    def check_start(self, x0: np.ndarray) -> list[str]:
-        """Names of the free components whose initial value lies outside its bounds."""
-        lo, hi = self.bounds()
-        bad = np.flatnonzero((x0 < lo) | (x0 > hi))
-        labels = self.x_labels
-        return [labels[i] for i in bad]
