@@ -215,6 +215,18 @@ def _kv(rows: list[tuple[str, str]]) -> str:
 # The report
 # ---------------------------------------------------------------------------------------------
 
+def _page_head(results: dict, problem: str, kind: str) -> list[str]:
+    """The opening lines of a report page, shared by every kind: head, title and provenance."""
+    return [
+        "<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">",
+        f"<title>castimate report: {escape(problem)}</title>",
+        f"<style>{CSS}</style>\n</head>\n<body>",
+        f'<h1>{escape(problem)} <span class="kind">{escape(kind)}</span></h1>',
+        f'<p class="sub">castimate calibration report; problem <code>{escape(str(results.get("problem", "?")))}</code>, '
+        f'sha256 <code>{escape(str(results.get("problem_sha256", "?"))[:16])}…</code></p>',
+    ]
+
+
 def render_report(results: dict, details: dict[str, np.ndarray]) -> str:
     """The HTML text of a report (static or dynamic, after ``results["kind"]``)."""
     if results.get("kind") == "dynamic_array":
@@ -224,14 +236,8 @@ def render_report(results: dict, details: dict[str, np.ndarray]) -> str:
     status = results.get("status", {})
     res = results.get("residuals", {})
     triads = [str(n) for n in details["triads"]]
-    out: list[str] = []
+    out: list[str] = _page_head(results, problem, kind)
     add = out.append
-    add("<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">")
-    add(f"<title>castimate report: {escape(problem)}</title>")
-    add(f"<style>{CSS}</style>\n</head>\n<body>")
-    add(f'<h1>{escape(problem)} <span class="kind">{escape(kind)}</span></h1>')
-    add(f'<p class="sub">castimate calibration report; problem <code>{escape(str(results.get("problem", "?")))}</code>, '
-        f'sha256 <code>{escape(str(results.get("problem_sha256", "?"))[:16])}…</code></p>')
 
     # --- summary
     add("<h2>Summary</h2>")
@@ -499,14 +505,8 @@ def render_dynamic_report(results: dict, details: dict[str, np.ndarray]) -> str:
     names = [str(n) for n in details["triads"]]
     t = np.asarray(details["t"], float)
     N = int(results.get("samples", len(t)) or len(t))
-    out: list[str] = []
+    out: list[str] = _page_head(results, problem, kind)
     add = out.append
-    add("<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">")
-    add(f"<title>castimate report: {escape(problem)}</title>")
-    add(f"<style>{CSS}</style>\n</head>\n<body>")
-    add(f'<h1>{escape(problem)} <span class="kind">{escape(kind)}</span></h1>')
-    add(f'<p class="sub">castimate calibration report; problem <code>{escape(str(results.get("problem", "?")))}</code>, '
-        f'sha256 <code>{escape(str(results.get("problem_sha256", "?"))[:16])}…</code></p>')
 
     # --- summary
     add("<h2>Summary</h2>")
