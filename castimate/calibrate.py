@@ -15,6 +15,7 @@ import numpy as np
 from .errors import InputError, NotConvergedError
 from .io.readers import read_recording
 from .io.recording import Recording
+from .problem.effects import BY_KEY
 from .problem.spec import ProblemSpec
 from .problem.static import (StaticConfig, StaticProblem, TriadConfig, build_static, initial_directions,
                              recover_nominal_rotation, single_triad_config)
@@ -65,6 +66,7 @@ def pose_averages(spec: ProblemSpec, rec: Recording) -> tuple[PoseAverages, Dete
         gyro = {n: rec.gyro[n] for n in names if n in rec.gyro and spec.noise.gyroscope}
         avg = pose_averages_from_means({n: rec.acc[n] for n in names}, 1, spec.noise.accelerometer,
                                        gyro or None, spec.noise.gyroscope if gyro else None,
+                                       t_start=rec.t, t_end=rec.t, temp_mean={n: rec.temp[n] for n in names if n in rec.temp},
                                        source=spec.path, where="data")
         return avg, None
     det = explicit_segments(rec, seg, spec.path, "data.segments") if isinstance(seg, tuple) \
@@ -100,13 +102,21 @@ def static_config(spec: ProblemSpec, avg: PoseAverages) -> tuple[StaticConfig, d
                              f"(exact fit {resid:.1f} deg from it)")
         has_gyro = t.name in avg.gyro_mean if t.gyroscope is None else t.gyroscope
         s = spec.model.settings
+        m = spec.model
         triads.append(TriadConfig(
             t.name, R,
-            {g: s[t.name, "accelerometer", g] for g in ("gain", "bias", "nonorthogonality", "misalignment")},
-            {g: s[t.name, "gyroscope", g] for g in ("gain", "bias", "misalignment")} if has_gyro else None,
+            {**{g: s[t.name, "accelerometer", g] for g in ("gain", "bias", "nonorthogonality", "misalignment")},
+             **m.effect_settings(t.name, "accelerometer")},
+            {**{g: s[t.name, "gyroscope", g] for g in ("gain", "bias", "misalignment")},
+             **m.effect_settings(t.name, "gyroscope")} if has_gyro else None,
             t.position))
+        for e in (BY_KEY[k] for k in m.effects):
+            if e.needs == "temperature" and (t.name, e.sensor, e.name) in s and t.name not in avg.temp_mean:
+                raise InputError(spec.path, f"model.{e.sensor}.{e.name}",
+                                 f"needs a logged temperature, but {spec.data.path.name} has none for triad {t.name!r}")
     m = spec.model
-    return StaticConfig(tuple(triads), spec.array.reference, m.gravity, m.gravity_direction, m.misalignment), notes
+    return StaticConfig(tuple(triads), spec.array.reference, m.gravity, m.gravity_direction, m.misalignment,
+                        m.effects), notes
 
 
 # ---------------------------------------------------------------------------------------------

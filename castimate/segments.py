@@ -731,6 +731,8 @@ class PoseAverages:
         The sample index ranges averaged (empty if built from given means).
     sigma_dof
         Degrees of freedom of the σ estimates (0 when σ was given, not estimated).
+    temp_mean
+        (P,) mean temperature per pose, K; only triads with a logged temperature.
     """
 
     triads: tuple[str, ...]
@@ -745,6 +747,7 @@ class PoseAverages:
     gyro_sigma_sample: dict[str, np.ndarray] = field(default_factory=dict)
     segments: list[tuple[int, int]] = field(default_factory=list)
     sigma_dof: int = 0
+    temp_mean: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def n_poses(self) -> int:
@@ -845,13 +848,14 @@ def average_poses(rec: Recording, detection: Detection, triads: Sequence[str] | 
         t_end=np.array([t[b - 1] + dt for _, b in segs], dtype=float),
         segments=segs,
         sigma_dof=dof,
+        temp_mean={k: np.array([np.mean(v[a:b]) for a, b in segs]) for k, v in rec.temp.items() if k in names},
     )
 
 
 def pose_averages_from_means(acc_mean: Mapping[str, Any], n: Any, acc_sigma_sample: Any,
                              gyro_mean: Mapping[str, Any] | None = None,
                              gyro_sigma_sample: Any = None, *,
-                             t_start: Any = None, t_end: Any = None,
+                             t_start: Any = None, t_end: Any = None, temp_mean: Mapping[str, Any] | None = None,
                              source: object = "", where: str = "") -> PoseAverages:
     """Build :class:`PoseAverages` from data that is already averaged per pose.
 
@@ -867,6 +871,8 @@ def pose_averages_from_means(acc_mean: Mapping[str, Any], n: Any, acc_sigma_samp
         The same for the angular rate (rad/s), optional; only for the triads with gyroscopes.
     t_start, t_end
         (P,) pose times, s; default NaN.
+    temp_mean
+        Triad name -> (P,) mean temperature per pose, K, where logged.
     source, where
         For error messages.
 
@@ -971,4 +977,5 @@ def pose_averages_from_means(acc_mean: Mapping[str, Any], n: Any, acc_sigma_samp
         t_end=times(t_end, "t_end"),
         segments=[],
         sigma_dof=0,
+        temp_mean={k: times(v, f"temp_mean.{k}") for k, v in (temp_mean or {}).items()},
     )

@@ -13,6 +13,20 @@ from dataclasses import dataclass
 import numpy as np
 
 
+XYZ = ("x", "y", "z")
+
+
+@dataclass(frozen=True)
+class GroupDef:
+    """Static description of a parameter group kind: components, neutral value, scale, unit."""
+
+    components: tuple[str, ...]
+    neutral: tuple[float, ...]
+    scale: float
+    unit: str
+    unit_norm: bool = False
+
+
 @dataclass(frozen=True)
 class Group:
     """One parameter group, all arrays in physical units and of shape (rows, components).

@@ -34,6 +34,7 @@ from ..errors import InputError
 from ..io.units import UnitConversion, parse_units
 from ..segments import DetectionOptions
 from ..solve import SolverOptions
+from .effects import STATIC, effects_for
 from .static import QUATERNION_MISALIGNMENT, SENSOR_GROUPS, GroupSetting
 
 KINDS = ("static_array", "dynamic_array")
@@ -55,6 +56,8 @@ DEFAULT_FREE = {
     },
 }
 SATURATION = ("auto", "none")
+#: Kinds whose problem builders compose the effect library (problem.effects).
+EFFECT_KINDS = (STATIC,)
 
 
 @dataclass(frozen=True)
@@ -96,6 +99,12 @@ class ModelSpec:
     misalignment: str
     settings: dict  # (triad, sensor, group) -> GroupSetting; sensor "position" for positions
     intrinsics: Path | None = None  # a static results.json whose values start (and by default fix) the intrinsics
+    effects: tuple[str, ...] = ()  # included effects, "sensor.name" keys in library order
+
+    def effect_settings(self, triad: str, sensor: str) -> dict:
+        """The included effects' settings of one triad's sensor, by effect name (absent: not included there)."""
+        return {k.split(".")[1]: self.settings[triad, sensor, k.split(".")[1]] for k in self.effects
+                if k.startswith(sensor + ".") and (triad, sensor, k.split(".")[1]) in self.settings}
 
 
 @dataclass(frozen=True)
@@ -394,14 +403,21 @@ def _model(c: _Check, m, array: ArraySpec, kind: str = "static_array", base: Pat
         if sensor == "accelerometer" and group == "misalignment" and mis == "rotation" and len(set(s["free"])) > 1:
             c.fail(where + ".free", "a misalignment quaternion is free or fixed as a whole")
 
+    # effects (problem.effects) are named like groups; absent unless a section names them
+    effects = {sensor: effects_for(sensor, kind) if kind in EFFECT_KINDS else {} for sensor in SENSOR_GROUPS}
     glob = {}
     for sensor, groups in SENSOR_GROUPS.items():
-        sec = c.mapping(m.get(sensor), f"model.{sensor}", tuple(groups))
+        sec = c.mapping(m.get(sensor), f"model.{sensor}", tuple(groups) + tuple(effects[sensor]))
         for g in groups:
             base = {"free": (defaults[sensor][g],) * size(sensor, g)}
             glob[sensor, g] = _group_setting(c, sec[g], f"model.{sensor}.{g}", size(sensor, g), base,
                                              gdef(sensor, g).neutral) if g in sec else base
             check_quaternion(sensor, g, glob[sensor, g], f"model.{sensor}.{g}")
+        for g, e in effects[sensor].items():
+            if g in sec:
+                n = len(e.group.components)
+                glob[sensor, g] = _group_setting(c, sec[g], f"model.{sensor}.{g}", n, {"free": (True,) * n},
+                                                 e.group.neutral)
     pos_base = {"free": (True,) * 3}
     if "position" in m:
         pos_base = _group_setting(c, m["position"], "model.position", 3, pos_base, (0.0, 0.0, 0.0))
@@ -416,7 +432,15 @@ def _model(c: _Check, m, array: ArraySpec, kind: str = "static_array", base: Pat
             settings[name, "position", "position"] = GroupSetting(
                 **(_group_setting(c, tsec["position"], w, 3, pos_base, (0.0, 0.0, 0.0)) if "position" in tsec else pos_base))
         for sensor, groups in SENSOR_GROUPS.items():
-            ssec = c.mapping(tsec.get(sensor), f"model.triads.{name}.{sensor}", tuple(groups))
+            ssec = c.mapping(tsec.get(sensor), f"model.triads.{name}.{sensor}", tuple(groups) + tuple(effects[sensor]))
+            for g, e in effects[sensor].items():
+                n = len(e.group.components)
+                if g in ssec:
+                    settings[name, sensor, g] = GroupSetting(**_group_setting(
+                        c, ssec[g], f"model.triads.{name}.{sensor}.{g}", n,
+                        glob.get((sensor, g), {"free": (True,) * n}), e.group.neutral))
+                elif (sensor, g) in glob:
+                    settings[name, sensor, g] = GroupSetting(**glob[sensor, g])
             for g in groups:
                 w = f"model.triads.{name}.{sensor}.{g}"
                 if name == array.reference and sensor == "accelerometer" and g == "misalignment" and g in ssec:
@@ -429,7 +453,9 @@ def _model(c: _Check, m, array: ArraySpec, kind: str = "static_array", base: Pat
                            f"a prior only acts on free components, but {name}'s {g} has fixed components "
                            f"(free: {list(s['free'])})")
                 settings[name, sensor, g] = GroupSetting(**s)
-    return ModelSpec(gravity, direction, mis, settings, intrinsics)
+    included = {(sensor, g) for (_, sensor, g) in settings if g in effects.get(sensor, {})}
+    keys = tuple(e.key for sensor in SENSOR_GROUPS for g, e in effects[sensor].items() if (sensor, g) in included)
+    return ModelSpec(gravity, direction, mis, settings, intrinsics, keys)
 
 
 def _motion(c: _Check, m) -> MotionSpec:

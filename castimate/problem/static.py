@@ -12,30 +12,17 @@ the body frame. Gyroscopes, where present, give y_g = b_g + v in a static pose (
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import casadi as ca
 import numpy as np
 
 from ..models import rotation as rot
 from ..models import triad as tri
-from .parameters import Group, Layout
+from . import effects as fxs
+from .parameters import XYZ, Group, GroupDef, Layout
 from ..segments import PoseAverages
 from ..solve import FactorBlock, LeastSquaresProblem
-
-XYZ = ("x", "y", "z")
-
-
-@dataclass(frozen=True)
-class GroupDef:
-    """Static description of a parameter group kind: components, neutral value, scale, unit."""
-
-    components: tuple[str, ...]
-    neutral: tuple[float, ...]
-    scale: float
-    unit: str
-    unit_norm: bool = False
-
 
 ACCELEROMETER_GROUPS = {
     "gain": GroupDef(XYZ, (1.0, 1.0, 1.0), 1.0, "-"),
@@ -86,10 +73,51 @@ class StaticConfig:
     gravity: float = 9.81
     gravity_direction: str = "unit_vector"  # unit_vector | quaternion | pitch_roll
     misalignment: str = "small_angle"  # small_angle | rotation
+    effects: tuple[str, ...] = ()  # keys of the included effects (problem.effects.EFFECTS order)
+    regressors: "Regressors | None" = None  # time and temperature references of the effects
 
     @property
     def names(self) -> list[str]:
         return [t.name for t in self.triads]
+
+    def sensor_effects(self, sensor: str) -> list[fxs.Effect]:
+        """The included effects of one sensor, in library order."""
+        return [e for e in fxs.EFFECTS if e.key in self.effects and e.sensor == sensor]
+
+
+@dataclass(frozen=True)
+class Regressors:
+    """How the effects' regressors are formed from time and temperature.
+
+    τ = (t - t_mid) / t_half is the normalised session time (τ = ±1 at the first and last pose);
+    the temperature regressor is the triad's temperature minus ``temp_mean`` [K].
+    """
+
+    t_mid: float = 0.0
+    t_half: float = 1.0
+    temp_mean: dict = field(default_factory=dict)  # triad -> K
+
+    def to_dict(self) -> dict:
+        return {"time": {"t_mid_s": self.t_mid, "t_half_s": self.t_half,
+                         "tau": "(t - t_mid_s) / t_half_s"},
+                "temperature_mean_K": dict(self.temp_mean)}
+
+    def pose_moments(self, poses: PoseAverages, triad: str) -> np.ndarray:
+        """(P, 4): mean τ and mean τ² over each pose interval, then the temperature deviation and its
+        square (zeros where no temperature is logged)."""
+        a = (poses.t_start - self.t_mid) / self.t_half
+        b = (poses.t_end - self.t_mid) / self.t_half
+        temp = poses.temp_mean.get(triad)
+        dT = np.zeros(poses.n_poses) if temp is None else temp - self.temp_mean.get(triad, 0.0)
+        return np.column_stack([(a + b) / 2, (a * a + a * b + b * b) / 3, dT, dT ** 2])
+
+    @staticmethod
+    def from_poses(poses: PoseAverages) -> "Regressors":
+        t = np.concatenate([poses.t_start, poses.t_end])
+        t = t[np.isfinite(t)]
+        t0, t1 = (float(t.min()), float(t.max())) if len(t) and t.max() > t.min() else (-1.0, 1.0)
+        return Regressors((t0 + t1) / 2, (t1 - t0) / 2,
+                          {n: float(np.mean(v)) for n, v in poses.temp_mean.items()})
 
 
 def group_name(triad: str, sensor: str, group: str) -> str:
@@ -164,10 +192,21 @@ def triad_groups(config: StaticConfig, t: TriadConfig, with_gyro: bool) -> list[
             if t.name == config.reference:
                 setting = GroupSetting(free=(False,) * len(gd.components))
         out.append(_group(group_name(t.name, "accelerometer", gname), gd, setting))
+    for e in config.sensor_effects("accelerometer"):
+        out.append(_effect_group(t.name, e, t.accelerometer))
     if with_gyro:
         for gname, gd in GYROSCOPE_GROUPS.items():
             out.append(_group(group_name(t.name, "gyroscope", gname), gd, t.gyroscope[gname]))
+        for e in config.sensor_effects("gyroscope"):
+            out.append(_effect_group(t.name, e, t.gyroscope))
     return out
+
+
+def _effect_group(triad: str, e: fxs.Effect, settings: dict[str, GroupSetting]) -> Group:
+    """An included effect's group; triads the problem file does not include it for keep it fixed at
+    its neutral value (no effect)."""
+    s = settings.get(e.name) or GroupSetting(free=(False,) * len(e.group.components))
+    return _group(group_name(triad, e.sensor, e.name), e.group, s)
 
 
 def accelerometer_matrix(misalignment: str) -> ca.Function:
@@ -187,32 +226,58 @@ def gyroscope_matrix() -> ca.Function:
     return ca.Function("gyroscope_T", [k, m, R], [T], ["k", "misalignment", "Rbar"], ["T"])
 
 
-def accelerometer_pose_factor(config: StaticConfig) -> ca.Function:
-    """Whitened residual of one accelerometer triad in one static pose (Nilsson 2014, eq. 4).
+#: Data columns of the effect regressors in every pose factor: mean τ, mean τ², ΔT, ΔT².
+N_REGRESSORS = 4
 
-    z = [k, l, misalignment, b, pose direction], d = [y, σ, vec(Rbar), g].
+
+def _context(reg, **kw) -> fxs.Context:
+    return fxs.Context(tau=(reg[0], reg[1]), temp=(reg[2], reg[3]), **kw)
+
+
+def _effect_params(effects: list[fxs.Effect]) -> list:
+    return [ca.SX.sym(e.name, len(e.group.components)) for e in effects]
+
+
+def accelerometer_pose_factor(config: StaticConfig) -> ca.Function:
+    """Whitened residual of one accelerometer triad in one static pose (Nilsson 2014, eq. 4), plus
+    the included effects' terms.
+
+    z = [k, l, misalignment, b, pose direction, effect parameters...],
+    d = [y, σ, vec(Rbar), g, mean τ, mean τ², ΔT, ΔT²].
     """
     Tfn = accelerometer_matrix(config.misalignment)
     n_mis = Tfn.size1_in(2)
     n_dir = directions_group(config.gravity_direction, np.array([[0, 0, 1.0]])).size
+    effects = config.sensor_effects("accelerometer")
     k, l, m, b = ca.SX.sym("k", 3), ca.SX.sym("l", 3), ca.SX.sym("m", n_mis), ca.SX.sym("b", 3)
-    v = ca.SX.sym("direction", n_dir)
+    v, c = ca.SX.sym("direction", n_dir), _effect_params(effects)
     y, sigma, R, g = ca.SX.sym("y", 3), ca.SX.sym("sigma", 3), ca.SX.sym("Rbar", 9), ca.SX.sym("g")
+    reg = ca.SX.sym("regressors", N_REGRESSORS)
     f = tri.static_specific_force(g, direction_expression(config.gravity_direction, v))
-    r = (y - tri.triad_output(Tfn(k, l, m, ca.reshape(R, 3, 3)), b, f)) / sigma
-    return ca.Function("accelerometer_pose", [ca.vertcat(k, l, m, b, v), ca.vertcat(y, sigma, R, g)], [r])
+    T = Tfn(k, l, m, ca.reshape(R, 3, 3))
+    u = ca.mtimes(T, f)
+    r = (y - tri.triad_output(T, b, f) - fxs.total(effects, c, _context(reg, u=u))) / sigma
+    return ca.Function("accelerometer_pose", [ca.vertcat(k, l, m, b, v, *c), ca.vertcat(y, sigma, R, g, reg)], [r])
 
 
-def gyroscope_pose_factor() -> ca.Function:
-    """Whitened residual of one gyroscope triad in a static pose: y = T_g 0 + b_g + v.
+def gyroscope_pose_factor(config: StaticConfig) -> ca.Function:
+    """Whitened residual of one gyroscope triad in a static pose: y = T_g 0 + b_g + v, plus the
+    included effects' terms (g-sensitivity sees the specific force g u_n in the gyroscope's frame).
 
-    z = [k_g, misalignment_g, b_g], d = [y, σ, vec(Rbar)].
+    z = [k_g, misalignment_g, b_g, pose direction, effect parameters...],
+    d = [y, σ, vec(Rbar), g, mean τ, mean τ², ΔT, ΔT²].
     """
-    k, m, b = ca.SX.sym("k", 3), ca.SX.sym("m", 3), ca.SX.sym("b", 3)
-    y, sigma, R = ca.SX.sym("y", 3), ca.SX.sym("sigma", 3), ca.SX.sym("Rbar", 9)
-    T = gyroscope_matrix()(k, m, ca.reshape(R, 3, 3))
-    r = (y - tri.triad_output(T, b, ca.DM.zeros(3))) / sigma
-    return ca.Function("gyroscope_pose", [ca.vertcat(k, m, b), ca.vertcat(y, sigma, R)], [r])
+    n_dir = directions_group(config.gravity_direction, np.array([[0, 0, 1.0]])).size
+    effects = config.sensor_effects("gyroscope")
+    k, m, b, v = ca.SX.sym("k", 3), ca.SX.sym("m", 3), ca.SX.sym("b", 3), ca.SX.sym("direction", n_dir)
+    c = _effect_params(effects)
+    y, sigma, R, g = ca.SX.sym("y", 3), ca.SX.sym("sigma", 3), ca.SX.sym("Rbar", 9), ca.SX.sym("g")
+    reg = ca.SX.sym("regressors", N_REGRESSORS)
+    Rbar = ca.reshape(R, 3, 3)
+    T = gyroscope_matrix()(k, m, Rbar)
+    f = ca.mtimes(Rbar, tri.static_specific_force(g, direction_expression(config.gravity_direction, v)))
+    r = (y - tri.triad_output(T, b, ca.DM.zeros(3)) - fxs.total(effects, c, _context(reg, u=ca.DM.zeros(3), f=f))) / sigma
+    return ca.Function("gyroscope_pose", [ca.vertcat(k, m, b, v, *c), ca.vertcat(y, sigma, R, g, reg)], [r])
 
 
 ACC_FACTOR_GROUPS = ("gain", "nonorthogonality", "misalignment", "bias")
@@ -229,15 +294,18 @@ class StaticProblem:
     n_poses: int
 
     def block_data(self, poses: PoseAverages) -> list[np.ndarray]:
-        """Per-block data, triad-major: accelerometers (M*P, 16), then gyroscopes (Mg*P, 15) if any."""
+        """Per-block data, triad-major: accelerometers (M*P, 20), then gyroscopes (Mg*P, 20) if any."""
         P, g = self.n_poses, self.config.gravity
-        out = [np.vstack([np.hstack([poses.acc_mean[t.name], poses.acc_sigma[t.name],
-                                     np.tile(t.R_nominal.ravel(order="F"), (P, 1)), np.full((P, 1), g)])
-                          for t in self.config.triads])]
+        reg = self.config.regressors or Regressors.from_poses(poses)
         R = {t.name: t.R_nominal for t in self.config.triads}
+
+        def rows(n, mean, sigma):
+            return np.hstack([mean, sigma, np.tile(R[n].ravel(order="F"), (P, 1)), np.full((P, 1), g),
+                              reg.pose_moments(poses, n)])
+
+        out = [np.vstack([rows(n, poses.acc_mean[n], poses.acc_sigma[n]) for n in self.config.names])]
         if self.gyro_triads:
-            out.append(np.vstack([np.hstack([poses.gyro_mean[n], poses.gyro_sigma[n],
-                                             np.tile(R[n].ravel(order="F"), (P, 1))]) for n in self.gyro_triads]))
+            out.append(np.vstack([rows(n, poses.gyro_mean[n], poses.gyro_sigma[n]) for n in self.gyro_triads]))
         return out
 
     def data_vector(self, poses: PoseAverages) -> np.ndarray:
@@ -286,14 +354,22 @@ def build_static(config: StaticConfig, poses: PoseAverages) -> StaticProblem:
     for t in config.triads:
         groups += triad_groups(config, t, t.name in gyro_triads)
     groups.append(directions_group(config.gravity_direction, u0))
-    M, Mg = len(config.triads), len(gyro_triads)
+    if config.regressors is None:
+        config = replace(config, regressors=Regressors.from_poses(poses))
+
+    def inputs(sensor, names, groups):
+        """Each group stacked over the triads (one row per triad), then the pose direction."""
+        rows = np.repeat(np.arange(len(names)), P)
+        effects = tuple(e.name for e in config.sensor_effects(sensor))
+        return [(tuple(group_name(n, sensor, g) for n in names), rows) for g in groups] + \
+            [(DIRECTIONS, np.tile(np.arange(P), len(names)))] + \
+            [(tuple(group_name(n, sensor, g) for n in names), rows) for g in effects]
+
     blocks = [FactorBlock("accelerometer_pose", accelerometer_pose_factor(config),
-                          [(tuple(group_name(t.name, "accelerometer", g) for t in config.triads), np.repeat(np.arange(M), P))
-                           for g in ACC_FACTOR_GROUPS] + [(DIRECTIONS, np.tile(np.arange(P), M))], np.zeros((M * P, 0)))]
+                          inputs("accelerometer", config.names, ACC_FACTOR_GROUPS), np.zeros((0, 0)))]
     if gyro_triads:
-        blocks.append(FactorBlock("gyroscope_pose", gyroscope_pose_factor(),
-                                  [(tuple(group_name(n, "gyroscope", g) for n in gyro_triads), np.repeat(np.arange(Mg), P))
-                                   for g in GYRO_FACTOR_GROUPS], np.zeros((Mg * P, 0))))
+        blocks.append(FactorBlock("gyroscope_pose", gyroscope_pose_factor(config),
+                                  inputs("gyroscope", gyro_triads, GYRO_FACTOR_GROUPS), np.zeros((0, 0))))
     problem = StaticProblem(config, LeastSquaresProblem(Layout(groups), blocks), gyro_triads, P)
     for b, d in zip(blocks, problem.block_data(poses)):
         b.data = d

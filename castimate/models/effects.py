@@ -1,0 +1,68 @@
+"""Additional sensor effects: one pure symbolic function each.
+
+Each function returns the term an effect adds to a triad's noise-free reading (sensor frame, the
+triad's own units), so a measurement model is ``y = T f + b + Σ effect terms``. The effects are
+the usual suspects of MEMS inertial sensors beyond the Nilsson 2014 model (gain, bias,
+non-orthogonality, misalignment):
+
+- a bias that drifts with time or with temperature (polynomial, :func:`polynomial`);
+- a gain that varies with temperature (:func:`relative_gain_change`);
+- a quadratic scale nonlinearity per axis (:func:`scale_nonlinearity`);
+- per-axis sensing-element offsets inside an accelerometer triad, the "size effect"
+  (:func:`axis_offsets`);
+- a time offset of a triad's samples (:func:`time_offset`);
+- the g-sensitivity of a gyroscope (:func:`g_sensitivity`).
+
+Arguments are CasADi symbols or numbers; nothing here knows about problems or data.
+"""
+
+from __future__ import annotations
+
+import casadi as ca
+
+
+def polynomial(c, m1, m2):
+    """c1 m1 + c2 m2 per axis, c = [c1 (3), c2 (3)]: a bias polynomial in a regressor x, with the
+    regressor's first and second moments m1 = mean(x), m2 = mean(x²) over the averaging interval.
+
+    With x the normalised time τ ∈ [-1, 1] this is the bias drift; with x the temperature minus
+    its session mean it is the temperature dependence of the bias. Using the interval moments makes
+    the term exact for pose averages (for a single sample, m2 = m1²).
+    """
+    return c[0:3] * m1 + c[3:6] * m2
+
+
+def relative_gain_change(c, m1, m2, u):
+    """(c1 x + c2 x²) ⊙ u: a gain that changes with a regressor x (temperature), acting on the
+    noise-free sensor-frame reading u = T f. Same moment convention as :func:`polynomial`."""
+    return polynomial(c, m1, m2) * u
+
+
+def scale_nonlinearity(k2, u):
+    """k2 ⊙ u²: quadratic scale nonlinearity of each axis [1/(m/s²)], u = T f the linear reading."""
+    return k2 * u ** 2
+
+
+def axis_offsets(T, delta, omega, omega_dot):
+    """Size effect: the y and z sensing elements of an accelerometer triad sit at δ_y, δ_z (body
+    frame, m) from the x element, which is at the triad's position r.
+
+    Axis i then senses the specific force at r + δ_i, which adds e_iᵀ T (ω×(ω×δ_i) + ω̇×δ_i) to
+    its reading (Carlsson 2017 eq. 1 applied per axis); delta = [δ_y (3), δ_z (3)].
+    """
+    def extra(d):
+        return ca.mtimes(T, ca.cross(omega, ca.cross(omega, d)) + ca.cross(omega_dot, d))
+
+    return ca.vertcat(0, extra(delta[0:3])[1], extra(delta[3:6])[2])
+
+
+def time_offset(dt, h_dot):
+    """Δt ḣ: a triad sampled Δt [s] late reads h(t + Δt) ≈ h(t) + Δt ḣ(t) (first order), with ḣ
+    the time derivative of its noise-free reading."""
+    return dt * h_dot
+
+
+def g_sensitivity(G, f):
+    """G f: the linear-acceleration sensitivity of a gyroscope [rad/s per m/s²], G (9,) row-major
+    3×3, f the specific force in the gyroscope's frame."""
+    return ca.mtimes(ca.reshape(G, 3, 3).T, f)

@@ -1,0 +1,130 @@
+"""The effect library: additional sensor effects as parameter groups a problem can include.
+
+Each :class:`Effect` pairs a pure symbolic term from :mod:`castimate.models.effects` with a
+parameter group definition (components, neutral value, scale, unit) and says which sensor and which
+problem kinds it applies to and what data it needs. A problem file includes an effect by naming it
+like any other group (``model.accelerometer.bias_drift: free``, or per triad); ``castimate
+diagnose`` tests the effects a problem does not include.
+
+Regressors an effect term may use (:class:`Context`):
+
+- ``tau``: normalised time τ = (t - t_mid) / t_half ∈ [-1, 1] over the session, as the moments
+  (mean τ, mean τ²) over the averaging interval (a static pose) or (τ, τ²) for one sample;
+- ``temp``: temperature minus the triad's session mean [K], as (mean, mean of the square);
+- ``u``: the triad's noise-free linear reading (T f or T_g ω), sensor frame;
+- ``f``: the specific force in the triad's frame (gyroscope g-sensitivity);
+- ``T``, ``omega``, ``omega_dot``: the triad matrix and the motion (size effect);
+- ``u_dot``: the time derivative of ``u`` (time offset).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable
+
+from ..models import effects as fx
+from .parameters import XYZ, GroupDef
+
+STATIC, DYNAMIC = "static_array", "dynamic_array"
+POLY = ("x1", "y1", "z1", "x2", "y2", "z2")  # linear then quadratic coefficient per axis
+
+
+@dataclass(frozen=True)
+class Context:
+    """Symbolic regressors available to an effect term (see the module docstring); None where the
+    problem kind does not provide them."""
+
+    tau: tuple[Any, Any]
+    temp: tuple[Any, Any]
+    u: Any
+    f: Any = None
+    T: Any = None
+    omega: Any = None
+    omega_dot: Any = None
+    u_dot: Any = None
+
+
+@dataclass(frozen=True)
+class Effect:
+    """One additional sensor effect.
+
+    Attributes
+    ----------
+    name
+        The group name in problem files and results (``bias_drift``).
+    sensor
+        ``accelerometer`` or ``gyroscope``.
+    group
+        Components, neutral value (no effect), scale and unit of its parameters.
+    term
+        ``(c, ctx) -> Δy``: what it adds to the reading, in the sensor frame.
+    kinds
+        Problem kinds it applies to.
+    needs
+        ``temperature`` if it needs a logged temperature, else ``""``.
+    title
+        One line for reports.
+    """
+
+    name: str
+    sensor: str
+    group: GroupDef
+    term: Callable[[Any, Context], Any]
+    kinds: tuple[str, ...] = (STATIC, DYNAMIC)
+    needs: str = ""
+    title: str = ""
+
+    @property
+    def key(self) -> str:
+        return f"{self.sensor}.{self.name}"
+
+
+def _bias_drift(sensor: str, unit: str, scale: float) -> Effect:
+    return Effect("bias_drift", sensor, GroupDef(POLY, (0.0,) * 6, scale, unit),
+                  lambda c, x: fx.polynomial(c, *x.tau),
+                  title=f"{sensor} bias drift, quadratic in time ({unit} at the session's ends)")
+
+
+def _temperature_bias(sensor: str, unit: str, scale: float) -> Effect:
+    return Effect("temperature_bias", sensor, GroupDef(POLY, (0.0,) * 6, scale, f"{unit}/K, {unit}/K^2"),
+                  lambda c, x: fx.polynomial(c, *x.temp), needs="temperature",
+                  title=f"{sensor} bias linear and quadratic in temperature")
+
+
+EFFECTS: tuple[Effect, ...] = (
+    _bias_drift("accelerometer", "m/s^2", 1e-2),
+    _temperature_bias("accelerometer", "m/s^2", 1e-3),
+    Effect("temperature_gain", "accelerometer", GroupDef(POLY, (0.0,) * 6, 1e-4, "1/K, 1/K^2"),
+           lambda c, x: fx.relative_gain_change(c, *x.temp, x.u), needs="temperature",
+           title="accelerometer gain linear and quadratic in temperature"),
+    Effect("scale_nonlinearity", "accelerometer", GroupDef(XYZ, (0.0,) * 3, 1e-4, "1/(m/s^2)"),
+           lambda c, x: fx.scale_nonlinearity(c, x.u),
+           title="accelerometer scale nonlinearity, quadratic per axis"),
+    Effect("axis_offsets", "accelerometer", GroupDef(("yx", "yy", "yz", "zx", "zy", "zz"), (0.0,) * 6, 1e-3, "m"),
+           lambda c, x: fx.axis_offsets(x.T, c, x.omega, x.omega_dot), kinds=(DYNAMIC,),
+           title="accelerometer sensing-element offsets (size effect): y and z elements relative to x"),
+    Effect("time_offset", "accelerometer", GroupDef(("dt",), (0.0,), 1e-3, "s"),
+           lambda c, x: fx.time_offset(c, x.u_dot), kinds=(DYNAMIC,),
+           title="accelerometer time offset"),
+    _bias_drift("gyroscope", "rad/s", 1e-3),
+    _temperature_bias("gyroscope", "rad/s", 1e-4),
+    Effect("g_sensitivity", "gyroscope",
+           GroupDef(("xx", "xy", "xz", "yx", "yy", "yz", "zx", "zy", "zz"), (0.0,) * 9, 1e-4, "rad/s per m/s^2"),
+           lambda c, x: fx.g_sensitivity(c, x.f), title="gyroscope g-sensitivity"),
+    Effect("time_offset", "gyroscope", GroupDef(("dt",), (0.0,), 1e-3, "s"),
+           lambda c, x: fx.time_offset(c, x.u_dot), kinds=(DYNAMIC,), title="gyroscope time offset"),
+)
+BY_KEY = {e.key: e for e in EFFECTS}
+
+
+def effects_for(sensor: str, kind: str) -> dict[str, Effect]:
+    """The effects a problem of ``kind`` may include for ``sensor``, by name."""
+    return {e.name: e for e in EFFECTS if e.sensor == sensor and kind in e.kinds}
+
+
+def total(effects, params, ctx: Context):
+    """Σ of the terms of ``effects`` with their parameter vectors ``params`` (0 if none)."""
+    out = 0
+    for e, c in zip(effects, params):
+        out = out + e.term(c, ctx)
+    return out
