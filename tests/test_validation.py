@@ -230,7 +230,7 @@ SPEC_CASES = [
     ("unknown_model_key", {"model.gravty": 9.81}, "model.gravty", "unknown key; expected one of accelerometer"),
     ("unknown_sensor", {"model.magnetometer": {}}, "model.magnetometer", "unknown key"),
     ("misspelt_group", {"model.accelerometer.gian": "free"}, "model.accelerometer.gian",
-     "unknown key; expected one of bias, gain, misalignment, nonorthogonality"),
+     "unknown key; expected one of bias, bias_drift, gain, misalignment, nonorthogonality, scale_nonlinearity, temperature_bias, temperature_gain"),
     ("gyroscope_has_no_nonorthogonality", {"model.gyroscope.nonorthogonality": "free"},
      "model.gyroscope.nonorthogonality", "unknown key; expected one of bias, gain, misalignment"),
     ("misspelt_triad", {"model.triads.imu9.accelerometer.gain": "fixed"}, "model.triads.imu9",
