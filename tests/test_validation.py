@@ -232,7 +232,7 @@ SPEC_CASES = [
     ("misspelt_group", {"model.accelerometer.gian": "free"}, "model.accelerometer.gian",
      "unknown key; expected one of bias, bias_drift, gain, misalignment, nonorthogonality, scale_nonlinearity, temperature_bias, temperature_gain"),
     ("gyroscope_has_no_nonorthogonality", {"model.gyroscope.nonorthogonality": "free"},
-     "model.gyroscope.nonorthogonality", "unknown key; expected one of bias, gain, misalignment"),
+     "model.gyroscope.nonorthogonality", "unknown key; expected one of bias, bias_drift, g_sensitivity, gain, misalignment, temperature_bias"),
     ("misspelt_triad", {"model.triads.imu9.accelerometer.gain": "fixed"}, "model.triads.imu9",
      "unknown key; expected one of imu1, imu2, imu3"),
     ("misspelt_triad_sensor", {"model.triads.imu2.accelerometr.gain": "fixed"}, "model.triads.imu2.accelerometr",
