@@ -47,6 +47,7 @@ class DynamicConfig:
     misalignment: str = "small_angle"  # small_angle | rotation (Schopp's full orientation)
     motion: MotionSigmas = MotionSigmas()
     process_model: bool = True
+    effects: tuple[str, ...] = ()  # included effects (problem.effects); none are composed here yet
 
     @property
     def names(self) -> list[str]:

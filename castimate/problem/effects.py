@@ -122,6 +122,11 @@ def effects_for(sensor: str, kind: str) -> dict[str, Effect]:
     return {e.name: e for e in EFFECTS if e.sensor == sensor and kind in e.kinds}
 
 
+def included(keys, sensor: str) -> list[Effect]:
+    """The effects among ``keys`` ("sensor.name") that act on ``sensor``, in library order."""
+    return [e for e in EFFECTS if e.key in keys and e.sensor == sensor]
+
+
 def total(effects, params, ctx: Context):
     """Σ of the terms of ``effects`` with their parameter vectors ``params`` (0 if none)."""
     out = 0

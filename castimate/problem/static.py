@@ -80,10 +80,6 @@ class StaticConfig:
     def names(self) -> list[str]:
         return [t.name for t in self.triads]
 
-    def sensor_effects(self, sensor: str) -> list[fxs.Effect]:
-        """The included effects of one sensor, in library order."""
-        return [e for e in fxs.EFFECTS if e.key in self.effects and e.sensor == sensor]
-
 
 @dataclass(frozen=True)
 class Regressors:
@@ -192,12 +188,12 @@ def triad_groups(config: StaticConfig, t: TriadConfig, with_gyro: bool) -> list[
             if t.name == config.reference:
                 setting = GroupSetting(free=(False,) * len(gd.components))
         out.append(_group(group_name(t.name, "accelerometer", gname), gd, setting))
-    for e in config.sensor_effects("accelerometer"):
+    for e in fxs.included(config.effects, "accelerometer"):
         out.append(_effect_group(t.name, e, t.accelerometer))
     if with_gyro:
         for gname, gd in GYROSCOPE_GROUPS.items():
             out.append(_group(group_name(t.name, "gyroscope", gname), gd, t.gyroscope[gname]))
-        for e in config.sensor_effects("gyroscope"):
+        for e in fxs.included(config.effects, "gyroscope"):
             out.append(_effect_group(t.name, e, t.gyroscope))
     return out
 
@@ -248,7 +244,7 @@ def accelerometer_pose_factor(config: StaticConfig) -> ca.Function:
     Tfn = accelerometer_matrix(config.misalignment)
     n_mis = Tfn.size1_in(2)
     n_dir = directions_group(config.gravity_direction, np.array([[0, 0, 1.0]])).size
-    effects = config.sensor_effects("accelerometer")
+    effects = fxs.included(config.effects, "accelerometer")
     k, l, m, b = ca.SX.sym("k", 3), ca.SX.sym("l", 3), ca.SX.sym("m", n_mis), ca.SX.sym("b", 3)
     v, c = ca.SX.sym("direction", n_dir), _effect_params(effects)
     y, sigma, R, g = ca.SX.sym("y", 3), ca.SX.sym("sigma", 3), ca.SX.sym("Rbar", 9), ca.SX.sym("g")
@@ -268,7 +264,7 @@ def gyroscope_pose_factor(config: StaticConfig) -> ca.Function:
     d = [y, σ, vec(Rbar), g, mean τ, mean τ², ΔT, ΔT²].
     """
     n_dir = directions_group(config.gravity_direction, np.array([[0, 0, 1.0]])).size
-    effects = config.sensor_effects("gyroscope")
+    effects = fxs.included(config.effects, "gyroscope")
     k, m, b, v = ca.SX.sym("k", 3), ca.SX.sym("m", 3), ca.SX.sym("b", 3), ca.SX.sym("direction", n_dir)
     c = _effect_params(effects)
     y, sigma, R, g = ca.SX.sym("y", 3), ca.SX.sym("sigma", 3), ca.SX.sym("Rbar", 9), ca.SX.sym("g")
@@ -360,7 +356,7 @@ def build_static(config: StaticConfig, poses: PoseAverages) -> StaticProblem:
     def inputs(sensor, names, groups):
         """Each group stacked over the triads (one row per triad), then the pose direction."""
         rows = np.repeat(np.arange(len(names)), P)
-        effects = tuple(e.name for e in config.sensor_effects(sensor))
+        effects = tuple(e.name for e in fxs.included(config.effects, sensor))
         return [(tuple(group_name(n, sensor, g) for n in names), rows) for g in groups] + \
             [(DIRECTIONS, np.tile(np.arange(P), len(names)))] + \
             [(tuple(group_name(n, sensor, g) for n in names), rows) for g in effects]
