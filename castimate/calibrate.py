@@ -218,8 +218,17 @@ class StaticOutcome:
         return out
 
 
-def calibrate_static(spec: ProblemSpec, log: Log = _quiet) -> StaticOutcome:
-    """Run a static array calibration end to end. Raises InputError or NotConvergedError."""
+@dataclass(frozen=True)
+class StaticData:
+    """A static session read and averaged once: what every model variant of it is fitted to."""
+
+    recording: Recording
+    averages: PoseAverages
+    detection: Detection | None
+
+
+def load_static(spec: ProblemSpec, log: Log = _quiet) -> StaticData:
+    """Read the recording and average its static poses."""
     log(f"reading {spec.data.path.name} ({spec.data.format})")
     rec = load_recording(spec)
     for note in rec.notes:
@@ -227,6 +236,18 @@ def calibrate_static(spec: ProblemSpec, log: Log = _quiet) -> StaticOutcome:
     avg, det = pose_averages(spec, rec)
     if det is not None:
         log(det.summary())
+    return StaticData(rec, avg, det)
+
+
+def calibrate_static(spec: ProblemSpec, log: Log = _quiet, data: StaticData | None = None,
+                     consistency: bool = True) -> StaticOutcome:
+    """Run a static array calibration end to end. Raises InputError or NotConvergedError.
+
+    ``data`` reuses a session already read with :func:`load_static`; ``consistency=False`` skips
+    the single-triad calibrations of Nilsson's before/after figure.
+    """
+    data = data or load_static(spec, log)
+    rec, avg, det = data.recording, data.averages, data.detection
     config, notes = static_config(spec, avg)
     for n, note in notes.items():
         log(f"  {n}: {note}")
@@ -243,14 +264,14 @@ def calibrate_static(spec: ProblemSpec, log: Log = _quiet) -> StaticOutcome:
     names = config.names + problem.gyro_triads
     sig = np.vstack([d[:, 3:6] for d in problem.block_data(avg)])  # σ of every residual, (M+Mg)*P x 3
     res = (sol.residual.reshape(-1, 3) * sig).reshape(len(names), P, 3)
-    consistency = None
-    if len(config.names) > 1:
+    spread = None
+    if consistency and len(config.names) > 1:
         log("calibrating each triad alone for the before/after consistency")
-        consistency = Consistency(array_spread(individual_calibrations(config, avg), avg.acc_mean),
-                                  array_spread(cal, avg.acc_mean))
+        spread = Consistency(array_spread(individual_calibrations(config, avg), avg.acc_mean),
+                             array_spread(cal, avg.acc_mean))
     M = len(config.names)
     return StaticOutcome(
-        spec, rec, det, avg, config, notes, problem, solver, sol, cal, gcal,
+        spec, rec, det, avg, problem.config, notes, problem, solver, sol, cal, gcal,
         {n: res[i] for i, n in enumerate(config.names)},
         {n: res[M + i] for i, n in enumerate(problem.gyro_triads)},
-        consistency)
+        spread)

@@ -391,4 +391,4 @@ def single_triad_config(config: StaticConfig, name: str) -> StaticConfig:
     This is the "before" of Nilsson 2014, sec. IV: each triad individually, as in Panahandeh 2010.
     """
     t = next(t for t in config.triads if t.name == name)
-    return replace(config, triads=(replace(t, gyroscope=None),), reference=name)
+    return replace(config, triads=(replace(t, gyroscope=None),), reference=name, effects=())
