@@ -57,7 +57,7 @@ axis a per-sample σ; the σ of a segment mean is σ/sqrt(n).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, replace, fields
 from typing import Any, Mapping, Sequence
 
 import numpy as np
@@ -752,6 +752,16 @@ class PoseAverages:
     @property
     def n_poses(self) -> int:
         return len(self.n)
+
+    def take(self, idx) -> "PoseAverages":
+        """The poses ``idx`` only (e.g. a cross-validation fold)."""
+        idx = np.asarray(idx)
+        pick = lambda d: {k: v[idx] for k, v in d.items()}  # noqa: E731
+        return replace(self, acc_mean=pick(self.acc_mean), acc_sigma=pick(self.acc_sigma),
+                       gyro_mean=pick(self.gyro_mean), gyro_sigma=pick(self.gyro_sigma), n=self.n[idx],
+                       t_start=self.t_start[idx], t_end=self.t_end[idx],
+                       segments=[self.segments[i] for i in idx] if self.segments else [],
+                       temp_mean=pick(self.temp_mean))
 
 
 def _batch_means_variance(x: np.ndarray, segments: Sequence[tuple[int, int]],

@@ -385,6 +385,22 @@ def recover_nominal_rotation(ref_mean: np.ndarray, triad_mean: np.ndarray) -> tu
     return A, rot.rotation_angle_deg(A.T @ R)
 
 
+def fixed_config(config: StaticConfig, values: dict[str, np.ndarray]) -> StaticConfig:
+    """The same structure with every calibration group fixed at ``values`` (physical units): only
+    the pose directions remain free, e.g. to predict held-out poses with a fitted calibration."""
+    def fix(t: TriadConfig, sensor: str, settings: dict | None):
+        if settings is None:
+            return None
+        out = {}
+        for g in settings:
+            v = np.atleast_1d(values[group_name(t.name, sensor, g)])
+            out[g] = GroupSetting(free=(False,) * len(v), initial=tuple(float(x) for x in v))
+        return out
+
+    return replace(config, triads=tuple(replace(t, accelerometer=fix(t, "accelerometer", t.accelerometer),
+                                                gyroscope=fix(t, "gyroscope", t.gyroscope)) for t in config.triads))
+
+
 def single_triad_config(config: StaticConfig, name: str) -> StaticConfig:
     """The same triad calibrated alone (gain, bias, non-orthogonality; no misalignment).
 

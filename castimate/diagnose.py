@@ -1,0 +1,348 @@
+"""Close the loop on measured data: find residual structure, test the effects the model lacks, add
+what the data demand, and measure the error before and after (``castimate diagnose``).
+
+The procedure, for a problem with its declared model H0:
+
+1. **Fit H0** and analyse its residual per triad, axis and pose: χ² against its expected value,
+   whiteness over time (lag-1 correlation in time order) and correlation across triads (common
+   mode), see :func:`analyse_residuals`.
+2. **Score test** every effect of the library (:mod:`castimate.problem.effects`) that the model
+   does not include and the data can inform, at the H0 solution and without refitting. With the
+   effect's k parameters appended at their neutral value, the Lagrange-multiplier statistic is
+   LM = gᵀ I⁻¹ g, g the gradient of ½|r|² and I = JᵀJ the Fisher information (nuisance variables
+   eliminated, unit-norm constraints projected out): :meth:`Solver.newton_decrement` at that
+   point. The noise σ's are themselves estimates, so LM is put on the residual's own scale,
+   F = LM / (k s²) with s² = χ²/dof of H0, and compared with F(k, dof).
+3. **Confirm** the significant candidates, most significant first (Wilson–Hilferty z of the
+   score statistic), by refitting: the F form of the likelihood-ratio test,
+   F = ((χ²₀ − χ²₁)/k) / (χ²₁/dof₁) against F(k, dof₁), and the cross-validated prediction error on
+   held-out poses must not grow. Both tests use α/m, Bonferroni over the m candidates of the round,
+   so the family-wise false-alarm rate of a round is at most α.
+4. **Add** the first confirmed effect and repeat from 2 until no candidate is significant.
+
+Only the math and orchestration live here; :mod:`castimate.report.diagnose` writes the report.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Callable
+
+import numpy as np
+from scipy import stats
+
+from .calibrate import StaticData, StaticOutcome, calibrate_static, load_static, static_config
+from .errors import InputError, NotConvergedError
+from .problem.effects import BY_KEY, EFFECTS, Effect
+from .problem.spec import ProblemSpec
+from .problem.static import GroupSetting, Regressors, build_static, fixed_config, group_name
+from .solve import Solver
+
+Log = Callable[[str], None]
+
+#: Family-wise false-alarm level of one round of score tests (Bonferroni over the candidates).
+ALPHA = 0.01
+#: Cross-validation folds over the poses (interleaved in time, so each fold spans the session).
+FOLDS = 5
+#: Candidates confirmed by a refit per round, most significant first.
+CONFIRM = 2
+
+
+def _quiet(msg: str) -> None:
+    pass
+
+
+# ---------------------------------------------------------------------------------------------
+# Model variants
+# ---------------------------------------------------------------------------------------------
+
+def with_effects(spec: ProblemSpec, keys) -> ProblemSpec:
+    """The problem with the effects ``keys`` included, free on every triad that does not set them."""
+    settings = dict(spec.model.settings)
+    for key in keys:
+        e = BY_KEY[key]
+        for name in spec.array.names:
+            settings.setdefault((name, e.sensor, e.name), GroupSetting(free=(True,) * len(e.group.components)))
+    effects = tuple(e.key for e in EFFECTS if e.key in set(spec.model.effects) | set(keys))
+    return replace(spec, model=replace(spec.model, settings=settings, effects=effects))
+
+
+@dataclass(frozen=True)
+class CrossValidation:
+    """Prediction error on held-out poses: fit on the other folds, fix the calibration, estimate
+    only the held-out poses' directions, and take the residual."""
+
+    folds: int
+    rms: float  # whitened residual RMS, all sensors (1 for a perfect model and honest σ)
+    rms_acc: float  # m/s^2
+    rms_gyro: float  # rad/s, nan without gyroscopes
+
+
+@dataclass
+class Model:
+    """One fitted model variant of a session."""
+
+    effects: tuple[str, ...]
+    outcome: StaticOutcome
+    cv: CrossValidation | None = None
+
+    @property
+    def chi2(self) -> float:
+        return self.outcome.solution.chi2
+
+    @property
+    def dof(self) -> int:
+        return self.outcome.solution.dof
+
+    @property
+    def s2(self) -> float:
+        """χ²/dof: the residual's variance relative to the declared σ's."""
+        return self.chi2 / self.dof
+
+
+def fit(spec: ProblemSpec, data: StaticData, effects=()) -> Model:
+    """Fit the problem with ``effects`` added to the declared ones."""
+    s = with_effects(spec, effects)
+    return Model(s.model.effects, calibrate_static(s, data=data, consistency=False))
+
+
+def cross_validate(spec: ProblemSpec, data: StaticData, effects, folds: int = FOLDS) -> CrossValidation:
+    """K-fold cross-validation over the poses (see :class:`CrossValidation`)."""
+    s = with_effects(spec, effects)
+    avg = data.averages
+    config, _ = static_config(s, avg)
+    config = replace(config, regressors=Regressors.from_poses(avg))
+    fold = np.empty(avg.n_poses, int)
+    fold[np.argsort(avg.t_start, kind="stable")] = np.arange(avg.n_poses) % folds
+    white, acc, gyro = [], [], []
+    for k in range(folds):
+        train, test = np.flatnonzero(fold != k), np.flatnonzero(fold == k)
+        prob = build_static(config, avg.take(train))
+        sol = Solver(prob.lsq, s.solver).solve()
+        if not sol.success:
+            raise NotConvergedError(f"cross-validation fold {k + 1} of {folds} did not converge: {sol.message}")
+        held = build_static(fixed_config(prob.config, sol.values), avg.take(test))
+        hs = Solver(held.lsq, s.solver).solve()
+        if not hs.success:
+            raise NotConvergedError(f"prediction of fold {k + 1} of {folds} did not converge: {hs.message}")
+        bd = held.block_data(avg.take(test))
+        r = hs.residual.reshape(-1, 3)
+        white.append(r)
+        n_acc = len(bd[0])
+        acc.append(r[:n_acc] * bd[0][:, 3:6])
+        if len(bd) > 1:
+            gyro.append(r[n_acc:] * bd[1][:, 3:6])
+    rms = lambda parts: float(np.sqrt(np.mean(np.concatenate(parts) ** 2))) if parts else float("nan")  # noqa: E731
+    return CrossValidation(folds, rms(white), rms(acc), rms(gyro))
+
+
+# ---------------------------------------------------------------------------------------------
+# Residual analysis
+# ---------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class ResidualRow:
+    """Residual statistics of one triad axis."""
+
+    triad: str
+    sensor: str
+    axis: str
+    rms: float  # physical units
+    chi2: float
+    expected: float  # its share of the degrees of freedom
+    lag1: float  # correlation of consecutive poses in time order
+    lag1_z: float  # lag1 * sqrt(P): about N(0, 1) for white residuals
+
+
+@dataclass(frozen=True)
+class ResidualAnalysis:
+    rows: list[ResidualRow]
+    pose_chi2: np.ndarray  # (P,) per pose, all triads
+    common_mode: dict[str, float]  # sensor -> mean correlation between triads' residuals
+
+    def worst(self, n: int = 3) -> list[ResidualRow]:
+        return sorted(self.rows, key=lambda r: -r.chi2 / max(r.expected, 1e-12))[:n]
+
+
+def analyse_residuals(outcome: StaticOutcome) -> ResidualAnalysis:
+    """Per triad and axis: χ² against its expected share, whiteness over time, and the correlation
+    of the residuals across triads (a common-mode error points at an effect shared by the array,
+    or at the pose model)."""
+    sol, avg = outcome.solution, outcome.averages
+    order = np.argsort(avg.t_start, kind="stable")
+    share = sol.dof / max(len(sol.residual), 1)
+    rows, common, pose = [], {}, np.zeros(avg.n_poses)
+    for sensor, res, sig in (("accelerometer", outcome.residual_acc, avg.acc_sigma),
+                             ("gyroscope", outcome.residual_gyro, avg.gyro_sigma)):
+        W = []
+        for n, e in res.items():
+            w = e / sig[n]
+            W.append(w)
+            pose += (w ** 2).sum(axis=1)
+            for a, axis in enumerate("xyz"):
+                x = w[order, a] - w[:, a].mean()
+                lag = float(x[1:] @ x[:-1] / (x @ x)) if x @ x > 0 else 0.0
+                rows.append(ResidualRow(n, sensor, axis, float(np.sqrt(np.mean(e[:, a] ** 2))),
+                                        float(w[:, a] @ w[:, a]), share * len(w), lag, lag * np.sqrt(len(x))))
+        if len(W) > 1:
+            C = [np.corrcoef(np.stack([w[:, a] for w in W]))[np.triu_indices(len(W), 1)].mean() for a in range(3)]
+            common[sensor] = float(np.mean(C))
+    return ResidualAnalysis(rows, pose, common)
+
+
+# ---------------------------------------------------------------------------------------------
+# Tests
+# ---------------------------------------------------------------------------------------------
+
+def _z(F: float, k: int) -> float:
+    """Wilson–Hilferty normal deviate of k F ~ χ²(k): ranks statistics whose p-values underflow."""
+    a = 2.0 / (9 * k)
+    return float(((max(F, 0.0)) ** (1 / 3) - (1 - a)) / np.sqrt(a))
+
+
+@dataclass(frozen=True)
+class ScoreTest:
+    """Lagrange-multiplier test of one candidate effect at the current solution."""
+
+    effect: str
+    k: int  # parameters the effect adds
+    lm: float  # gᵀ I⁻¹ g
+    F: float  # lm / (k s²)
+    p: float  # against F(k, dof)
+    z: float  # Wilson–Hilferty deviate, for ranking
+    note: str = ""  # why it was not tested, if it was not
+
+
+@dataclass(frozen=True)
+class Refit:
+    """Confirmation of a candidate by refitting."""
+
+    effect: str
+    k: int
+    chi2_before: float
+    chi2_after: float
+    F: float
+    p: float
+    cv_before: CrossValidation
+    cv_after: CrossValidation
+    delta_bic: float  # on the refit's residual scale; negative favours the effect
+    accepted: bool
+    reason: str
+    model: Model = field(repr=False, default=None)
+
+
+@dataclass
+class Round:
+    tests: list[ScoreTest]
+    refits: list[Refit]
+    level: float  # per-test significance level α/m
+
+
+def candidates(spec: ProblemSpec, model: Model) -> list[Effect]:
+    """Library effects the model lacks and the session can inform."""
+    avg = model.outcome.averages
+    out = []
+    for e in EFFECTS:
+        if spec.kind not in e.kinds or e.key in model.effects:
+            continue
+        if e.sensor == "gyroscope" and not model.outcome.problem.gyro_triads:
+            continue
+        if e.needs == "temperature" and not avg.temp_mean:
+            continue
+        out.append(e)
+    return out
+
+
+def score_test(spec: ProblemSpec, data: StaticData, model: Model, effect: Effect) -> ScoreTest:
+    """The score test of ``effect`` at ``model``'s solution (module docstring, step 2)."""
+    s = with_effects(spec, model.effects + (effect.key,))
+    config, _ = static_config(s, data.averages)
+    config = replace(config, regressors=model.outcome.problem.config.regressors)
+    prob = build_static(config, data.averages)
+    solver = Solver(prob.lsq, s.solver)
+    lay = prob.lsq.layout
+    x = lay.x0(model.outcome.solution.values)
+    k = sum(len(lay.x_indices(group_name(n, effect.sensor, effect.name)))
+            for n in spec.array.names if group_name(n, effect.sensor, effect.name) in lay)
+    bad = solver.undetermined(x)
+    if bad:
+        return ScoreTest(effect.key, k, np.nan, np.nan, np.nan, -np.inf, f"not determined by these data: {bad[0]}")
+    lm = solver.newton_decrement(x, np.zeros(solver.n_constraints))
+    F = lm / (k * model.s2)
+    return ScoreTest(effect.key, k, lm, F, float(stats.f.sf(F, k, model.dof)), _z(F, k))
+
+
+def confirm(spec: ProblemSpec, data: StaticData, model: Model, test: ScoreTest, level: float) -> Refit:
+    """Refit with the candidate and apply the likelihood-ratio F test and cross-validation."""
+    new = fit(spec, data, model.effects + (test.effect,))
+    k = new.outcome.problem.lsq.layout.n_x - model.outcome.problem.lsq.layout.n_x
+    F = (model.chi2 - new.chi2) / k / new.s2
+    p = float(stats.f.sf(F, k, new.dof))
+    model.cv = model.cv or cross_validate(spec, data, model.effects)
+    new.cv = cross_validate(spec, data, new.effects)
+    n = len(new.outcome.solution.residual)
+    dbic = (new.chi2 - model.chi2) / new.s2 + k * np.log(n)
+    if p >= level:
+        accepted, reason = False, f"likelihood-ratio p = {p:.2g} ≥ {level:.2g}"
+    elif new.cv.rms > model.cv.rms:
+        accepted, reason = False, f"held-out error grew ({model.cv.rms:.4g} → {new.cv.rms:.4g})"
+    else:
+        accepted, reason = True, f"likelihood-ratio p = {p:.2g} < {level:.2g}; held-out error " \
+                                 f"{model.cv.rms:.4g} → {new.cv.rms:.4g}"
+    return Refit(test.effect, k, model.chi2, new.chi2, F, p, model.cv, new.cv, float(dbic), accepted, reason, new)
+
+
+# ---------------------------------------------------------------------------------------------
+# The loop
+# ---------------------------------------------------------------------------------------------
+
+@dataclass
+class Diagnosis:
+    spec: ProblemSpec
+    data: StaticData
+    before: Model
+    after: Model
+    rounds: list[Round]
+    residuals_before: ResidualAnalysis
+    residuals_after: ResidualAnalysis
+
+    @property
+    def added(self) -> list[str]:
+        return [k for k in self.after.effects if k not in self.before.effects]
+
+
+def diagnose(spec: ProblemSpec, log: Log = _quiet, alpha: float = ALPHA, data: StaticData | None = None,
+             max_rounds: int = len(EFFECTS)) -> Diagnosis:
+    """Fit, test, confirm and add effects until nothing significant is left (module docstring)."""
+    if spec.kind != "static_array":
+        raise InputError(spec.path, "kind", f"diagnose supports static_array problems; found {spec.kind}")
+    data = data or load_static(spec, log)
+    log("fitting the declared model")
+    model = before = fit(spec, data)
+    log(f"  χ²/dof = {model.s2:.3g} ({model.dof} dof)")
+    rounds = []
+    for _ in range(max_rounds):
+        cands = candidates(spec, model)
+        if not cands:
+            break
+        level = alpha / len(cands)
+        tests = sorted((score_test(spec, data, model, e) for e in cands), key=lambda t: -t.z)
+        for t in tests:
+            log(f"  score test {t.effect}: F = {t.F:.3g} (k = {t.k}), p = {t.p:.2g}" + (f" [{t.note}]" if t.note else ""))
+        refits = []
+        for t in [t for t in tests if t.p < level][:CONFIRM]:
+            log(f"  refitting with {t.effect}")
+            r = confirm(spec, data, model, t, level)
+            log(f"    {'added' if r.accepted else 'rejected'}: {r.reason}")
+            refits.append(r)
+            if r.accepted:
+                break
+        rounds.append(Round(tests, refits, level))
+        accepted = [r for r in refits if r.accepted]
+        if not accepted:
+            break
+        model = accepted[0].model
+    if model is before:
+        before.cv = before.cv or cross_validate(spec, data, before.effects)
+    return Diagnosis(spec, data, before, model, rounds, analyse_residuals(before.outcome),
+                     analyse_residuals(model.outcome))
