@@ -72,6 +72,31 @@ def cmd_report(args) -> int:
     return 0
 
 
+def cmd_diagnose(args) -> int:
+    from .diagnose import diagnose
+    from .io.atomic import write_atomic
+    from .io.diagnosis import diagnosis_document, final_results, refined_problem
+    from .io.results import write_json
+    from .problem.spec import load_problem
+    from .report.diagnose import render_diagnosis
+
+    spec = load_problem(args.problem)
+    log = _log if not args.quiet else (lambda m: None)
+    out = Path(args.output)
+    d = diagnose(spec, log=log)
+    refined = out / f"{Path(args.problem).stem}_refined.yaml"
+    write_json(out / "diagnose.json", diagnosis_document(d))
+    write_json(out / "results.json", final_results(d))
+    write_atomic(refined, refined_problem(d, out))
+    write_atomic(out / "report.html", render_diagnosis(d))
+    b, a = d.before, d.after
+    print(f"added: {', '.join(d.added) or 'nothing'}")
+    print(f"chi2/dof {b.s2:.4g} -> {a.s2:.4g}; held-out error (RMS of residual/sigma) {b.cv.rms:.4g} -> {a.cv.rms:.4g}")
+    for name in ("diagnose.json", "results.json", refined.name, "report.html"):
+        print(f"wrote {out / name}")
+    return 0
+
+
 def cmd_codegen(args) -> int:
     from .codegen import generate_c
 
@@ -103,6 +128,11 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("report", help="write DIR/report.html from a solved DIR")
     s.add_argument("directory")
     s.set_defaults(func=cmd_report)
+    s = sub.add_parser("diagnose", help="find effects the model lacks, add the significant ones, report before/after")
+    s.add_argument("problem")
+    s.add_argument("-o", "--output", required=True, help="output directory")
+    s.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
+    s.set_defaults(func=cmd_diagnose)
     s = sub.add_parser("codegen", help="write C99 code of the compensation function of a results.json into DIR")
     s.add_argument("results", help="a results.json (solve the problem first)")
     s.add_argument("-o", "--output", required=True, help="output directory")

@@ -308,7 +308,8 @@ class Diagnosis:
 
     @property
     def added(self) -> list[str]:
-        return [k for k in self.after.effects if k not in self.before.effects]
+        """The effects added, in the order they were added."""
+        return [f.effect for r in self.rounds for f in r.refits if f.accepted]
 
 
 def diagnose(spec: ProblemSpec, log: Log = _quiet, alpha: float = ALPHA, data: StaticData | None = None,

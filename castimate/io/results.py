@@ -96,6 +96,8 @@ def static_results(outcome) -> dict:
             "rejected": [{"t_start": a, "t_end": b, "reason": r[2]} for (a, b), r in zip(det.rejected_times, det.rejected)],
             "notes": [{"pose": i + 1, "note": n} for i, n in det.notes],
         }
+    if cfg.effects:
+        doc["effects"] = {"included": list(cfg.effects), "regressors": cfg.regressors.to_dict()}
     doc["recording_notes"] = list(outcome.recording.notes)
     if outcome.consistency is not None:
         c = outcome.consistency
