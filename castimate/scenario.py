@@ -13,11 +13,11 @@ from .io.readers import write_csv
 from .io.recording import Recording
 from .io.results import write_atomic, write_json
 from .problem.spec import _Check
-from .simulate import (StaticTruthScale, pose_directions, random_static_truth, static_pose_means,
-                       static_time_series)
+from .simulate import (REALISTIC_EFFECTS, StaticTruthScale, pose_directions, random_effects, random_static_truth,
+                       static_pose_means, static_time_series)
 
 SCENARIO_KEYS = ("kind", "seed", "gravity", "triads", "reference", "poses", "noise", "samples_per_pose",
-                 "truth", "gyroscope", "time_series", "rate", "pose_duration", "transition")
+                 "truth", "gyroscope", "time_series", "rate", "pose_duration", "transition", "effects", "temperature")
 
 
 def _flag(c: _Check, s: dict, key: str) -> bool:
@@ -52,6 +52,19 @@ def _seed(c: _Check, s: dict) -> np.random.Generator:
     if seed < 0:
         c.fail("seed", f"expected a non-negative integer, found {seed}")
     return np.random.default_rng(seed)
+
+
+def _effects(c: _Check, s: dict, gyro: bool) -> dict[str, float]:
+    """``effects``: effect key -> σ of its random coefficients, or ``realistic`` (REALISTIC_EFFECTS)."""
+    e = c.mapping(s.get("effects"), "effects", tuple(REALISTIC_EFFECTS))
+    out = {}
+    for k, v in e.items():
+        if k.startswith("gyroscope.") and not gyro:
+            c.fail(f"effects.{k}", "a gyroscope effect needs gyroscope: true")
+        out[k] = REALISTIC_EFFECTS[k] if v == "realistic" else c.number(v, f"effects.{k}")
+        if out[k] < 0:
+            c.fail(f"effects.{k}", f"expected a magnitude >= 0 or realistic, found {v}")
+    return out
 
 
 def _static_scenario(c: _Check, raw: dict, path: Path, out: Path) -> dict[str, Path]:
@@ -91,6 +104,11 @@ def _static_scenario(c: _Check, raw: dict, path: Path, out: Path) -> dict[str, P
 
     truth = random_static_truth(names, ref, rng, g, scale, gyroscope=gyro)
     U = pose_directions(P, rng)
+    effects = _effects(c, s, gyro)
+    random_effects(truth, effects, rng)
+    tsec = c.mapping(s.get("temperature"), "temperature", ("mean", "amplitude"))
+    if any(k.split(".")[1].startswith("temperature") for k in effects) and "temperature" not in s:
+        c.fail("effects", "temperature effects need a logged temperature: add temperature: {mean, amplitude}")
     problem: dict[str, Any] = {
         "kind": "static_array",
         "data": {"path": "data.csv", "format": "csv"},
@@ -98,6 +116,9 @@ def _static_scenario(c: _Check, raw: dict, path: Path, out: Path) -> dict[str, P
         "model": {"gravity": g},
     }
     if _flag(c, s, "time_series"):
+        if effects or "temperature" in s:
+            c.fail("effects" if effects else "temperature", "effects and temperature are simulated for pose means "
+                                                            "(time_series: false)")
         rate = c.number(s.get("rate", 100.0), "rate", positive=True)
         rec, intervals = static_time_series(truth, U, sigma, rng, rate=rate,
                                             pose_duration=c.number(s.get("pose_duration", 10.0), "pose_duration", positive=True),
@@ -106,13 +127,23 @@ def _static_scenario(c: _Check, raw: dict, path: Path, out: Path) -> dict[str, P
         problem["data"]["segments"] = "auto"
         problem["noise"] = {"accelerometer": "auto"}
     else:
-        acc, gy = static_pose_means(truth, U, sigma, n_samp, rng, gsigma)
-        rec = Recording(t=np.arange(P, dtype=float), acc=acc, gyro=gy, source="simulation")
+        # poses every pose_duration + transition seconds; τ = -1 at the first pose, +1 at the last
+        t = np.arange(P) * (c.number(s.get("pose_duration", 10.0), "pose_duration", positive=True)
+                            + c.number(s.get("transition", 3.0), "transition", positive=True))
+        tau = 2 * t / max(t[-1], 1e-9) - 1
+        temp = {}
+        if "temperature" in s:
+            mean = c.number(tsec.get("mean", 298.15), "temperature.mean", positive=True)
+            amp = c.number(tsec.get("amplitude", 5.0), "temperature.amplitude")
+            # a warm-up and cool-down that no quadratic in time follows
+            temp = {n: mean + rng.standard_normal() + amp * np.sin(0.75 * np.pi * (tau + 1)) for n in names}
+        acc, gy = static_pose_means(truth, U, sigma, n_samp, rng, gsigma, tau, temp or None)
+        rec = Recording(t=t, acc=acc, gyro=gy, temp=temp, source="simulation")
         problem["data"]["segments"] = "rows"
         problem["noise"] = {"accelerometer": sigma / np.sqrt(n_samp)}
         if gyro:
             problem["noise"]["gyroscope"] = gsigma / np.sqrt(n_samp)
-        intervals = [(float(i), float(i)) for i in range(P)]
+        intervals = [(float(x), float(x)) for x in t]
     problem["noise"] = {k: (float(v) if not isinstance(v, str) else v) for k, v in problem["noise"].items()}
     out.mkdir(parents=True, exist_ok=True)
     write_csv(out / "data.csv", rec)

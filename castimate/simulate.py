@@ -109,16 +109,90 @@ def random_static_truth(names: list[str], reference: str, rng: np.random.Generat
     return truth
 
 
+#: Realistic magnitudes of the library's effects for MEMS IMUs of the MPU-9150 class (the σ of
+#: each random coefficient), in the effect's units: a few mg of warm-up drift over a session,
+#: 0.2 mg/K and 0.01 %/K thermal coefficients, a 0.02 % quadratic nonlinearity at 1 g, and
+#: 0.05 °/s/g gyroscope g-sensitivity.
+REALISTIC_EFFECTS = {
+    "accelerometer.bias_drift": 3e-3,  # m/s^2 at the session's ends
+    "accelerometer.temperature_bias": 2e-3,  # m/s^2/K (and /K^2 scaled by 1/10 below)
+    "accelerometer.temperature_gain": 1e-4,  # 1/K
+    "accelerometer.scale_nonlinearity": 2e-5,  # 1/(m/s^2)
+    "gyroscope.bias_drift": 2e-4,  # rad/s
+    "gyroscope.temperature_bias": 1e-4,  # rad/s/K
+    "gyroscope.g_sensitivity": 1e-4,  # rad/s per m/s^2
+}
+
+
+def random_effects(truth: StaticTruth, magnitudes: dict[str, float], rng: np.random.Generator) -> None:
+    """Add random effect coefficients (group ``<triad>.<sensor>.<effect>``) to the truth; a quadratic
+    coefficient in temperature gets a tenth of the linear one's magnitude."""
+    sizes = {"bias_drift": 6, "temperature_bias": 6, "temperature_gain": 6, "scale_nonlinearity": 3,
+             "g_sensitivity": 9}
+    for key, m in magnitudes.items():
+        sensor, name = key.split(".")
+        for n in truth.names:
+            c = m * rng.standard_normal(sizes[name])
+            if name.startswith("temperature"):
+                c[3:] /= 10
+            truth.values[f"{n}.{sensor}.{name}"] = c
+
+
+def _poly(c: np.ndarray, x: np.ndarray) -> np.ndarray:
+    return np.outer(x, c[:3]) + np.outer(x ** 2, c[3:6])
+
+
+def effect_terms(truth: StaticTruth, name: str, sensor: str, u: np.ndarray, f_sensor: np.ndarray,
+                 tau: np.ndarray, dT: np.ndarray) -> np.ndarray:
+    """(P, 3) sum of the truth's effect terms of one triad's sensor at single instants: normalised
+    time τ, temperature deviation ΔT [K], linear reading u and (gyroscopes) the specific force in
+    the sensor frame. Written independently of :mod:`castimate.models.effects`."""
+    v = truth.values
+    out = np.zeros_like(u)
+    c = v.get(f"{name}.{sensor}.bias_drift")
+    if c is not None:
+        out += _poly(c, tau)
+    c = v.get(f"{name}.{sensor}.temperature_bias")
+    if c is not None:
+        out += _poly(c, dT)
+    c = v.get(f"{name}.{sensor}.temperature_gain")
+    if c is not None:
+        out += _poly(c, dT) * u
+    c = v.get(f"{name}.{sensor}.scale_nonlinearity")
+    if c is not None:
+        out += c * u ** 2
+    c = v.get(f"{name}.{sensor}.g_sensitivity")
+    if c is not None:
+        out += f_sensor @ c.reshape(3, 3).T
+    return out
+
+
 def static_pose_means(truth: StaticTruth, U: np.ndarray, sigma: float, n_samples: int,
-                      rng: np.random.Generator, gyro_sigma: float | None = None
+                      rng: np.random.Generator, gyro_sigma: float | None = None,
+                      tau: np.ndarray | None = None, temperature: dict[str, np.ndarray] | None = None
                       ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-    """Noisy per-pose means (P, 3) of every triad: the mean of n_samples with white noise σ."""
+    """Noisy per-pose means (P, 3) of every triad: the mean of n_samples with white noise σ.
+
+    ``tau`` (P,) is each pose's normalised time and ``temperature`` triad -> (P,) its temperature
+    [K], for the truth's effects (the temperature regressor is the deviation from its mean).
+    """
+    P = len(U)
+    tau = np.zeros(P) if tau is None else np.asarray(tau, float)
+    dT = {n: np.zeros(P) if temperature is None or n not in temperature else temperature[n] - temperature[n].mean()
+          for n in truth.names}
     s = sigma / np.sqrt(n_samples)
-    acc = {n: truth.gravity * U @ truth.T(n).T + truth.b(n) + s * rng.standard_normal(U.shape) for n in truth.names}
+    acc = {}
+    for n in truth.names:
+        u = truth.gravity * U @ truth.T(n).T
+        acc[n] = u + truth.b(n) + effect_terms(truth, n, "accelerometer", u, u, tau, dT[n]) \
+            + s * rng.standard_normal(U.shape)
     gyro = {}
     if gyro_sigma is not None:
         sg = gyro_sigma / np.sqrt(n_samples)
-        gyro = {n: truth.values[f"{n}.gyroscope.bias"] + sg * rng.standard_normal(U.shape) for n in truth.names}
+        for n in truth.names:
+            f = truth.gravity * U @ truth.R_nominal[n].T
+            gyro[n] = truth.values[f"{n}.gyroscope.bias"] + \
+                effect_terms(truth, n, "gyroscope", np.zeros_like(f), f, tau, dT[n]) + sg * rng.standard_normal(U.shape)
     return acc, gyro
 
 
