@@ -309,6 +309,15 @@ SPEC_CASES = [
      "data with one row per pose (segments: rows) needs the σ of each row; found auto"),
     ("rows_without_gyro_sigma", {"array.triads[0].gyroscope": True}, "noise.gyroscope",
      "gyroscope: true need the σ of each gyroscope row; found auto"),
+    # effects
+    ("effect_bad_setting", {"model.accelerometer.bias_drift": "yes"}, "model.accelerometer.bias_drift",
+     "expected free, fixed or a mapping with free, initial, bounds, prior; found 'yes'"),
+    ("effect_wrong_size", {"model.triads.imu2.accelerometer.scale_nonlinearity": {"initial": [0, 0]}},
+     "model.triads.imu2.accelerometer.scale_nonlinearity.initial", "expected a scalar or a list of 3 values, found a list of 2"),
+    ("effect_of_the_other_sensor", {"model.accelerometer.g_sensitivity": "free"}, "model.accelerometer.g_sensitivity",
+     "unknown key; expected one of bias, bias_drift, gain"),
+    ("dynamic_only_effect_in_static", {"model.accelerometer.time_offset": "free"}, "model.accelerometer.time_offset",
+     "unknown key; expected one of bias, bias_drift, gain"),
     # solver
     ("solver_not_mapping", {"solver": "fast"}, "solver", "expected a mapping, found str 'fast'"),
     ("unknown_solver_key", {"solver.maxiter": 10}, "solver.maxiter", "unknown key; expected one of"),
@@ -738,3 +747,35 @@ def test_negative_truth_scale_in_scenario_is_an_error(tmp_path):
     sc.write_text("kind: static_array\ntruth: {bias: -0.1}\n")
     with pytest.raises(InputError, match=r"s\.yaml: truth\.bias: expected a standard deviation >= 0, found -0\.1"):
         simulate_scenario(sc, tmp_path / "out")
+
+
+def test_temperature_effect_without_temperature(doc, tmp_path):
+    edit(doc, "model.accelerometer.temperature_gain", "free")
+    p = write_yaml(tmp_path / "p.yaml", doc)
+    expect_error(lambda: calibrate_static(load_problem(p)), p, "model.accelerometer.temperature_gain",
+                 "needs a logged temperature, but data.csv has none for triad 'imu1'")
+
+
+def test_diagnose_refuses_a_dynamic_problem(tmp_path):
+    from castimate.diagnose import diagnose
+    spec = load_problem(Path(__file__).resolve().parents[1] / "problems" / "mimu4444_exp1_dynamic.yaml")
+    expect_error(lambda: diagnose(spec), spec.path, "kind", "diagnose supports static_array problems; found dynamic_array")
+
+
+SCENARIO_EFFECT_CASES = [
+    ("unknown_effect", {"effects": {"accelerometer.size": 1}}, "effects.accelerometer.size", "unknown key"),
+    ("gyro_effect_without_gyro", {"effects": {"gyroscope.bias_drift": "realistic"}}, "effects.gyroscope.bias_drift",
+     "a gyroscope effect needs gyroscope: true"),
+    ("negative_magnitude", {"effects": {"accelerometer.bias_drift": -1}}, "effects.accelerometer.bias_drift",
+     "expected a magnitude >= 0 or realistic, found -1"),
+    ("temperature_effect_without_temperature", {"effects": {"accelerometer.temperature_bias": "realistic"}}, "effects",
+     "temperature effects need a logged temperature"),
+    ("effects_in_a_time_series", {"effects": {"accelerometer.bias_drift": "realistic"}, "time_series": True}, "effects",
+     "effects and temperature are simulated for pose means (time_series: false)"),
+]
+
+
+@pytest.mark.parametrize("edits, where, found", [pytest.param(*c[1:], id=c[0]) for c in SCENARIO_EFFECT_CASES])
+def test_scenario_effect_errors(tmp_path, edits, where, found):
+    p = write_yaml(tmp_path / "scenario.yaml", {"kind": "static_array", "triads": 3, "poses": 20, **edits})
+    expect_error(lambda: simulate_scenario(p, tmp_path / "out"), p, where, found)
