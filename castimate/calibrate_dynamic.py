@@ -18,6 +18,7 @@ from .calibrate import load_recording
 from .errors import InputError, NotConvergedError
 from .io.readers import read_recording
 from .io.recording import Recording
+from .problem.effects import BY_KEY
 from .models.rotation import rotation_to_quaternion
 from .problem.dynamic import (OMEGA, OMEGA_DOT, DynamicConfig, DynamicData, MotionSigmas, build_dynamic,
                               build_joint)
@@ -152,12 +153,16 @@ def dynamic_config(spec: ProblemSpec, full: Recording, log: Log) -> DynamicConfi
             return st
 
         has_gyro = t.name in full.gyro if t.gyroscope is None else t.gyroscope
-        triads.append(TriadConfig(t.name, R, {g: setting("accelerometer", g) for g in ACC_GROUPS},
-                                  {g: setting("gyroscope", g) for g in GYRO_GROUPS} if has_gyro else None,
+        triads.append(TriadConfig(t.name, R,
+                                  {**{g: setting("accelerometer", g) for g in ACC_GROUPS},
+                                   **spec.model.effect_settings(t.name, "accelerometer")},
+                                  {**{g: setting("gyroscope", g) for g in GYRO_GROUPS},
+                                   **spec.model.effect_settings(t.name, "gyroscope")} if has_gyro else None,
                                   t.position, s[t.name, "position", "position"]))
     m = spec.motion
     return DynamicConfig(tuple(triads), spec.array.reference, mis,
-                         MotionSigmas(m.sigma_s, m.sigma_omega_dot, m.sigma_integration), m.process_model)
+                         MotionSigmas(m.sigma_s, m.sigma_omega_dot, m.sigma_integration), m.process_model,
+                         spec.model.effects)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -262,7 +267,14 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = _quiet, max_restarts: int = 
     log(f"{len(rec.t)} samples; saturated samples masked out of the likelihood: "
         + (", ".join(f"{k} {v}" for k, v in masked.items()) if masked else "none"))
     data = DynamicData(rec.t, {n: rec.acc[n] for n in config.names}, acc_sigma,
-                       {n: rec.gyro[n] for n in config.names if n in rec.gyro}, gyro_sigma, acc_valid, gyro_valid)
+                       {n: rec.gyro[n] for n in config.names if n in rec.gyro}, gyro_sigma, acc_valid, gyro_valid,
+                       {n: rec.temp[n] for n in config.names if n in rec.temp})
+    for e in (BY_KEY[k] for k in config.effects):
+        missing = [n for n in config.names if e.needs == "temperature" and n not in data.temp
+                   and (n, e.sensor, e.name) in spec.model.settings]
+        if missing:
+            raise InputError(spec.path, f"model.{e.sensor}.{e.name}",
+                             f"needs a logged temperature, but {spec.data.path.name} has none for triad {missing[0]!r}")
     nominal = {t.name: (t.position - next(x for x in config.triads if x.name == config.reference).position)
                if t.position is not None else np.zeros(3) for t in config.triads}
 

@@ -17,7 +17,8 @@ from .simulate import (REALISTIC_EFFECTS, StaticTruthScale, pose_directions, ran
                        static_pose_means, static_time_series)
 
 SCENARIO_KEYS = ("kind", "seed", "gravity", "triads", "reference", "poses", "noise", "samples_per_pose",
-                 "truth", "gyroscope", "time_series", "rate", "pose_duration", "transition", "effects", "temperature")
+                 "truth", "gyroscope", "time_series", "rate", "pose_duration", "transition", "effects", "temperature",
+                 "pose_interval")
 
 
 def _flag(c: _Check, s: dict, key: str) -> bool:
@@ -127,9 +128,8 @@ def _static_scenario(c: _Check, raw: dict, path: Path, out: Path) -> dict[str, P
         problem["data"]["segments"] = "auto"
         problem["noise"] = {"accelerometer": "auto"}
     else:
-        # poses every pose_duration + transition seconds; τ = -1 at the first pose, +1 at the last
-        t = np.arange(P) * (c.number(s.get("pose_duration", 10.0), "pose_duration", positive=True)
-                            + c.number(s.get("transition", 3.0), "transition", positive=True))
+        # one row per pose, pose_interval seconds apart; τ = -1 at the first pose, +1 at the last
+        t = np.arange(P) * c.number(s.get("pose_interval", 1.0), "pose_interval", positive=True)
         tau = 2 * t / max(t[-1], 1e-9) - 1
         temp = {}
         if "temperature" in s:

@@ -13,7 +13,7 @@ Motion states are matrix groups (one row per sample), marginalised in the covari
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import casadi as ca
 import numpy as np
@@ -22,6 +22,8 @@ from ..models import motion as mot
 from ..models import triad as tri
 from ..solve import FactorBlock, LeastSquaresProblem
 from .parameters import Group, Layout
+from . import effects as fxs
+from .static import (N_REGRESSORS, Regressors, effect_context, effect_params)
 from .static import (GYRO_FACTOR_GROUPS, ACC_FACTOR_GROUPS, XYZ, GroupSetting, TriadConfig, accelerometer_matrix,
                      gyroscope_matrix, group_name, triad_groups)
 
@@ -47,7 +49,8 @@ class DynamicConfig:
     misalignment: str = "small_angle"  # small_angle | rotation (Schopp's full orientation)
     motion: MotionSigmas = MotionSigmas()
     process_model: bool = True
-    effects: tuple[str, ...] = ()  # included effects (problem.effects); none are composed here yet
+    effects: tuple[str, ...] = ()  # included effects (problem.effects)
+    regressors: Regressors | None = None  # time and temperature references of the effects
 
     @property
     def names(self) -> list[str]:
@@ -68,6 +71,7 @@ class DynamicData:
     gyro_sigma: dict[str, np.ndarray] = field(default_factory=dict)
     acc_valid: dict[str, np.ndarray] = field(default_factory=dict)
     gyro_valid: dict[str, np.ndarray] = field(default_factory=dict)
+    temp: dict[str, np.ndarray] = field(default_factory=dict)  # K, where logged
 
     @property
     def n(self) -> int:
@@ -78,25 +82,67 @@ class DynamicData:
         return np.ones(self.n, bool) if m is None else m
 
 
-def accelerometer_sample_factor(misalignment: str) -> ca.Function:
+def _needs_neighbours(effects: list[fxs.Effect]) -> bool:
+    """A time offset needs the reading's time derivative: the motion of the neighbouring samples."""
+    return any(e.name == "time_offset" for e in effects)
+
+
+def accelerometer_sample_factor(config: DynamicConfig) -> ca.Function:
     """Whitened residual of one accelerometer triad at one sample (DESIGN.md triad model with the
-    rigid-body specific force, Carlsson 2017 eq. 1). z = [k, l, m, b, r, ω, ω̇, s], d = [y, σ, vec(Rbar)]."""
-    Tfn = accelerometer_matrix(misalignment)
+    rigid-body specific force, Carlsson 2017 eq. 1), plus the included effects' terms.
+
+    z = [k, l, m, b, r, ω, ω̇, s, effect parameters..., (ω, ω̇, s) of samples n-1 and n+1 if a time
+    offset is included], d = [y, σ, vec(Rbar), τ, τ², ΔT, ΔT², 1/(t_n+1 - t_n-1)].
+    """
+    Tfn = accelerometer_matrix(config.misalignment)
+    effects = fxs.included(config.effects, "accelerometer")
     k, l, m, b = ca.SX.sym("k", 3), ca.SX.sym("l", 3), ca.SX.sym("m", Tfn.size1_in(2)), ca.SX.sym("b", 3)
     r, w, wd, s = ca.SX.sym("r", 3), ca.SX.sym("omega", 3), ca.SX.sym("omega_dot", 3), ca.SX.sym("s", 3)
     y, sigma, R = ca.SX.sym("y", 3), ca.SX.sym("sigma", 3), ca.SX.sym("Rbar", 9)
+    reg, inv_span = ca.SX.sym("regressors", N_REGRESSORS), ca.SX.sym("inv_span")
+    c = effect_params(effects)
+    T = Tfn(k, l, m, ca.reshape(R, 3, 3))
     f = mot.specific_force_at(s, w, wd, r)
-    res = (y - tri.triad_output(Tfn(k, l, m, ca.reshape(R, 3, 3)), b, f)) / sigma
-    return ca.Function("accelerometer_sample", [ca.vertcat(k, l, m, b, r, w, wd, s), ca.vertcat(y, sigma, R)], [res])
+    z = [k, l, m, b, r, w, wd, s, *c]
+    u_dot = None
+    if _needs_neighbours(effects):
+        prev, nxt = [ca.SX.sym(n, 9) for n in ("motion_prev", "motion_next")]
+        z += [prev, nxt]
+        f_prev = mot.specific_force_at(prev[6:9], prev[0:3], prev[3:6], r)
+        f_next = mot.specific_force_at(nxt[6:9], nxt[0:3], nxt[3:6], r)
+        u_dot = ca.mtimes(T, f_next - f_prev) * inv_span
+    ctx = effect_context(reg, u=ca.mtimes(T, f), T=T, omega=w, omega_dot=wd, u_dot=u_dot)
+    res = (y - tri.triad_output(T, b, f) - fxs.total(effects, c, ctx)) / sigma
+    return ca.Function("accelerometer_sample", [ca.vertcat(*z), ca.vertcat(y, sigma, R, reg, inv_span)], [res])
 
 
-def gyroscope_sample_factor() -> ca.Function:
+def gyroscope_sample_factor(config: DynamicConfig) -> ca.Function:
     """Whitened residual of one gyroscope triad at one sample: y = T_g ω + b_g (Carlsson 2017, eq. 2,
-    with the DESIGN.md gyroscope model). z = [k_g, m_g, b_g, ω], d = [y, σ, vec(Rbar)]."""
+    with the DESIGN.md gyroscope model), plus the included effects' terms.
+
+    z = [k_g, m_g, b_g, ω, (r, ω̇, s) if g-sensitivity is included, effect parameters..., ω of
+    samples n-1 and n+1 if a time offset is included], d as for the accelerometers.
+    """
+    effects = fxs.included(config.effects, "gyroscope")
     k, m, b, w = ca.SX.sym("k", 3), ca.SX.sym("m", 3), ca.SX.sym("b", 3), ca.SX.sym("omega", 3)
     y, sigma, R = ca.SX.sym("y", 3), ca.SX.sym("sigma", 3), ca.SX.sym("Rbar", 9)
-    res = (y - tri.triad_output(gyroscope_matrix()(k, m, ca.reshape(R, 3, 3)), b, w)) / sigma
-    return ca.Function("gyroscope_sample", [ca.vertcat(k, m, b, w), ca.vertcat(y, sigma, R)], [res])
+    reg, inv_span = ca.SX.sym("regressors", N_REGRESSORS), ca.SX.sym("inv_span")
+    Rbar = ca.reshape(R, 3, 3)
+    T = gyroscope_matrix()(k, m, Rbar)
+    z, f, u_dot = [k, m, b, w], None, None
+    if any(e.name == "g_sensitivity" for e in effects):
+        r, wd, s = ca.SX.sym("r", 3), ca.SX.sym("omega_dot", 3), ca.SX.sym("s", 3)
+        z += [r, wd, s]
+        f = ca.mtimes(Rbar, mot.specific_force_at(s, w, wd, r))
+    c = effect_params(effects)
+    z += c
+    if _needs_neighbours(effects):
+        prev, nxt = ca.SX.sym("omega_prev", 3), ca.SX.sym("omega_next", 3)
+        z += [prev, nxt]
+        u_dot = ca.mtimes(T, nxt - prev) * inv_span
+    ctx = effect_context(reg, u=ca.mtimes(T, w), f=f, u_dot=u_dot)
+    res = (y - tri.triad_output(T, b, w) - fxs.total(effects, c, ctx)) / sigma
+    return ca.Function("gyroscope_sample", [ca.vertcat(*z), ca.vertcat(y, sigma, R, reg, inv_span)], [res])
 
 
 def process_factor() -> ca.Function:
@@ -135,9 +181,17 @@ class DynamicProblem:
         """Data of every block in problem order (accelerometers, gyroscopes, process model), triad-major."""
         R = {t.name: t.R_nominal for t in self.config.triads}
 
+        reg = self.config.regressors or Regressors.from_times(data.t, data.temp)
+        prev, nxt = _neighbours(data.n)
+        inv_span = 1.0 / (data.t[nxt] - data.t[prev]) if data.n > 1 else np.zeros(data.n)
+
         def stack(names, kind, y, sigma):
-            return np.vstack([np.hstack([y[n][self.rows[kind][n]], np.broadcast_to(sigma[n], (len(self.rows[kind][n]), 3)),
-                                         np.tile(R[n].ravel(order="F"), (len(self.rows[kind][n]), 1))]) for n in names])
+            def one(n):
+                i = self.rows[kind][n]
+                return np.hstack([y[n][i], np.broadcast_to(sigma[n], (len(i), 3)), np.tile(R[n].ravel(order="F"), (len(i), 1)),
+                                  reg.sample_moments(data.t[i], data.temp[n][i] if n in data.temp else None, n),
+                                  inv_span[i, None]])
+            return np.vstack([one(n) for n in names])
 
         out = [stack(self.config.names, "acc", data.acc, data.acc_sigma)]
         if self.gyro_triads:
@@ -200,6 +254,12 @@ def initial_motion(config: DynamicConfig, data: DynamicData, gyro_triads: list[s
     return {OMEGA: omega, OMEGA_DOT: omega_dot, S: s}
 
 
+def _neighbours(N: int) -> tuple[np.ndarray, np.ndarray]:
+    """Indices of the samples before and after each sample, clamped at the ends (one-sided there)."""
+    i = np.arange(N)
+    return np.maximum(i - 1, 0), np.minimum(i + 1, N - 1)
+
+
 def build_dynamic(config: DynamicConfig, data: DynamicData, start: dict | None = None) -> DynamicProblem:
     """Compose the dynamic problem; data and fixed values are NLP parameters."""
     N = data.n
@@ -219,16 +279,33 @@ def build_dynamic(config: DynamicConfig, data: DynamicData, start: dict | None =
         return (np.concatenate([np.full(len(rows[kind][n]), k) for k, n in enumerate(names)]),
                 np.concatenate([rows[kind][n] for n in names]))
 
+    if config.regressors is None:
+        config = replace(config, regressors=Regressors.from_times(data.t, data.temp))
+    prev, nxt = _neighbours(N)
+
+    def effect_inputs(sensor, names, k):
+        return [(tuple(group_name(t, sensor, e.name) for t in names), k) for e in fxs.included(config.effects, sensor)]
+
     k, n = instances("acc", config.names)
-    blocks = [FactorBlock("accelerometer_sample", accelerometer_sample_factor(config.misalignment),
+    effects = fxs.included(config.effects, "accelerometer")
+    blocks = [FactorBlock("accelerometer_sample", accelerometer_sample_factor(config),
                           [(tuple(group_name(t, "accelerometer", g) for t in config.names), k) for g in ACC_FACTOR_GROUPS]
-                          + [(tuple(f"{t}.position" for t in config.names), k), (OMEGA, n), (OMEGA_DOT, n), (S, n)],
+                          + [(tuple(f"{t}.position" for t in config.names), k), (OMEGA, n), (OMEGA_DOT, n), (S, n)]
+                          + effect_inputs("accelerometer", config.names, k)
+                          + ([(g, i) for i in (prev[n], nxt[n]) for g in (OMEGA, OMEGA_DOT, S)]
+                             if _needs_neighbours(effects) else []),
                           np.zeros((len(k), 0)))]
     if gyro_triads:
         k, n = instances("gyro", gyro_triads)
-        blocks.append(FactorBlock("gyroscope_sample", gyroscope_sample_factor(),
+        effects = fxs.included(config.effects, "gyroscope")
+        blocks.append(FactorBlock("gyroscope_sample", gyroscope_sample_factor(config),
                                   [(tuple(group_name(t, "gyroscope", g) for t in gyro_triads), k) for g in GYRO_FACTOR_GROUPS]
-                                  + [(OMEGA, n)], np.zeros((len(k), 0))))
+                                  + [(OMEGA, n)]
+                                  + ([(tuple(f"{t}.position" for t in gyro_triads), k), (OMEGA_DOT, n), (S, n)]
+                                     if any(e.name == "g_sensitivity" for e in effects) else [])
+                                  + effect_inputs("gyroscope", gyro_triads, k)
+                                  + ([(OMEGA, prev[n]), (OMEGA, nxt[n])] if _needs_neighbours(effects) else []),
+                                  np.zeros((len(k), 0))))
     if config.process_model and N > 1:
         a, b = np.arange(N - 1), np.arange(1, N)
         blocks.append(FactorBlock("process_model", process_factor(),

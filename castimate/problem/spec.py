@@ -34,7 +34,7 @@ from ..errors import InputError
 from ..io.units import UnitConversion, parse_units
 from ..segments import DetectionOptions
 from ..solve import SolverOptions
-from .effects import STATIC, effects_for
+from .effects import DYNAMIC, STATIC, effects_for
 from .static import QUATERNION_MISALIGNMENT, SENSOR_GROUPS, GroupSetting
 
 KINDS = ("static_array", "dynamic_array")
@@ -57,7 +57,7 @@ DEFAULT_FREE = {
 }
 SATURATION = ("auto", "none")
 #: Kinds whose problem builders compose the effect library (problem.effects).
-EFFECT_KINDS = (STATIC,)
+EFFECT_KINDS = (STATIC, DYNAMIC)
 
 
 @dataclass(frozen=True)

@@ -107,6 +107,18 @@ class Regressors:
         dT = np.zeros(poses.n_poses) if temp is None else temp - self.temp_mean.get(triad, 0.0)
         return np.column_stack([(a + b) / 2, (a * a + a * b + b * b) / 3, dT, dT ** 2])
 
+    def sample_moments(self, t: np.ndarray, temp: np.ndarray | None, triad: str) -> np.ndarray:
+        """(N, 4) the same columns for single samples at times t: τ, τ², ΔT, ΔT²."""
+        tau = (np.asarray(t, float) - self.t_mid) / self.t_half
+        dT = np.zeros(len(tau)) if temp is None else temp - self.temp_mean.get(triad, 0.0)
+        return np.column_stack([tau, tau ** 2, dT, dT ** 2])
+
+    @staticmethod
+    def from_times(t: np.ndarray, temp: dict[str, np.ndarray]) -> "Regressors":
+        """For samples at times t (dynamic problems), with per-triad temperatures."""
+        t0, t1 = float(np.min(t)), float(np.max(t))
+        return Regressors((t0 + t1) / 2, max((t1 - t0) / 2, 1e-9), {n: float(np.mean(v)) for n, v in temp.items()})
+
     @staticmethod
     def from_poses(poses: PoseAverages) -> "Regressors":
         t = np.concatenate([poses.t_start, poses.t_end])
@@ -226,11 +238,11 @@ def gyroscope_matrix() -> ca.Function:
 N_REGRESSORS = 4
 
 
-def _context(reg, **kw) -> fxs.Context:
+def effect_context(reg, **kw) -> fxs.Context:
     return fxs.Context(tau=(reg[0], reg[1]), temp=(reg[2], reg[3]), **kw)
 
 
-def _effect_params(effects: list[fxs.Effect]) -> list:
+def effect_params(effects: list[fxs.Effect]) -> list:
     return [ca.SX.sym(e.name, len(e.group.components)) for e in effects]
 
 
@@ -246,13 +258,13 @@ def accelerometer_pose_factor(config: StaticConfig) -> ca.Function:
     n_dir = directions_group(config.gravity_direction, np.array([[0, 0, 1.0]])).size
     effects = fxs.included(config.effects, "accelerometer")
     k, l, m, b = ca.SX.sym("k", 3), ca.SX.sym("l", 3), ca.SX.sym("m", n_mis), ca.SX.sym("b", 3)
-    v, c = ca.SX.sym("direction", n_dir), _effect_params(effects)
+    v, c = ca.SX.sym("direction", n_dir), effect_params(effects)
     y, sigma, R, g = ca.SX.sym("y", 3), ca.SX.sym("sigma", 3), ca.SX.sym("Rbar", 9), ca.SX.sym("g")
     reg = ca.SX.sym("regressors", N_REGRESSORS)
     f = tri.static_specific_force(g, direction_expression(config.gravity_direction, v))
     T = Tfn(k, l, m, ca.reshape(R, 3, 3))
     u = ca.mtimes(T, f)
-    r = (y - tri.triad_output(T, b, f) - fxs.total(effects, c, _context(reg, u=u))) / sigma
+    r = (y - tri.triad_output(T, b, f) - fxs.total(effects, c, effect_context(reg, u=u))) / sigma
     return ca.Function("accelerometer_pose", [ca.vertcat(k, l, m, b, v, *c), ca.vertcat(y, sigma, R, g, reg)], [r])
 
 
@@ -266,13 +278,13 @@ def gyroscope_pose_factor(config: StaticConfig) -> ca.Function:
     n_dir = directions_group(config.gravity_direction, np.array([[0, 0, 1.0]])).size
     effects = fxs.included(config.effects, "gyroscope")
     k, m, b, v = ca.SX.sym("k", 3), ca.SX.sym("m", 3), ca.SX.sym("b", 3), ca.SX.sym("direction", n_dir)
-    c = _effect_params(effects)
+    c = effect_params(effects)
     y, sigma, R, g = ca.SX.sym("y", 3), ca.SX.sym("sigma", 3), ca.SX.sym("Rbar", 9), ca.SX.sym("g")
     reg = ca.SX.sym("regressors", N_REGRESSORS)
     Rbar = ca.reshape(R, 3, 3)
     T = gyroscope_matrix()(k, m, Rbar)
     f = ca.mtimes(Rbar, tri.static_specific_force(g, direction_expression(config.gravity_direction, v)))
-    r = (y - tri.triad_output(T, b, ca.DM.zeros(3)) - fxs.total(effects, c, _context(reg, u=ca.DM.zeros(3), f=f))) / sigma
+    r = (y - tri.triad_output(T, b, ca.DM.zeros(3)) - fxs.total(effects, c, effect_context(reg, u=ca.DM.zeros(3), f=f))) / sigma
     return ca.Function("gyroscope_pose", [ca.vertcat(k, m, b, v, *c), ca.vertcat(y, sigma, R, g, reg)], [r])
 
 
