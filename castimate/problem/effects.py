@@ -73,6 +73,7 @@ class Effect:
     kinds: tuple[str, ...] = (STATIC, DYNAMIC)
     needs: str = ""
     title: str = ""
+    relative: bool = False  # defined relative to the reference triad, whose value stays neutral (a gauge)
 
     @property
     def key(self) -> str:
@@ -104,8 +105,8 @@ EFFECTS: tuple[Effect, ...] = (
            lambda c, x: fx.axis_offsets(x.T, c, x.omega, x.omega_dot), kinds=(DYNAMIC,),
            title="accelerometer sensing-element offsets (size effect): y and z elements relative to x"),
     Effect("time_offset", "accelerometer", GroupDef(("dt",), (0.0,), 1e-3, "s"),
-           lambda c, x: fx.time_offset(c, x.u_dot), kinds=(DYNAMIC,),
-           title="accelerometer time offset"),
+           lambda c, x: fx.time_offset(c, x.u_dot), kinds=(DYNAMIC,), relative=True,
+           title="accelerometer time offset (relative to the reference triad)"),
     _bias_drift("gyroscope", "rad/s", 1e-3),
     _temperature_bias("gyroscope", "rad/s", 1e-4),
     Effect("g_sensitivity", "gyroscope",

@@ -200,20 +200,24 @@ def triad_groups(config: StaticConfig, t: TriadConfig, with_gyro: bool) -> list[
             if t.name == config.reference:
                 setting = GroupSetting(free=(False,) * len(gd.components))
         out.append(_group(group_name(t.name, "accelerometer", gname), gd, setting))
+    reference = t.name == config.reference
     for e in fxs.included(config.effects, "accelerometer"):
-        out.append(_effect_group(t.name, e, t.accelerometer))
+        out.append(_effect_group(t.name, e, t.accelerometer, reference))
     if with_gyro:
         for gname, gd in GYROSCOPE_GROUPS.items():
             out.append(_group(group_name(t.name, "gyroscope", gname), gd, t.gyroscope[gname]))
         for e in fxs.included(config.effects, "gyroscope"):
-            out.append(_effect_group(t.name, e, t.gyroscope))
+            out.append(_effect_group(t.name, e, t.gyroscope, reference))
     return out
 
 
-def _effect_group(triad: str, e: fxs.Effect, settings: dict[str, GroupSetting]) -> Group:
+def _effect_group(triad: str, e: fxs.Effect, settings: dict[str, GroupSetting], reference: bool) -> Group:
     """An included effect's group; triads the problem file does not include it for keep it fixed at
-    its neutral value (no effect)."""
-    s = settings.get(e.name) or GroupSetting(free=(False,) * len(e.group.components))
+    its neutral value (no effect), and so does the reference triad for an effect defined relative
+    to it."""
+    s = settings.get(e.name)
+    if s is None or (reference and e.relative):
+        s = GroupSetting(free=(False,) * len(e.group.components))
     return _group(group_name(triad, e.sensor, e.name), e.group, s)
 
 
