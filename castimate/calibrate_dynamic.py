@@ -244,18 +244,25 @@ class DynamicOutcome:
         return {n: (self.solution.values[f"{n}.position"], self.solution.std[f"{n}.position"]) for n in self.config.names}
 
 
-def calibrate_dynamic(spec: ProblemSpec, log: Log = _quiet, max_restarts: int = 2) -> DynamicOutcome:
-    """Run a dynamic array calibration end to end. Raises InputError or NotConvergedError."""
+@dataclass(frozen=True)
+class DynamicInput:
+    """A dynamic session read once: the whole recording (for static segments), the motion data with
+    noise σ's and saturation masks, and the masked-sample counts."""
+
+    full: Recording
+    data: DynamicData
+    saturation: dict
+
+
+def load_dynamic(spec: ProblemSpec, log: Log = _quiet) -> DynamicInput:
+    """Read the recording, estimate the noise from its static segments and mask saturated samples."""
     log(f"reading {spec.data.path.name} ({spec.data.format})")
     full = read_full(spec)
     rec = load_recording(spec)
     acc_sigma, gyro_sigma = noise_from_static(spec, full, log)
-    config = dynamic_config(spec, full, log)
-    static_problem = None
-    if spec.data.static_range is not None:
-        static_problem, config = _static_phase(spec, full, config, log)
+    names = spec.array.names
     sat, acc_valid, gyro_valid = {}, {}, {}
-    for n in config.names:
+    for n in names:
         m = saturation_mask(rec.acc[n], spec.data.saturation["accelerometer"])
         acc_valid[n] = ~m
         sat[f"{n}.accelerometer"] = int(m.sum())
@@ -266,9 +273,23 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = _quiet, max_restarts: int = 
     masked = {k: v for k, v in sat.items() if v}
     log(f"{len(rec.t)} samples; saturated samples masked out of the likelihood: "
         + (", ".join(f"{k} {v}" for k, v in masked.items()) if masked else "none"))
-    data = DynamicData(rec.t, {n: rec.acc[n] for n in config.names}, acc_sigma,
-                       {n: rec.gyro[n] for n in config.names if n in rec.gyro}, gyro_sigma, acc_valid, gyro_valid,
-                       {n: rec.temp[n] for n in config.names if n in rec.temp})
+    data = DynamicData(rec.t, {n: rec.acc[n] for n in names}, acc_sigma,
+                       {n: rec.gyro[n] for n in names if n in rec.gyro}, gyro_sigma, acc_valid, gyro_valid,
+                       {n: rec.temp[n] for n in names if n in rec.temp})
+    return DynamicInput(full, data, sat)
+
+
+def calibrate_dynamic(spec: ProblemSpec, log: Log = _quiet, max_restarts: int = 2,
+                      loaded: DynamicInput | None = None) -> DynamicOutcome:
+    """Run a dynamic array calibration end to end. Raises InputError or NotConvergedError.
+
+    ``loaded`` reuses a session already read with :func:`load_dynamic`."""
+    loaded = loaded or load_dynamic(spec, log)
+    full, data, sat = loaded.full, loaded.data, loaded.saturation
+    config = dynamic_config(spec, full, log)
+    static_problem = None
+    if spec.data.static_range is not None:
+        static_problem, config = _static_phase(spec, full, config, log)
     for e in (BY_KEY[k] for k in config.effects):
         missing = [n for n in config.names if e.needs == "temperature" and n not in data.temp
                    and (n, e.sensor, e.name) in spec.model.settings]
