@@ -19,6 +19,7 @@ from .errors import InputError, NotConvergedError
 from .io.readers import read_recording
 from .io.recording import Recording
 from .problem.effects import BY_KEY
+from .problem.static import Regressors
 from .models.rotation import rotation_to_quaternion
 from .problem.dynamic import (OMEGA, OMEGA_DOT, DynamicConfig, DynamicData, MotionSigmas, build_dynamic,
                               build_joint)
@@ -252,6 +253,7 @@ class DynamicInput:
     full: Recording
     data: DynamicData
     saturation: dict
+    regressors: Regressors  # of the whole session, also for parts of it (cross-validation folds)
 
 
 def load_dynamic(spec: ProblemSpec, log: Log = _quiet) -> DynamicInput:
@@ -276,7 +278,7 @@ def load_dynamic(spec: ProblemSpec, log: Log = _quiet) -> DynamicInput:
     data = DynamicData(rec.t, {n: rec.acc[n] for n in names}, acc_sigma,
                        {n: rec.gyro[n] for n in names if n in rec.gyro}, gyro_sigma, acc_valid, gyro_valid,
                        {n: rec.temp[n] for n in names if n in rec.temp})
-    return DynamicInput(full, data, sat)
+    return DynamicInput(full, data, sat, Regressors.from_times(data.t, data.temp))
 
 
 def calibrate_dynamic(spec: ProblemSpec, log: Log = _quiet, max_restarts: int = 2,
@@ -286,7 +288,7 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = _quiet, max_restarts: int = 
     ``loaded`` reuses a session already read with :func:`load_dynamic`."""
     loaded = loaded or load_dynamic(spec, log)
     full, data, sat = loaded.full, loaded.data, loaded.saturation
-    config = dynamic_config(spec, full, log)
+    config = replace(dynamic_config(spec, full, log), regressors=loaded.regressors)
     static_problem = None
     if spec.data.static_range is not None:
         static_problem, config = _static_phase(spec, full, config, log)
@@ -302,7 +304,7 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = _quiet, max_restarts: int = 
     if spec.solver.method == "bcd":
         problem, solver, sol, attempts = _solve_bcd(spec, config, data, log)
         cal, gcal = problem.calibration(sol.values), problem.gyro_calibration(sol.values)
-        res_acc, res_gyro = _residuals(problem, data, sol)
+        res_acc, res_gyro = measurement_residuals(problem, data, sol)
         return DynamicOutcome(spec, data, config, problem, solver, sol, attempts, sat, cal, gcal, res_acc, res_gyro,
                               nominal)
     attempts, best = [], None
@@ -364,7 +366,7 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = _quiet, max_restarts: int = 
         raise NotConvergedError(f"{spec.path}: every attempt ended in a local minimum: "
                                 + "; ".join(", ".join(a["issues"]) for a in attempts))
     cal, gcal = problem.calibration(sol.values), problem.gyro_calibration(sol.values)
-    res_acc, res_gyro = _residuals(problem, data, sol)
+    res_acc, res_gyro = measurement_residuals(problem, data, sol)
     return DynamicOutcome(spec, data, config, problem, solver, sol, attempts, sat, cal, gcal, res_acc, res_gyro, nominal)
 
 
@@ -441,7 +443,7 @@ def _solve_bcd(spec: ProblemSpec, config: DynamicConfig, data: DynamicData, log:
                                    "cost": sol.cost, "issues": [], "start": "nominal poses (BCD)"}]
 
 
-def _residuals(problem, data: DynamicData, sol: Solution) -> tuple[dict, dict]:
+def measurement_residuals(problem, data: DynamicData, sol: Solution) -> tuple[dict, dict]:
     """Residuals y - model per triad and sample (m/s^2, rad/s), NaN where a sample was masked."""
     r = sol.residual
     out_a, out_g, off = {}, {}, 0

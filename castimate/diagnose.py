@@ -3,7 +3,8 @@ what the data demand, and measure the error before and after (``castimate diagno
 
 The procedure, for a problem with its declared model H0:
 
-1. **Fit H0** and analyse its residual per triad, axis and pose: χ² against its expected value,
+1. **Fit H0** and analyse its residual per triad, axis and pose (static) or sample (dynamic): χ²
+   against its expected value,
    whiteness over time (lag-1 correlation in time order) and correlation across triads (common
    mode), see :func:`analyse_residuals`.
 2. **Score test** every effect of the library (:mod:`castimate.problem.effects`) that the model
@@ -16,11 +17,13 @@ The procedure, for a problem with its declared model H0:
 3. **Confirm** the significant candidates, most significant first (Wilson–Hilferty z of the
    score statistic), by refitting: the F form of the likelihood-ratio test,
    F = ((χ²₀ − χ²₁)/k) / (χ²₁/dof₁) against F(k, dof₁), and the cross-validated prediction error on
-   held-out poses must not grow. Both tests use α/m, Bonferroni over the m candidates of the round,
+   held-out poses (static) or blocks of samples (dynamic) must not grow. Both tests use α/m, Bonferroni over the m candidates of the round,
    so the family-wise false-alarm rate of a round is at most α.
 4. **Add** the first confirmed effect and repeat from 2 until no candidate is significant.
 
-Only the math and orchestration live here; :mod:`castimate.report.diagnose` writes the report.
+Static and dynamic problems are handled by a session each (:class:`StaticSession`,
+:class:`DynamicSession`): read once, fitted with any set of effects. Only the math and
+orchestration live here; :mod:`castimate.report.diagnose` writes the report.
 """
 
 from __future__ import annotations
@@ -31,8 +34,10 @@ from typing import Callable
 import numpy as np
 from scipy import stats
 
-from .calibrate import StaticData, StaticOutcome, calibrate_static, load_static, static_config
+from .calibrate import StaticOutcome, calibrate_static, load_static, static_config
+from .calibrate_dynamic import DynamicOutcome, calibrate_dynamic, dynamic_config, load_dynamic, measurement_residuals
 from .errors import InputError, NotConvergedError
+from .problem.dynamic import build_dynamic
 from .problem.effects import BY_KEY, EFFECTS, Effect
 from .problem.spec import ProblemSpec
 from .problem.static import GroupSetting, Regressors, build_static, fixed_config, group_name
@@ -53,7 +58,7 @@ def _quiet(msg: str) -> None:
 
 
 # ---------------------------------------------------------------------------------------------
-# Model variants
+# Model variants of one session
 # ---------------------------------------------------------------------------------------------
 
 def with_effects(spec: ProblemSpec, keys) -> ProblemSpec:
@@ -69,8 +74,9 @@ def with_effects(spec: ProblemSpec, keys) -> ProblemSpec:
 
 @dataclass(frozen=True)
 class CrossValidation:
-    """Prediction error on held-out poses: fit on the other folds, fix the calibration, estimate
-    only the held-out poses' directions, and take the residual."""
+    """Prediction error on held-out data: fit on the other folds, fix the calibration (and
+    geometry), estimate only the held-out nuisance variables (pose directions or motion), and take
+    the residual."""
 
     folds: int
     rms: float  # whitened residual RMS, all sensors (1 for a perfect model and honest σ)
@@ -83,7 +89,7 @@ class Model:
     """One fitted model variant of a session."""
 
     effects: tuple[str, ...]
-    outcome: StaticOutcome
+    outcome: StaticOutcome | DynamicOutcome
     cv: CrossValidation | None = None
 
     @property
@@ -100,40 +106,129 @@ class Model:
         return self.chi2 / self.dof
 
 
-def fit(spec: ProblemSpec, data: StaticData, effects=()) -> Model:
-    """Fit the problem with ``effects`` added to the declared ones."""
-    s = with_effects(spec, effects)
-    return Model(s.model.effects, calibrate_static(s, data=data, consistency=False))
+Residuals = dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]  # sensor -> triad -> (residual (n, 3), σ (n, 3))
 
 
-def cross_validate(spec: ProblemSpec, data: StaticData, effects, folds: int = FOLDS) -> CrossValidation:
-    """K-fold cross-validation over the poses (see :class:`CrossValidation`)."""
-    s = with_effects(spec, effects)
-    avg = data.averages
-    config, _ = static_config(s, avg)
-    config = replace(config, regressors=Regressors.from_poses(avg))
-    fold = np.empty(avg.n_poses, int)
-    fold[np.argsort(avg.t_start, kind="stable")] = np.arange(avg.n_poses) % folds
-    white, acc, gyro = [], [], []
-    for k in range(folds):
-        train, test = np.flatnonzero(fold != k), np.flatnonzero(fold == k)
-        prob = build_static(config, avg.take(train))
-        sol = Solver(prob.lsq, s.solver).solve()
-        if not sol.success:
-            raise NotConvergedError(f"cross-validation fold {k + 1} of {folds} did not converge: {sol.message}")
-        held = build_static(fixed_config(prob.config, sol.values), avg.take(test))
-        hs = Solver(held.lsq, s.solver).solve()
-        if not hs.success:
-            raise NotConvergedError(f"prediction of fold {k + 1} of {folds} did not converge: {hs.message}")
-        bd = held.block_data(avg.take(test))
-        r = hs.residual.reshape(-1, 3)
-        white.append(r)
-        n_acc = len(bd[0])
-        acc.append(r[:n_acc] * bd[0][:, 3:6])
-        if len(bd) > 1:
-            gyro.append(r[n_acc:] * bd[1][:, 3:6])
-    rms = lambda parts: float(np.sqrt(np.mean(np.concatenate(parts) ** 2))) if parts else float("nan")  # noqa: E731
+def _cv(white: list, acc: list, gyro: list, folds: int) -> CrossValidation:
+    def rms(parts):
+        x = np.concatenate([np.ravel(p) for p in parts]) if parts else np.array([])
+        x = x[np.isfinite(x)]
+        return float(np.sqrt(np.mean(x ** 2))) if x.size else float("nan")
+
     return CrossValidation(folds, rms(white), rms(acc), rms(gyro))
+
+
+class StaticSession:
+    """A static session read once, fitted with any set of effects (Nilsson 2014 model)."""
+
+    def __init__(self, spec: ProblemSpec, log: Log = _quiet):
+        self.spec, self.data = spec, load_static(spec, log)
+
+    def fit(self, effects=()) -> Model:
+        s = with_effects(self.spec, effects)
+        return Model(s.model.effects, calibrate_static(s, data=self.data, consistency=False))
+
+    def augmented(self, model: Model, effects) -> Solver:
+        """The Gauss-Newton solver of the model with ``effects`` added, regressors as in ``model``."""
+        s = with_effects(self.spec, effects)
+        config, _ = static_config(s, self.data.averages)
+        config = replace(config, regressors=model.outcome.problem.config.regressors)
+        return Solver(build_static(config, self.data.averages).lsq, replace(s.solver, hessian="gauss_newton"))
+
+    def has_temperature(self) -> bool:
+        return bool(self.data.averages.temp_mean)
+
+    def cross_validate(self, effects, folds: int = FOLDS) -> CrossValidation:
+        """K-fold over the poses, interleaved in time so that each fold spans the session."""
+        s = with_effects(self.spec, effects)
+        avg = self.data.averages
+        config, _ = static_config(s, avg)
+        config = replace(config, regressors=Regressors.from_poses(avg))
+        fold = np.empty(avg.n_poses, int)
+        fold[np.argsort(avg.t_start, kind="stable")] = np.arange(avg.n_poses) % folds
+        white, acc, gyro = [], [], []
+        for k in range(folds):
+            train, test = np.flatnonzero(fold != k), np.flatnonzero(fold == k)
+            prob = build_static(config, avg.take(train))
+            sol = Solver(prob.lsq, s.solver).solve()
+            if not sol.success:
+                raise NotConvergedError(f"cross-validation fold {k + 1} of {folds} did not converge: {sol.message}")
+            held = build_static(fixed_config(prob.config, sol.values), avg.take(test))
+            hs = Solver(held.lsq, s.solver).solve()
+            if not hs.success:
+                raise NotConvergedError(f"prediction of fold {k + 1} of {folds} did not converge: {hs.message}")
+            bd = held.block_data(avg.take(test))
+            r = hs.residual.reshape(-1, 3)
+            white.append(r)
+            n_acc = len(bd[0])
+            acc.append(r[:n_acc] * bd[0][:, 3:6])
+            if len(bd) > 1:
+                gyro.append(r[n_acc:] * bd[1][:, 3:6])
+        return _cv(white, acc, gyro, folds)
+
+    def residuals(self, outcome: StaticOutcome) -> tuple[np.ndarray, Residuals]:
+        """Pose mid-times and the residuals with their σ per sensor and triad."""
+        avg = outcome.averages
+        return (avg.t_start + avg.t_end) / 2, {
+            "accelerometer": {n: (r, avg.acc_sigma[n]) for n, r in outcome.residual_acc.items()},
+            "gyroscope": {n: (r, avg.gyro_sigma[n]) for n, r in outcome.residual_gyro.items()}}
+
+
+class DynamicSession:
+    """A dynamic session read once, fitted with any set of effects (Carlsson 2017, Schopp 2016)."""
+
+    def __init__(self, spec: ProblemSpec, log: Log = _quiet):
+        if spec.data.static_range is not None:
+            raise InputError(spec.path, "data.static", "diagnose runs on a static or a dynamic problem, not a joint one")
+        self.spec, self.loaded = spec, load_dynamic(spec, log)
+
+    def fit(self, effects=()) -> Model:
+        s = with_effects(self.spec, effects)
+        return Model(s.model.effects, calibrate_dynamic(s, loaded=self.loaded))
+
+    def augmented(self, model: Model, effects) -> Solver:
+        s = with_effects(self.spec, effects)
+        config = replace(dynamic_config(s, self.loaded.full, _quiet), regressors=self.loaded.regressors)
+        return Solver(build_dynamic(config, self.loaded.data).lsq, replace(s.solver, hessian="gauss_newton"))
+
+    def has_temperature(self) -> bool:
+        return bool(self.loaded.data.temp)
+
+    def cross_validate(self, effects, folds: int = FOLDS) -> CrossValidation:
+        """K-fold over contiguous blocks of samples."""
+        s = with_effects(self.spec, effects)
+        data = self.loaded.data
+        fold = np.arange(data.n) * folds // data.n
+        white, acc, gyro = [], [], []
+        for k in range(folds):
+            train, test = np.flatnonzero(fold != k), np.flatnonzero(fold == k)
+            fitted = calibrate_dynamic(s, loaded=replace(self.loaded, data=data.take(train)))
+            part = data.take(test)
+            held = build_dynamic(fixed_config(fitted.problem.config, fitted.solution.values), part)
+            hs = Solver(held.lsq, replace(s.solver, hessian="gauss_newton")).solve()
+            if not hs.success:
+                raise NotConvergedError(f"prediction of fold {k + 1} of {folds} did not converge: {hs.message}")
+            ra, rg = measurement_residuals(held, part, hs)
+            for r, sig, out in ((ra, part.acc_sigma, acc), (rg, part.gyro_sigma, gyro)):
+                for n, e in r.items():
+                    out.append(e)
+                    white.append(e / sig[n])
+        return _cv(white, acc, gyro, folds)
+
+    def residuals(self, outcome: DynamicOutcome) -> tuple[np.ndarray, Residuals]:
+        """Sample times and the residuals (NaN where masked) with their σ per sensor and triad."""
+        d = outcome.data
+        return d.t, {
+            "accelerometer": {n: (r, np.broadcast_to(d.acc_sigma[n], r.shape)) for n, r in outcome.residual_acc.items()},
+            "gyroscope": {n: (r, np.broadcast_to(d.gyro_sigma[n], r.shape)) for n, r in outcome.residual_gyro.items()}}
+
+
+Session = StaticSession | DynamicSession
+
+
+def open_session(spec: ProblemSpec, log: Log = _quiet) -> Session:
+    """Read a problem's data once, for fitting any of its model variants."""
+    return DynamicSession(spec, log) if spec.kind == "dynamic_array" else StaticSession(spec, log)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -150,44 +245,43 @@ class ResidualRow:
     rms: float  # physical units
     chi2: float
     expected: float  # its share of the degrees of freedom
-    lag1: float  # correlation of consecutive poses in time order
-    lag1_z: float  # lag1 * sqrt(P): about N(0, 1) for white residuals
+    lag1: float  # correlation of consecutive poses or samples in time order
+    lag1_z: float  # lag1 * sqrt(n): about N(0, 1) for white residuals
 
 
 @dataclass(frozen=True)
 class ResidualAnalysis:
     rows: list[ResidualRow]
-    pose_chi2: np.ndarray  # (P,) per pose, all triads
     common_mode: dict[str, float]  # sensor -> mean correlation between triads' residuals
 
     def worst(self, n: int = 3) -> list[ResidualRow]:
         return sorted(self.rows, key=lambda r: -r.chi2 / max(r.expected, 1e-12))[:n]
 
 
-def analyse_residuals(outcome: StaticOutcome) -> ResidualAnalysis:
-    """Per triad and axis: χ² against its expected share, whiteness over time, and the correlation
-    of the residuals across triads (a common-mode error points at an effect shared by the array,
-    or at the pose model)."""
-    sol, avg = outcome.solution, outcome.averages
-    order = np.argsort(avg.t_start, kind="stable")
-    share = sol.dof / max(len(sol.residual), 1)
-    rows, common, pose = [], {}, np.zeros(avg.n_poses)
-    for sensor, res, sig in (("accelerometer", outcome.residual_acc, avg.acc_sigma),
-                             ("gyroscope", outcome.residual_gyro, avg.gyro_sigma)):
+def analyse_residuals(t: np.ndarray, residuals: Residuals, dof: int) -> ResidualAnalysis:
+    """Per triad and axis: χ² against its expected share of ``dof``, whiteness over time (lag-1
+    correlation in time order), and the correlation of the residuals across triads (a common-mode
+    error points at an effect shared by the array, or at the pose or motion model)."""
+    order = np.argsort(t, kind="stable")
+    n_total = sum(int(np.isfinite(r).sum()) for per in residuals.values() for r, _ in per.values())
+    share = dof / max(n_total, 1)
+    rows, common = [], {}
+    for sensor, per in residuals.items():
         W = []
-        for n, e in res.items():
-            w = e / sig[n]
+        for n, (e, sig) in per.items():
+            w = e / sig
             W.append(w)
-            pose += (w ** 2).sum(axis=1)
             for a, axis in enumerate("xyz"):
-                x = w[order, a] - w[:, a].mean()
-                lag = float(x[1:] @ x[:-1] / (x @ x)) if x @ x > 0 else 0.0
-                rows.append(ResidualRow(n, sensor, axis, float(np.sqrt(np.mean(e[:, a] ** 2))),
-                                        float(w[:, a] @ w[:, a]), share * len(w), lag, lag * np.sqrt(len(x))))
+                x = w[order, a]
+                x = x[np.isfinite(x)] - np.nanmean(x)
+                lag = float(x[1:] @ x[:-1] / (x @ x)) if len(x) > 1 and x @ x > 0 else 0.0
+                rows.append(ResidualRow(n, sensor, axis, float(np.sqrt(np.nanmean(e[:, a] ** 2))),
+                                        float(np.nansum(w[:, a] ** 2)), share * len(x), lag, lag * np.sqrt(len(x))))
         if len(W) > 1:
-            C = [np.corrcoef(np.stack([w[:, a] for w in W]))[np.triu_indices(len(W), 1)].mean() for a in range(3)]
+            ok = np.all([np.isfinite(w).all(axis=1) for w in W], axis=0)
+            C = [np.corrcoef(np.stack([w[ok, a] for w in W]))[np.triu_indices(len(W), 1)].mean() for a in range(3)]
             common[sensor] = float(np.mean(C))
-    return ResidualAnalysis(rows, pose, common)
+    return ResidualAnalysis(rows, common)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -238,32 +332,27 @@ class Round:
     level: float  # per-test significance level α/m
 
 
-def candidates(spec: ProblemSpec, model: Model) -> list[Effect]:
+def candidates(session: Session, model: Model) -> list[Effect]:
     """Library effects the model lacks and the session can inform."""
-    avg = model.outcome.averages
     out = []
     for e in EFFECTS:
-        if spec.kind not in e.kinds or e.key in model.effects:
+        if session.spec.kind not in e.kinds or e.key in model.effects:
             continue
         if e.sensor == "gyroscope" and not model.outcome.problem.gyro_triads:
             continue
-        if e.needs == "temperature" and not avg.temp_mean:
+        if e.needs == "temperature" and not session.has_temperature():
             continue
         out.append(e)
     return out
 
 
-def score_test(spec: ProblemSpec, data: StaticData, model: Model, effect: Effect) -> ScoreTest:
+def score_test(session: Session, model: Model, effect: Effect) -> ScoreTest:
     """The score test of ``effect`` at ``model``'s solution (module docstring, step 2)."""
-    s = with_effects(spec, model.effects + (effect.key,))
-    config, _ = static_config(s, data.averages)
-    config = replace(config, regressors=model.outcome.problem.config.regressors)
-    prob = build_static(config, data.averages)
-    solver = Solver(prob.lsq, s.solver)
-    lay = prob.lsq.layout
+    solver = session.augmented(model, model.effects + (effect.key,))
+    lay = solver.problem.layout
     x = lay.x0(model.outcome.solution.values)
     k = sum(len(lay.x_indices(group_name(n, effect.sensor, effect.name)))
-            for n in spec.array.names if group_name(n, effect.sensor, effect.name) in lay)
+            for n in session.spec.array.names if group_name(n, effect.sensor, effect.name) in lay)
     bad = solver.undetermined(x)
     if bad:
         return ScoreTest(effect.key, k, np.nan, np.nan, np.nan, -np.inf, f"not determined by these data: {bad[0]}")
@@ -272,14 +361,14 @@ def score_test(spec: ProblemSpec, data: StaticData, model: Model, effect: Effect
     return ScoreTest(effect.key, k, lm, F, float(stats.f.sf(F, k, model.dof)), _z(F, k))
 
 
-def confirm(spec: ProblemSpec, data: StaticData, model: Model, test: ScoreTest, level: float) -> Refit:
+def confirm(session: Session, model: Model, test: ScoreTest, level: float) -> Refit:
     """Refit with the candidate and apply the likelihood-ratio F test and cross-validation."""
-    new = fit(spec, data, model.effects + (test.effect,))
+    new = session.fit(model.effects + (test.effect,))
     k = new.outcome.problem.lsq.layout.n_x - model.outcome.problem.lsq.layout.n_x
     F = (model.chi2 - new.chi2) / k / new.s2
     p = float(stats.f.sf(F, k, new.dof))
-    model.cv = model.cv or cross_validate(spec, data, model.effects)
-    new.cv = cross_validate(spec, data, new.effects)
+    model.cv = model.cv or session.cross_validate(model.effects)
+    new.cv = session.cross_validate(new.effects)
     n = len(new.outcome.solution.residual)
     dbic = (new.chi2 - model.chi2) / new.s2 + k * np.log(n)
     if p >= level:
@@ -298,8 +387,7 @@ def confirm(spec: ProblemSpec, data: StaticData, model: Model, test: ScoreTest, 
 
 @dataclass
 class Diagnosis:
-    spec: ProblemSpec
-    data: StaticData
+    session: Session
     before: Model
     after: Model
     rounds: list[Round]
@@ -307,33 +395,35 @@ class Diagnosis:
     residuals_after: ResidualAnalysis
 
     @property
+    def spec(self) -> ProblemSpec:
+        return self.session.spec
+
+    @property
     def added(self) -> list[str]:
         """The effects added, in the order they were added."""
         return [f.effect for r in self.rounds for f in r.refits if f.accepted]
 
 
-def diagnose(spec: ProblemSpec, log: Log = _quiet, alpha: float = ALPHA, data: StaticData | None = None,
+def diagnose(spec: ProblemSpec, log: Log = _quiet, alpha: float = ALPHA, session: Session | None = None,
              max_rounds: int = len(EFFECTS)) -> Diagnosis:
     """Fit, test, confirm and add effects until nothing significant is left (module docstring)."""
-    if spec.kind != "static_array":
-        raise InputError(spec.path, "kind", f"diagnose supports static_array problems; found {spec.kind}")
-    data = data or load_static(spec, log)
+    session = session or open_session(spec, log)
     log("fitting the declared model")
-    model = before = fit(spec, data)
+    model = before = session.fit()
     log(f"  χ²/dof = {model.s2:.3g} ({model.dof} dof)")
     rounds = []
     for _ in range(max_rounds):
-        cands = candidates(spec, model)
+        cands = candidates(session, model)
         if not cands:
             break
         level = alpha / len(cands)
-        tests = sorted((score_test(spec, data, model, e) for e in cands), key=lambda t: -t.z)
+        tests = sorted((score_test(session, model, e) for e in cands), key=lambda t: -t.z)
         for t in tests:
             log(f"  score test {t.effect}: F = {t.F:.3g} (k = {t.k}), p = {t.p:.2g}" + (f" [{t.note}]" if t.note else ""))
         refits = []
         for t in [t for t in tests if t.p < level][:CONFIRM]:
             log(f"  refitting with {t.effect}")
-            r = confirm(spec, data, model, t, level)
+            r = confirm(session, model, t, level)
             log(f"    {'added' if r.accepted else 'rejected'}: {r.reason}")
             refits.append(r)
             if r.accepted:
@@ -344,6 +434,6 @@ def diagnose(spec: ProblemSpec, log: Log = _quiet, alpha: float = ALPHA, data: S
             break
         model = accepted[0].model
     if model is before:
-        before.cv = before.cv or cross_validate(spec, data, before.effects)
-    return Diagnosis(spec, data, before, model, rounds, analyse_residuals(before.outcome),
-                     analyse_residuals(model.outcome))
+        before.cv = before.cv or session.cross_validate(before.effects)
+    analyse = lambda m: analyse_residuals(*session.residuals(m.outcome), m.dof)  # noqa: E731
+    return Diagnosis(session, before, model, rounds, analyse(before), analyse(model))

@@ -7,9 +7,8 @@ import numpy as np
 import pytest
 import yaml
 
-from castimate.calibrate import load_static
 from castimate.cli import main
-from castimate.diagnose import candidates, fit, score_test
+from castimate.diagnose import StaticSession, candidates, score_test
 from castimate.montecarlo import diagnose_trials
 from castimate.problem.effects import BY_KEY
 from castimate.problem.spec import load_problem
@@ -38,8 +37,7 @@ def _session(tmp_path, effect, scale, seed=5):
     raw = yaml.safe_load(SCENARIO.read_text())
     raw.update(seed=seed, effects={effect: REALISTIC_EFFECTS[effect] * scale})
     (tmp_path / "s.yaml").write_text(yaml.safe_dump(raw))
-    spec = load_problem(simulate_scenario(tmp_path / "s.yaml", tmp_path)["problem"])
-    return spec, load_static(spec)
+    return StaticSession(load_problem(simulate_scenario(tmp_path / "s.yaml", tmp_path)["problem"]))
 
 
 
@@ -47,10 +45,10 @@ def _session(tmp_path, effect, scale, seed=5):
 def test_score_statistic_agrees_with_the_refit(effect, tmp_path):
     """For a small effect the Lagrange-multiplier statistic and the likelihood-ratio statistic
     χ²₀ − χ²₁ are asymptotically equal; at a weak effect they agree to a few percent."""
-    spec, data = _session(tmp_path, effect, scale=0.3)
-    null = fit(spec, data)
-    test = score_test(spec, data, null, BY_KEY[effect])
-    alt = fit(spec, data, (effect,))
+    session = _session(tmp_path, effect, scale=0.3)
+    null = session.fit()
+    test = score_test(session, null, BY_KEY[effect])
+    alt = session.fit((effect,))
     lr = null.chi2 - alt.chi2
     assert test.lm > 3 * test.k  # the effect is visible, else the comparison says little
     assert abs(test.lm - lr) < 0.05 * lr, (test.lm, lr)
@@ -58,14 +56,13 @@ def test_score_statistic_agrees_with_the_refit(effect, tmp_path):
 
 def test_candidates_follow_the_data(tmp_path):
     """Temperature effects only with a logged temperature, gyroscope effects only with gyroscopes."""
-    spec, data = _session(tmp_path, "accelerometer.bias_drift", 1.0)
-    model = fit(spec, data)
-    keys = {e.key for e in candidates(spec, model)}
+    session = _session(tmp_path, "accelerometer.bias_drift", 1.0)
+    keys = {e.key for e in candidates(session, session.fit())}
     assert keys == set(REALISTIC_EFFECTS)
     sim = ROOT / "problems" / "sim_nilsson_14x20.yaml"
     files = simulate_scenario(sim, tmp_path / "nilsson")
-    spec2 = load_problem(files["problem"])
-    keys2 = {e.key for e in candidates(spec2, fit(spec2, load_static(spec2)))}
+    s2 = StaticSession(load_problem(files["problem"]))
+    keys2 = {e.key for e in candidates(s2, s2.fit())}
     assert keys2 == {"accelerometer.bias_drift", "accelerometer.scale_nonlinearity"}
 
 

@@ -756,10 +756,11 @@ def test_temperature_effect_without_temperature(doc, tmp_path):
                  "needs a logged temperature, but data.csv has none for triad 'imu1'")
 
 
-def test_diagnose_refuses_a_dynamic_problem(tmp_path):
+def test_diagnose_refuses_a_joint_problem():
     from castimate.diagnose import diagnose
-    spec = load_problem(Path(__file__).resolve().parents[1] / "problems" / "mimu4444_exp1_dynamic.yaml")
-    expect_error(lambda: diagnose(spec), spec.path, "kind", "diagnose supports static_array problems; found dynamic_array")
+    spec = load_problem(Path(__file__).resolve().parents[1] / "problems" / "mimu4444_exp1_joint.yaml")
+    expect_error(lambda: diagnose(spec), spec.path, "data.static",
+                 "diagnose runs on a static or a dynamic problem, not a joint one")
 
 
 SCENARIO_EFFECT_CASES = [

@@ -10,7 +10,7 @@ import yaml
 
 from ..diagnose import CrossValidation, Diagnosis, Model
 from ..problem.effects import BY_KEY
-from .results import static_results
+from .results import dynamic_results, static_results
 
 FORMAT = "castimate.diagnosis/1"
 
@@ -25,7 +25,7 @@ def _model(m: Model) -> dict:
     o = m.outcome
 
     def rms(res: dict) -> float:
-        return float(np.sqrt(np.mean(np.concatenate([r.ravel() for r in res.values()]) ** 2))) if res else float("nan")
+        return float(np.sqrt(np.nanmean(np.concatenate([r.ravel() for r in res.values()]) ** 2))) if res else float("nan")
 
     return {"effects": list(m.effects), "chi2": m.chi2, "dof": m.dof, "chi2_per_dof": m.s2,
             "rms_accelerometer": rms(o.residual_acc), "rms_gyroscope": rms(o.residual_gyro),
@@ -66,7 +66,7 @@ def diagnosis_document(d: Diagnosis) -> dict:
         })
 
     def analysis(a):
-        return {"rows": [vars(r) for r in a.rows], "pose_chi2": a.pose_chi2, "common_mode": a.common_mode}
+        return {"rows": [vars(r) for r in a.rows], "common_mode": a.common_mode}
 
     return {"format": FORMAT, "problem": str(d.spec.path), "problem_sha256": d.spec.sha256,
             "added": d.added, "before": _model(d.before), "after": _model(d.after), "rounds": rounds,
@@ -104,4 +104,4 @@ def refined_problem(d: Diagnosis, out_dir: Path) -> str:
 
 def final_results(d: Diagnosis) -> dict:
     """results.json of the refined model."""
-    return static_results(d.after.outcome)
+    return dynamic_results(d.after.outcome) if d.spec.kind == "dynamic_array" else static_results(d.after.outcome)

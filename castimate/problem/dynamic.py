@@ -77,6 +77,13 @@ class DynamicData:
     def n(self) -> int:
         return len(self.t)
 
+    def take(self, idx) -> "DynamicData":
+        """The samples ``idx`` only (e.g. a cross-validation fold)."""
+        idx = np.asarray(idx)
+        pick = lambda d: {k: v[idx] for k, v in d.items()}  # noqa: E731
+        return replace(self, t=self.t[idx], acc=pick(self.acc), gyro=pick(self.gyro), acc_valid=pick(self.acc_valid),
+                       gyro_valid=pick(self.gyro_valid), temp=pick(self.temp))
+
     def valid(self, kind: str, name: str) -> np.ndarray:
         m = (self.acc_valid if kind == "acc" else self.gyro_valid).get(name)
         return np.ones(self.n, bool) if m is None else m

@@ -401,9 +401,10 @@ def recover_nominal_rotation(ref_mean: np.ndarray, triad_mean: np.ndarray) -> tu
     return A, rot.rotation_angle_deg(A.T @ R)
 
 
-def fixed_config(config: StaticConfig, values: dict[str, np.ndarray]) -> StaticConfig:
-    """The same structure with every calibration group fixed at ``values`` (physical units): only
-    the pose directions remain free, e.g. to predict held-out poses with a fitted calibration."""
+def fixed_config(config, values: dict[str, np.ndarray]):
+    """The same structure (static or dynamic) with every calibration group and position fixed at
+    ``values`` (physical units): only the nuisance variables (pose directions, motion) remain free,
+    e.g. to predict held-out poses or samples with a fitted calibration."""
     def fix(t: TriadConfig, sensor: str, settings: dict | None):
         if settings is None:
             return None
@@ -413,8 +414,13 @@ def fixed_config(config: StaticConfig, values: dict[str, np.ndarray]) -> StaticC
             out[g] = GroupSetting(free=(False,) * len(v), initial=tuple(float(x) for x in v))
         return out
 
+    def position(t: TriadConfig):
+        v = values.get(f"{t.name}.position")
+        return t.position_setting if v is None else GroupSetting(free=(False,) * 3, initial=tuple(float(x) for x in v))
+
     return replace(config, triads=tuple(replace(t, accelerometer=fix(t, "accelerometer", t.accelerometer),
-                                                gyroscope=fix(t, "gyroscope", t.gyroscope)) for t in config.triads))
+                                                gyroscope=fix(t, "gyroscope", t.gyroscope),
+                                                position_setting=position(t)) for t in config.triads))
 
 
 def single_triad_config(config: StaticConfig, name: str) -> StaticConfig:

@@ -27,13 +27,10 @@ def _table(header: list[str], rows: list[list[str]]) -> str:
     return f'<div class="scroll"><table><tr>{head}</tr>{body}</table></div>'
 
 
-def _whitened(outcome) -> dict[str, np.ndarray]:
-    avg = outcome.averages
-    out = {}
-    for sensor, res, sig in (("accelerometer", outcome.residual_acc, avg.acc_sigma),
-                             ("gyroscope", outcome.residual_gyro, avg.gyro_sigma)):
-        out[sensor] = np.stack([res[n] / sig[n] for n in res]) if res else np.zeros((0, 0, 3))
-    return out
+def _whitened(d: Diagnosis, outcome) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    t, per = d.session.residuals(outcome)
+    return t, {sensor: np.stack([r / sig for r, sig in res.values()]) if res else np.zeros((0, 0, 3))
+               for sensor, res in per.items()}
 
 
 def render_diagnosis(d: Diagnosis) -> str:
@@ -49,25 +46,25 @@ def render_diagnosis(d: Diagnosis) -> str:
         "Bonferroni level, and the held-out prediction error must not grow), and adds it.</p>")
 
     def rms(res):
-        return float(np.sqrt(np.mean(np.concatenate([r.ravel() for r in res.values()]) ** 2))) if res else np.nan
+        return float(np.sqrt(np.nanmean(np.concatenate([r.ravel() for r in res.values()]) ** 2))) if res else np.nan
 
     rows = [("χ²/dof", _g(b.s2, 4), _g(a.s2, 4)),
             ("degrees of freedom", str(b.dof), str(a.dof)),
             ("residual RMS, accelerometers [mm/s²]", _g(rms(b.outcome.residual_acc) * 1e3), _g(rms(a.outcome.residual_acc) * 1e3)),
             ("residual RMS, gyroscopes [mrad/s]", _g(rms(b.outcome.residual_gyro) * 1e3), _g(rms(a.outcome.residual_gyro) * 1e3))]
     if b.cv and a.cv:
-        rows += [(f"held-out error, {b.cv.folds}-fold over poses (RMS of residual/σ)", _g(b.cv.rms, 4), _g(a.cv.rms, 4)),
+        unit = "poses" if spec.kind == "static_array" else "blocks of samples"
+        rows += [(f"held-out error, {b.cv.folds}-fold over {unit} (RMS of residual/σ)", _g(b.cv.rms, 4), _g(a.cv.rms, 4)),
                  ("held-out error, accelerometers [mm/s²]", _g(b.cv.rms_acc * 1e3), _g(a.cv.rms_acc * 1e3)),
                  ("held-out error, gyroscopes [mrad/s]", _g(b.cv.rms_gyro * 1e3), _g(a.cv.rms_gyro * 1e3))]
     add("<h2>Before and after</h2>")
     add(_table(["", "declared model", "refined model"], [list(r) for r in rows]))
-    t = (b.outcome.averages.t_start + b.outcome.averages.t_end) / 2
-    fig = figures.diagnose_residuals(t, _whitened(b.outcome), _whitened(a.outcome),
-                                     {"accelerometer": "m/s²", "gyroscope": "rad/s"})
+    t, wb = _whitened(d, b.outcome)
+    fig = figures.diagnose_residuals(t, wb, _whitened(d, a.outcome)[1])
     add(_fig_html(fig, "residuals before and after",
                   "Whitened residuals of every triad and axis over the session, declared model (left) and refined "
-                  "model (right). A drift shows as a trend shared over poses; a pose-dependent effect as scatter "
-                  "larger than 1 that does not follow time."))
+                  "model (right). A drift shows as a trend over time; an effect that depends on the pose or the "
+                  "motion as scatter larger than 1 that does not follow time."))
 
     add("<h2>Residual structure of the declared model</h2>")
     ra = d.residuals_before

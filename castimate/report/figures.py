@@ -617,18 +617,15 @@ def residuals_over_time(t: np.ndarray, residual: np.ndarray, sigma: np.ndarray, 
     return fig
 
 
-def diagnose_residuals(t: np.ndarray, before: dict[str, np.ndarray], after: dict[str, np.ndarray],
-                       units: dict[str, str]) -> Figure:
-    """Whitened static residuals over time, before and after a diagnosis.
+def diagnose_residuals(t: np.ndarray, before: dict[str, np.ndarray], after: dict[str, np.ndarray]) -> Figure:
+    """Whitened residuals over time, before and after a diagnosis.
 
     Parameters
     ----------
     t
-        (P,) pose mid-times, s.
+        (n,) pose mid-times or sample times, s.
     before, after
-        Sensor name -> (M, P, 3) residual/σ of every triad, pose and axis.
-    units
-        Sensor name -> unit label (for the titles only; the residuals are whitened).
+        Sensor name -> (M, n, 3) residual/σ of every triad, pose or sample and axis (NaN where masked).
 
     One row per sensor, before left and after right, on a shared y scale per row: every triad and
     axis as a thin line over time (axis colours), so drifts and common-mode patterns stand out; the
@@ -639,12 +636,13 @@ def diagnose_residuals(t: np.ndarray, before: dict[str, np.ndarray], after: dict
     axs = fig.subplots(len(sensors), 2, squeeze=False, sharex=True)
     order = np.argsort(t, kind="stable")
     for i, s in enumerate(sensors):
-        lim = max(3.0, float(np.nanmax(np.abs(before[s]))), float(np.nanmax(np.abs(after[s])))) * 1.05
+        lim = max(3.0, float(np.nanquantile(np.abs(before[s]), 0.999)), float(np.nanquantile(np.abs(after[s]), 0.999))) * 1.05
         for j, (label, w) in enumerate((("before", before[s]), ("after", after[s]))):
             ax = axs[i, j]
             for m in range(w.shape[0]):
                 for k in range(3):
-                    ax.plot(t[order], w[m, order, k], color=AXIS_COLORS[k], lw=0.8, alpha=0.6, marker=".", ms=3)
+                    ax.plot(t[order], w[m, order, k], color=AXIS_COLORS[k], lw=0.8 if len(t) <= 200 else 0.3, alpha=0.6,
+                            marker="." if len(t) <= 200 else None, ms=3)
             ax.axhline(0, color="k", lw=0.6)
             ax.set_ylim(-lim, lim)
             ax.set_title(f"{s} {label}: RMS of residual/σ {np.sqrt(np.nanmean(w ** 2)):.3g}", fontsize=10)
@@ -652,7 +650,7 @@ def diagnose_residuals(t: np.ndarray, before: dict[str, np.ndarray], after: dict
             if j == 0:
                 ax.set_ylabel("residual / σ")
             if i == len(sensors) - 1:
-                ax.set_xlabel("pose time [s]")
+                ax.set_xlabel("time [s]")
     handles = [Line2D([], [], color=c, lw=1.5, label=f"{a} axis") for a, c in zip(AXES, AXIS_COLORS)]
     fig.legend(handles=handles, loc="outside upper center", ncols=3, frameon=False, fontsize=9)
     return fig
