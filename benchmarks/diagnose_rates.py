@@ -1,12 +1,14 @@
-"""Detection and false-alarm rates of ``castimate diagnose`` on simulated static sessions.
+"""Detection and false-alarm rates of ``castimate diagnose`` on simulated sessions.
 
-For the scenario ``problems/sim_effects_8x24.yaml`` (8 IMUs with gyroscopes, 24 poses, temperature
-logged): RUNS sessions with no undeclared effect (false alarms: anything added), and RUNS sessions
+Static: for ``problems/sim_effects_8x24.yaml`` (8 IMUs with gyroscopes, 24 poses, temperature
+logged), RUNS sessions with no undeclared effect (false alarms: anything added), and RUNS sessions
 per library effect at its realistic magnitude (castimate.simulate.REALISTIC_EFFECTS), where the
-effect counts as detected when it is added first. Prints a table and writes
+effect counts as detected when it is added first. Dynamic: the same with DYNAMIC_RUNS sessions of
+``problems/sim_dynamic_effects_8x600.yaml`` (8 IMUs × 600 samples) per dynamic-only effect
+(REALISTIC_DYNAMIC_EFFECTS) and without. Prints a table and writes
 benchmarks/results/diagnose_rates.{json,md}.
 
-    python benchmarks/diagnose_rates.py [RUNS]
+    python benchmarks/diagnose_rates.py [RUNS] [DYNAMIC_RUNS]
 """
 
 import json
@@ -21,21 +23,24 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 from castimate.montecarlo import diagnose_trials  # noqa: E402
-from castimate.simulate import REALISTIC_EFFECTS  # noqa: E402
+from castimate.simulate import REALISTIC_DYNAMIC_EFFECTS, REALISTIC_EFFECTS  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 runs = int(sys.argv[1]) if len(sys.argv) > 1 else 50
-scenario = ROOT / "problems" / "sim_effects_8x24.yaml"
+dynamic_runs = int(sys.argv[2]) if len(sys.argv) > 2 else 10
+cases = [("sim_effects_8x24", e, runs) for e in [None, *REALISTIC_EFFECTS]] + \
+    [("sim_dynamic_effects_8x600", e, dynamic_runs) for e in [None, *REALISTIC_DYNAMIC_EFFECTS]]
+magnitudes = {**REALISTIC_EFFECTS, **REALISTIC_DYNAMIC_EFFECTS}
 rows, t0 = [], time.perf_counter()
 with tempfile.TemporaryDirectory() as tmp:
-    for k, effect in enumerate([None, *REALISTIC_EFFECTS]):
-        trials = diagnose_trials(scenario, effect, range(1000 * k, 1000 * k + runs), tmp)
+    for k, (scenario, effect, n) in enumerate(cases):
+        trials = diagnose_trials(ROOT / "problems" / f"{scenario}.yaml", effect, range(1000 * k, 1000 * k + n), tmp)
         wrong = {}
         for t in trials:
             for a in t.added:
                 if a != effect:
                     wrong[a] = wrong.get(a, 0) + 1
-        row = {"effect": effect or "none", "magnitude": REALISTIC_EFFECTS.get(effect), "runs": len(trials),
+        row = {"scenario": scenario, "effect": effect or "none", "magnitude": magnitudes.get(effect), "runs": len(trials),
                "detected": sum(t.detected for t in trials), "ranked_first": sum(t.first == effect for t in trials),
                "false_alarms": sum(t.false_alarm for t in trials), "wrongly_added": wrong,
                "mean_wall_s": float(np.mean([t.wall_s for t in trials]))}
@@ -44,16 +49,18 @@ with tempfile.TemporaryDirectory() as tmp:
 wall = time.perf_counter() - t0
 out = ROOT / "benchmarks" / "results"
 out.mkdir(exist_ok=True)
-(out / "diagnose_rates.json").write_text(json.dumps({"runs": runs, "wall_s": wall, "rows": rows}, indent=1) + "\n")
-md = [f"# castimate diagnose: detection and false alarms ({runs} simulated sessions per row, {wall:.0f} s)", "",
-      "Scenario `problems/sim_effects_8x24.yaml`: 8 IMUs with gyroscopes, 24 poses, temperature logged. "
+(out / "diagnose_rates.json").write_text(json.dumps({"runs": runs, "dynamic_runs": dynamic_runs, "wall_s": wall,
+                                                     "rows": rows}, indent=1) + "\n")
+md = [f"# castimate diagnose: detection and false alarms ({wall:.0f} s)", "",
+      "Static scenario `problems/sim_effects_8x24.yaml`: 8 IMUs with gyroscopes, 24 poses, temperature logged. "
+      "Dynamic scenario `problems/sim_dynamic_effects_8x600.yaml`: 8 IMUs with gyroscopes, 600 samples. "
       "Detected = the simulated effect was added first; false alarm = any other effect was added.", "",
-      "| simulated effect | magnitude (σ of each coefficient) | detected | ranked first by the score test | "
-      "false alarms | wrongly added | mean diagnose time [s] |", "|---|---|---|---|---|---|---|"]
+      "| scenario | simulated effect | magnitude (σ of each coefficient) | detected | ranked first by the score test | "
+      "false alarms | wrongly added | mean diagnose time [s] |", "|---|---|---|---|---|---|---|---|"]
 for r in rows:
     det = "–" if r["effect"] == "none" else f"{r['detected']}/{r['runs']} ({100 * r['detected'] / r['runs']:.0f} %)"
     first = "–" if r["effect"] == "none" else f"{r['ranked_first']}/{r['runs']}"
-    md.append(f"| {r['effect']} | {r['magnitude'] if r['magnitude'] is not None else '–'} | {det} | {first} | "
+    md.append(f"| {r['scenario']} | {r['effect']} | {r['magnitude'] if r['magnitude'] is not None else '–'} | {det} | {first} | "
               f"{r['false_alarms']}/{r['runs']} ({100 * r['false_alarms'] / r['runs']:.0f} %) | "
               f"{', '.join(f'{k} ×{v}' for k, v in r['wrongly_added'].items()) or '–'} | {r['mean_wall_s']:.1f} |")
 (out / "diagnose_rates.md").write_text("\n".join(md) + "\n")

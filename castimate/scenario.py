@@ -13,7 +13,7 @@ from .io.readers import write_csv
 from .io.recording import Recording
 from .io.results import write_atomic, write_json
 from .problem.spec import _Check
-from .simulate import (REALISTIC_EFFECTS, StaticTruthScale, pose_directions, random_effects, random_static_truth,
+from .simulate import (REALISTIC_DYNAMIC_EFFECTS, REALISTIC_EFFECTS, StaticTruthScale, pose_directions, random_effects, random_static_truth,
                        static_pose_means, static_time_series)
 
 SCENARIO_KEYS = ("kind", "seed", "gravity", "triads", "reference", "poses", "noise", "samples_per_pose",
@@ -55,14 +55,15 @@ def _seed(c: _Check, s: dict) -> np.random.Generator:
     return np.random.default_rng(seed)
 
 
-def _effects(c: _Check, s: dict, gyro: bool) -> dict[str, float]:
-    """``effects``: effect key -> σ of its random coefficients, or ``realistic`` (REALISTIC_EFFECTS)."""
-    e = c.mapping(s.get("effects"), "effects", tuple(REALISTIC_EFFECTS))
+def _effects(c: _Check, s: dict, gyro: bool, realistic: dict[str, float] = REALISTIC_EFFECTS) -> dict[str, float]:
+    """``effects``: effect key -> σ of its random coefficients, or ``realistic`` (the kind's table
+    in castimate.simulate)."""
+    e = c.mapping(s.get("effects"), "effects", tuple(realistic))
     out = {}
     for k, v in e.items():
         if k.startswith("gyroscope.") and not gyro:
             c.fail(f"effects.{k}", "a gyroscope effect needs gyroscope: true")
-        out[k] = REALISTIC_EFFECTS[k] if v == "realistic" else c.number(v, f"effects.{k}")
+        out[k] = realistic[k] if v == "realistic" else c.number(v, f"effects.{k}")
         if out[k] < 0:
             c.fail(f"effects.{k}", f"expected a magnitude >= 0 or realistic, found {v}")
     return out
@@ -157,7 +158,8 @@ def _static_scenario(c: _Check, raw: dict, path: Path, out: Path) -> dict[str, P
 
 
 DYNAMIC_KEYS = ("kind", "seed", "geometry", "samples", "rate", "max_omega", "max_omega_dot", "noise", "gyroscope",
-                "saturation", "position_error", "orientation_error", "motion", "euler_consistent", "linear_accel")
+                "saturation", "position_error", "orientation_error", "motion", "euler_consistent", "linear_accel",
+                "imus", "effects")
 
 
 def _dynamic_scenario(c: _Check, raw: dict, path: Path, out: Path) -> dict[str, Path]:
@@ -184,6 +186,12 @@ def _dynamic_scenario(c: _Check, raw: dict, path: Path, out: Path) -> dict[str, 
         names, nominal, true, R = carlsson_geometry(rng, pos_err, reference="imu1")
         true_R = R
         gyro = _flag(c, s, "gyroscope") if "gyroscope" in s else True
+        if "imus" in s:  # a subset spread over both sides of the board
+            m = c.number(s["imus"], "imus", positive=True, integer=True)
+            if not 2 <= m <= len(names):
+                c.fail("imus", f"expected 2 to {len(names)} IMUs of the Carlsson board, found {m}")
+            keep = np.unique(np.round(np.linspace(0, len(names) - 1, m)).astype(int))
+            names, nominal, true = [names[i] for i in keep], nominal[keep], true[keep]
     else:
         names, nominal, true, R, true_R = schopp_geometry(
             rng, pos_err, orientation_error_deg=c.number(s.get("orientation_error", 0.0), "orientation_error"),
@@ -198,8 +206,14 @@ def _dynamic_scenario(c: _Check, raw: dict, path: Path, out: Path) -> dict[str, 
                   "saturation": np.radians(c.number(sat, "saturation", positive=True)) if sat is not None else None} \
         if gyro else None
     origin = true[0]
+    effects = {}
+    for key, m in _effects(c, s, gyro, REALISTIC_DYNAMIC_EFFECTS).items():
+        size = 6 if key.endswith("axis_offsets") else 1
+        effects.update({f"{n}.{key}": m * rng.standard_normal(size) for n in names
+                        if not (key == "accelerometer.time_offset" and n == names[0])})  # the reference's is the gauge
     acc, gy, saturated = dynamic_measurements(motion, true - origin, np.stack([true_R[n] for n in names]),
-                                              np.zeros((K, 3)), rng, acc_sigma, gyro=gyro_model, names=names)
+                                              np.zeros((K, 3)), rng, acc_sigma, gyro=gyro_model, names=names,
+                                              effects=effects)
     rec = Recording(t=motion.t, acc=acc, gyro=gy, source="simulation")
     msec = c.mapping(s.get("motion"), "motion", ("sigma_s", "sigma_omega_dot", "sigma_integration", "process_model"))
     problem: dict[str, Any] = {
@@ -225,6 +239,7 @@ def _dynamic_scenario(c: _Check, raw: dict, path: Path, out: Path) -> dict[str, 
                    "max_omega_dot": float(np.linalg.norm(motion.omega_dot, axis=1).max()), "binding": motion.binding},
         "noise": {"accelerometer": acc_sigma, "gyroscope": float(gyro_sigma) if gyro else None},
         "saturated_samples": {n: int(m.any(axis=1).sum()) for n, m in saturated.items()} if gyro else {},
+        "effects": effects,
     })
     header = f"# Simulated from {path.name}; the truth is in truth.json.\n"
     write_atomic(out / "problem.yaml", header + yaml.safe_dump(problem, sort_keys=False))

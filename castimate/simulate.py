@@ -122,6 +122,13 @@ REALISTIC_EFFECTS = {
     "gyroscope.temperature_bias": 1e-4,  # rad/s/K
     "gyroscope.g_sensitivity": 1e-4,  # rad/s per m/s^2
 }
+#: The same for the dynamic-only effects: sensing elements 0.3 mm apart inside a MEMS package, and
+#: sampling instants 0.5 ms apart between IMUs read in turn.
+REALISTIC_DYNAMIC_EFFECTS = {
+    "accelerometer.axis_offsets": 3e-4,  # m
+    "accelerometer.time_offset": 5e-4,  # s
+    "gyroscope.time_offset": 5e-4,  # s
+}
 
 
 def random_effects(truth: StaticTruth, magnitudes: dict[str, float], rng: np.random.Generator) -> None:
