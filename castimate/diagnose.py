@@ -36,7 +36,7 @@ from scipy import stats
 
 from .calibrate import StaticOutcome, calibrate_static, load_static, static_config
 from .calibrate_dynamic import DynamicOutcome, calibrate_dynamic, dynamic_config, load_dynamic, measurement_residuals
-from .errors import InputError, NotConvergedError
+from .errors import CastimateError, InputError, NotConvergedError
 from .problem.dynamic import build_dynamic
 from .problem.effects import BY_KEY, EFFECTS, Effect
 from .problem.spec import ProblemSpec
@@ -363,7 +363,12 @@ def score_test(session: Session, model: Model, effect: Effect) -> ScoreTest:
 
 def confirm(session: Session, model: Model, test: ScoreTest, level: float) -> Refit:
     """Refit with the candidate and apply the likelihood-ratio F test and cross-validation."""
-    new = session.fit(model.effects + (test.effect,))
+    try:
+        new = session.fit(model.effects + (test.effect,))
+    except CastimateError as e:  # not identifiable after all, or no convergence: the candidate is not confirmed
+        nan = CrossValidation(0, np.nan, np.nan, np.nan)
+        return Refit(test.effect, test.k, model.chi2, np.nan, np.nan, np.nan, model.cv or nan, nan, np.nan, False,
+                     f"the refit failed: {e}")
     k = new.outcome.problem.lsq.layout.n_x - model.outcome.problem.lsq.layout.n_x
     F = (model.chi2 - new.chi2) / k / new.s2
     p = float(stats.f.sf(F, k, new.dof))

@@ -13,6 +13,7 @@ from .io.readers import write_csv
 from .io.recording import Recording
 from .io.results import write_atomic, write_json
 from .problem.spec import _Check
+from .problem.effects import BY_KEY
 from .simulate import (REALISTIC_DYNAMIC_EFFECTS, REALISTIC_EFFECTS, StaticTruthScale, pose_directions, random_effects, random_static_truth,
                        static_pose_means, static_time_series)
 
@@ -210,7 +211,7 @@ def _dynamic_scenario(c: _Check, raw: dict, path: Path, out: Path) -> dict[str, 
     for key, m in _effects(c, s, gyro, REALISTIC_DYNAMIC_EFFECTS).items():
         size = 6 if key.endswith("axis_offsets") else 1
         effects.update({f"{n}.{key}": m * rng.standard_normal(size) for n in names
-                        if not (key == "accelerometer.time_offset" and n == names[0])})  # the reference's is the gauge
+                        if not (BY_KEY[key].relative and n == names[0])})  # the reference's is the gauge
     acc, gy, saturated = dynamic_measurements(motion, true - origin, np.stack([true_R[n] for n in names]),
                                               np.zeros((K, 3)), rng, acc_sigma, gyro=gyro_model, names=names,
                                               effects=effects)

@@ -102,8 +102,9 @@ EFFECTS: tuple[Effect, ...] = (
            lambda c, x: fx.scale_nonlinearity(c, x.u),
            title="accelerometer scale nonlinearity, quadratic per axis"),
     Effect("axis_offsets", "accelerometer", GroupDef(("yx", "yy", "yz", "zx", "zy", "zz"), (0.0,) * 6, 1e-3, "m"),
-           lambda c, x: fx.axis_offsets(x.T, c, x.omega, x.omega_dot), kinds=(DYNAMIC,),
-           title="accelerometer sensing-element offsets (size effect): y and z elements relative to x"),
+           lambda c, x: fx.axis_offsets(x.T, c, x.omega, x.omega_dot), kinds=(DYNAMIC,), relative=True,
+           title="accelerometer sensing-element offsets (size effect): y and z elements relative to x, "
+                 "relative to the reference triad's"),
     Effect("time_offset", "accelerometer", GroupDef(("dt",), (0.0,), 1e-3, "s"),
            lambda c, x: fx.time_offset(c, x.u_dot), kinds=(DYNAMIC,), relative=True,
            title="accelerometer time offset (relative to the reference triad)"),
