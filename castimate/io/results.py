@@ -96,8 +96,7 @@ def static_results(outcome) -> dict:
             "rejected": [{"t_start": a, "t_end": b, "reason": r[2]} for (a, b), r in zip(det.rejected_times, det.rejected)],
             "notes": [{"pose": i + 1, "note": n} for i, n in det.notes],
         }
-    if cfg.effects:
-        doc["effects"] = {"included": list(cfg.effects), "regressors": cfg.regressors.to_dict()}
+    doc.update(_effects(outcome.problem.config))
     doc["recording_notes"] = list(outcome.recording.notes)
     if outcome.consistency is not None:
         c = outcome.consistency
@@ -151,7 +150,14 @@ def dynamic_results(outcome) -> dict:
         "residuals": {"chi2": sol.chi2, "dof": sol.dof, "chi2_per_dof": sol.chi2_per_dof,
                       "rms": {n: rms(r) for n, r in outcome.residual_acc.items()}, "rms_unit": "m/s^2",
                       "gyro_rms": {n: rms(r) for n, r in outcome.residual_gyro.items()}},
+        **_effects(outcome.problem.config),
     }
+
+
+def _effects(config) -> dict:
+    """The included effects and how their regressors are formed, if any."""
+    return {"effects": {"included": list(config.effects), "regressors": config.regressors.to_dict()}} \
+        if config.effects else {}
 
 
 def load_results_json(path: str | Path) -> dict:
