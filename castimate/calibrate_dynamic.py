@@ -239,8 +239,19 @@ class DynamicOutcome:
         return {n: (self.solution.values[f"{n}.position"], self.solution.std[f"{n}.position"]) for n in self.config.names}
 
 
-def calibrate_dynamic(spec: ProblemSpec, log: Log = _quiet, max_restarts: int = 2) -> DynamicOutcome:
-    """Run a dynamic array calibration end to end. Raises InputError or NotConvergedError."""
+@dataclass
+class DynamicInputs:
+    """What a dynamic solve starts from: the triads, the masked recording, and the static phase of a joint problem."""
+
+    config: DynamicConfig
+    data: DynamicData
+    saturation: dict  # "<triad>.<sensor>" -> number of masked samples
+    nominal: dict  # name -> nominal position in the body frame
+    static_problem: object = None  # StaticProblem of data.static (joint problems), else None
+
+
+def dynamic_inputs(spec: ProblemSpec, log: Log = _quiet) -> DynamicInputs:
+    """Read the recording, estimate the noise, configure the triads and mask saturated samples."""
     log(f"reading {spec.data.path.name} ({spec.data.format})")
     full = read_full(spec)
     rec = load_recording(spec)
@@ -265,6 +276,14 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = _quiet, max_restarts: int = 
                        {n: rec.gyro[n] for n in config.names if n in rec.gyro}, gyro_sigma, acc_valid, gyro_valid)
     nominal = {t.name: (t.position - next(x for x in config.triads if x.name == config.reference).position)
                if t.position is not None else np.zeros(3) for t in config.triads}
+    return DynamicInputs(config, data, sat, nominal, static_problem)
+
+
+def calibrate_dynamic(spec: ProblemSpec, log: Log = _quiet, max_restarts: int = 2) -> DynamicOutcome:
+    """Run a dynamic array calibration end to end. Raises InputError or NotConvergedError."""
+    inputs = dynamic_inputs(spec, log)
+    config, data, sat, nominal, static_problem = (inputs.config, inputs.data, inputs.saturation, inputs.nominal,
+                                                  inputs.static_problem)
 
     if spec.solver.method == "bcd":
         problem, solver, sol, attempts = _solve_bcd(spec, config, data, log)

@@ -72,6 +72,13 @@ class DynamicData:
     def n(self) -> int:
         return len(self.t)
 
+    def window(self, start: int, n: int) -> "DynamicData":
+        """Samples start .. start + n - 1 (a fixed-size window, e.g. for the C solver)."""
+        sl = slice(start, start + n)
+        cut = lambda d: {k: v[sl] for k, v in d.items()}  # noqa: E731
+        return DynamicData(self.t[sl], cut(self.acc), self.acc_sigma, cut(self.gyro), self.gyro_sigma,
+                           cut(self.acc_valid), cut(self.gyro_valid))
+
     def valid(self, kind: str, name: str) -> np.ndarray:
         m = (self.acc_valid if kind == "acc" else self.gyro_valid).get(name)
         return np.ones(self.n, bool) if m is None else m
