@@ -339,7 +339,10 @@ extern "C" {{
 #define CASTIMATE_XTOL 1e-10 /* stop when max |dx| <= XTOL (1 + max |x|), x scaled */
 #endif
 #ifndef CASTIMATE_MU0
-#define CASTIMATE_MU0 1e-6 /* initial damping relative to the largest diagonal entry of J^T J */
+#define CASTIMATE_MU0 1e-4 /* initial Levenberg-Marquardt damping, relative to diag(J^T J) */
+#endif
+#ifndef CASTIMATE_FTOL
+#define CASTIMATE_FTOL 1e-13 /* relative round-off of the cost: smaller predicted decreases are accepted */
 #endif
 
 /* Return values of castimate_solve. */

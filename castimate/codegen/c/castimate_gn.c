@@ -30,6 +30,9 @@
  */
 #include <math.h>
 #include <string.h>
+#ifdef CASTIMATE_VERBOSE
+#include <stdio.h>
+#endif
 
 #include "castimate_cg.h"
 #include "castimate_problem.h"
@@ -256,6 +259,12 @@ static double assemble(const double *w, const double *data)
     return f;
 }
 
+/* Marquardt's damping of a diagonal entry: scale invariant, floored for empty rows. */
+static double damp(double h)
+{
+    return h > 1e-12 ? h : 1e-12;
+}
+
 /* The damped step dx for damping mu: eliminate the local blocks, solve for the global unknowns,
  * back-substitute. Returns 0, or 1 if a system is singular. */
 static int step(double mu)
@@ -265,7 +274,7 @@ static int step(double mu)
     for (i = 0; i < NG1; ++i) {
         for (j = 0; j < NG1; ++j) {
             double v = 0.0;
-            if (i < NG && j < NG) v = Hgg_[i * NG1 + j] + (i == j ? mu : 0.0);
+            if (i < NG && j < NG) v = Hgg_[i * NG1 + j] + (i == j ? mu * damp(Hgg_[i * NG1 + i]) : 0.0);
             else if (i >= NG && j < NG) v = Ag_[(i - NG) * ALLOC(NG) + j];
             else if (i < NG && j >= NG) v = Ag_[(j - NG) * ALLOC(NG) + i];
             S_[i * NG1 + j] = v;
@@ -279,7 +288,10 @@ static int step(double mu)
         for (i = 0; i < m; ++i)
             for (j = 0; j < m; ++j) {
                 double v = 0.0;
-                if (i < n && j < n) v = Hll_[(l * CS_LMAX + i) * CS_LMAX + j] + (i == j ? mu : 0.0);
+                if (i < n && j < n) {
+                    v = Hll_[(l * CS_LMAX + i) * CS_LMAX + j];
+                    if (i == j) v += mu * damp(v);
+                }
                 else if (i >= n && j < n) v = Al_[(l * CS_CMAX + i - n) * CS_LMAX + j];
                 else if (i < n && j >= n) v = Al_[(l * CS_CMAX + j - n) * CS_LMAX + i];
                 K[i * m + j] = v;
@@ -298,11 +310,13 @@ static int step(double mu)
             for (a = 0; a < NG; ++a) {
                 double ha = h[a];
                 if (ha == 0.0) continue;
-                for (k = 0; k < NG; ++k) S_[a * NG1 + k] -= ha * xr[k];
+                for (k = a; k < NG; ++k) S_[a * NG1 + k] -= ha * xr[k]; /* upper triangle: S is symmetric */
                 rhs_[a] += ha * xr[NG];
             }
         }
     }
+    for (a = 0; a < NG; ++a)
+        for (k = 0; k < a; ++k) S_[a * NG1 + k] = S_[k * NG1 + a];
     if (NG1 > 0) {
         if (lu(NG1, S_, pivg_)) return 1;
         lu_solve(NG1, S_, pivg_, rhs_, 1, 1);
@@ -343,12 +357,23 @@ static void normalise(double *x, const double *w)
     }
 }
 
+
+/* g^T dx with the gradient of the last assemble(). */
+static double gradient_dot_step(void)
+{
+    double v = 0.0;
+    int i;
+    for (i = 0; i < NX; ++i)
+        v += dx_[i] * (cs_x_global[i] >= 0 ? gg_[cs_x_global[i]] : gl_[cs_x_local[i] * KMAX + cs_x_lpos[i]]);
+    return v;
+}
+
 static int indices_ready = 0;
 
 int castimate_solve(const double *p_fixed, const double *data, const double *x0, double *x,
                     castimate_solve_info *info)
 {
-    double f, f_trial, mu = 0.0, dmax, xmax;
+    double f, f_trial, mu = CASTIMATE_MU0, dmax, xmax, predicted;
     static double x_trial[ALLOC(NX)];
     int it, i, status = CASTIMATE_MAX_ITER, n_eval = 0;
     if (data == 0 || x == 0) return CASTIMATE_BAD_INPUT;
@@ -363,17 +388,11 @@ int castimate_solve(const double *p_fixed, const double *data, const double *x0,
     set_w(x, p_fixed, w_);
     f = assemble(w_, data);
     if (!isfinite(f)) return CASTIMATE_NOT_FINITE;
-    for (i = 0; i < NG; ++i) mu = Hgg_[i * NG1 + i] > mu ? Hgg_[i * NG1 + i] : mu;
-    for (i = 0; i < CS_NL * CS_LMAX; ++i) {
-        double h = Hll_[i * CS_LMAX + i % CS_LMAX];
-        mu = h > mu ? h : mu;
-    }
-    mu *= CASTIMATE_MU0;
     for (it = 0; it < CASTIMATE_MAX_ITERATIONS; ++it) {
         int accepted = 0, tries;
-        for (tries = 0; tries < 60 && !accepted; ++tries) {
+        for (tries = 0; tries < 40 && !accepted; ++tries) {
             if (step(mu)) {
-                mu = mu > 0.0 ? 10.0 * mu : 1e-12;
+                mu *= 10.0;
                 continue;
             }
             dmax = 0.0;
@@ -383,36 +402,40 @@ int castimate_solve(const double *p_fixed, const double *data, const double *x0,
                 if (fabs(dx_[i]) > dmax) dmax = fabs(dx_[i]);
                 if (fabs(x[i]) > xmax) xmax = fabs(x[i]);
             }
+            /* the decrease the linear model predicts: -g^T dx - 1/2 dx^T H dx, which is
+             * (-g^T dx + mu dx^T D dx) / 2 >= -g^T dx / 2 for the damped step */
+            predicted = -0.5 * gradient_dot_step();
             set_w(x_trial, p_fixed, w_trial_);
             normalise(x_trial, w_trial_);
             set_w(x_trial, p_fixed, w_trial_);
             f_trial = cost(w_trial_, data);
             ++n_eval;
-            if (dmax <= CASTIMATE_XTOL * (1.0 + xmax) && f_trial >= 0.0 && f_trial <= f * (1.0 + 1e-12)) {
-                /* converged: the step no longer changes x (round-off may keep the cost from falling) */
+#ifdef CASTIMATE_VERBOSE
+            fprintf(stderr, "iteration %d: mu %.3e, max |dx| %.3e, predicted %.3e, cost %.15g -> %.15g\n", it, mu,
+                    dmax, predicted, f, f_trial);
+#endif
+            /* Accept a step that lowers the cost, or one whose predicted decrease is below the
+             * round-off of the cost (there the cost cannot rank steps any more). */
+            if (f_trial >= 0.0 && (f_trial < f || predicted <= CASTIMATE_FTOL * f)) {
+                accepted = dmax <= CASTIMATE_XTOL * (1.0 + xmax) ? 2 : 1;
                 memcpy(x, x_trial, sizeof(double) * NX);
                 f = f_trial;
-                status = CASTIMATE_CONVERGED;
-                accepted = 2;
-            } else if (f_trial >= 0.0 && f_trial < f) {
-                memcpy(x, x_trial, sizeof(double) * NX);
-                f = f_trial;
-                mu /= 3.0;
-                accepted = 1;
+                mu = mu / 10.0 > 1e-15 ? mu / 10.0 : 1e-15;
             } else {
-                mu = mu > 0.0 ? 4.0 * mu : 1e-12;
+                mu *= 10.0;
             }
         }
         if (!accepted) {
             status = CASTIMATE_STALLED;
             break;
         }
+        set_w(x, p_fixed, w_);
+        f = assemble(w_, data);
         if (accepted == 2) {
+            status = CASTIMATE_CONVERGED;
             ++it;
             break;
         }
-        set_w(x, p_fixed, w_);
-        f = assemble(w_, data);
     }
     if (info) {
         info->iterations = it;
