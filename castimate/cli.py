@@ -75,7 +75,7 @@ def cmd_report(args) -> int:
 def cmd_codegen(args) -> int:
     from .codegen import generate_c
 
-    files = generate_c(args.results, args.output)
+    files = generate_c(args.source, args.output, window=args.window, start=args.start)
     for name, path in files.items():
         print(f"wrote {path}")
     print(f"build and test with: make -C {args.output} check")
@@ -103,9 +103,14 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("report", help="write DIR/report.html from a solved DIR")
     s.add_argument("directory")
     s.set_defaults(func=cmd_report)
-    s = sub.add_parser("codegen", help="write C99 code of the compensation function of a results.json into DIR")
-    s.add_argument("results", help="a results.json (solve the problem first)")
+    s = sub.add_parser("codegen", help="write C99 code into DIR: the solver of a problem file, or the "
+                                        "compensation function of a results.json")
+    s.add_argument("source", help="a problem file (PROBLEM.yaml: its solver in C, test vectors from the "
+                                  "Python solve) or a results.json (the compensation function)")
     s.add_argument("-o", "--output", required=True, help="output directory")
+    s.add_argument("--window", type=int, default=None,
+                   help="dynamic problems: samples per solve (default 200), the size the C solver is built for")
+    s.add_argument("--start", type=int, default=0, help="dynamic problems: first sample of the test window (default 0)")
     s.set_defaults(func=cmd_codegen)
     return p
 

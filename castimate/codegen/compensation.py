@@ -105,8 +105,8 @@ def load_calibration(path: str | Path) -> Calibration:
     """Read a results.json for code generation; a problem file gives an InputError saying to solve it first."""
     path = Path(path)
     if path.suffix.lower() in (".yaml", ".yml"):
-        raise InputError(path, "", "codegen takes a results.json, not a problem file; solve it first "
-                                   f"(castimate solve {path} -o DIR) and pass DIR/results.json")
+        raise InputError(path, "", "the compensation function needs a results.json, not a problem file; solve it "
+                                   f"first (castimate solve {path} -o DIR) and pass DIR/results.json")
     doc = read_results(path)
     units = doc.get("units", {})
     conv = {}
@@ -677,21 +677,4 @@ def generate_files(results_path: str | Path) -> dict[str, str]:
     return files
 
 
-def generate_c(results_path: str | Path, out_dir: str | Path) -> dict[str, Path]:
-    """Write the C sources, header, test vectors, test program, Makefile and README into out_dir.
-
-    Returns {name: path} of the files written. Raises InputError for a problem file, a missing or
-    unreadable results file, or one whose calibration did not converge.
-    """
-    files = generate_files(results_path)
-    out_dir = Path(out_dir)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise InputError(out_dir, "", "expected an output directory, found a file")
-    written = {}
-    for name, text in files.items():
-        write_atomic(out_dir / name, text)
-        written[name] = out_dir / name
-    return written
-
-
-__all__ = ["Calibration", "Sensor", "generate_c", "generate_files", "load_calibration", "test_vectors"]
+__all__ = ["Calibration", "Sensor", "generate_files", "load_calibration", "test_vectors"]

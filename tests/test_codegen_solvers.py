@@ -1,0 +1,132 @@
+"""``castimate codegen PROBLEM.yaml``: the C solver compiles with strict flags, reproduces the
+Python/IPOPT solution on simulated and real problems, is deterministic, and bad input fails clearly."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from castimate.cli import main
+from castimate.codegen import generate_c
+from castimate.codegen.gn_structure import arithmetic_runs, expand_runs
+from castimate.codegen.solvers import FILES, TOLERANCE
+from castimate.errors import InputError
+from castimate.scenario import simulate_scenario
+
+from test_codegen import make_check
+
+ROOT = Path(__file__).resolve().parents[1]
+PROBLEMS = ROOT / "problems"
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory) -> dict[str, Path]:
+    """Problem files of the bundled Nilsson-like (static), Carlsson-like and Schopp-like (dynamic) scenarios."""
+    out = {}
+    for name in ("sim_nilsson_14x20", "sim_carlsson_32x1000", "sim_schopp_5x675"):
+        d = tmp_path_factory.mktemp(name)
+        out[name] = Path(simulate_scenario(PROBLEMS / f"{name}.yaml", d)["problem"])
+    return out
+
+
+def check_output(out: str) -> dict[str, float]:
+    """Parse the test program's report and assert that it converged within the tolerance."""
+    vals = {k: float(re.search(rf"{k}: ([-+0-9.eE]+)", out).group(1))
+            for k in ("status", "iterations", "solve time", "max rel difference",
+                      "max abs difference of the physical values")}
+    assert vals["status"] == 0 and vals["max rel difference"] < TOLERANCE, out
+    assert "-Wall -Wextra -Werror" in out and "OK" in out, out
+    return vals
+
+
+def emit_and_check(source: Path, directory: Path, *args: str) -> dict[str, float]:
+    assert main(["codegen", str(source), "-o", str(directory), *args]) == 0
+    assert sorted(p.name for p in directory.iterdir()) == sorted(FILES)
+    rc, out = make_check(directory)
+    assert rc == 0, out
+    return check_output(out)
+
+
+def test_static_simulated_matches_ipopt_and_is_deterministic(simulated, tmp_path):
+    vals = emit_and_check(simulated["sim_nilsson_14x20"], tmp_path / "a")
+    assert vals["max rel difference"] < 1e-10
+    generate_c(simulated["sim_nilsson_14x20"], tmp_path / "b")
+    for name in FILES:
+        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), f"{name} differs"
+    readme = (tmp_path / "a" / "README.md").read_text()
+    assert "unit vectors" in readme and "Schur complement" in readme
+    header = (tmp_path / "a" / "castimate_solver.h").read_text()
+    assert "CASTIMATE_V_IMU01_ACCELEROMETER_GAIN" in header or "ACCELEROMETER_GAIN" in header
+
+
+def test_static_real_mimu4444_matches_ipopt(shared_data, tmp_path):
+    emit_and_check(PROBLEMS / "mimu4444_exp1_static.yaml", tmp_path / "c")
+
+
+def test_dynamic_simulated_window_matches_ipopt_and_is_deterministic(simulated, tmp_path):
+    src = simulated["sim_carlsson_32x1000"]
+    emit_and_check(src, tmp_path / "a", "--window", "60", "--start", "100")
+    generate_c(src, tmp_path / "b", window=60, start=100)
+    for name in FILES:
+        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), f"{name} differs"
+    assert "samples 100..159 of 1000" in (tmp_path / "a" / "README.md").read_text()
+
+
+def test_dynamic_real_mimu4444_window_matches_ipopt(shared_data, tmp_path):
+    emit_and_check(PROBLEMS / "mimu4444_exp1_dynamic.yaml", tmp_path / "c", "--window", "100", "--start", "1000")
+
+
+def test_make_check_fails_on_a_mismatch(simulated, tmp_path):
+    d = tmp_path / "c"
+    generate_c(simulated["sim_nilsson_14x20"], d)
+    vec = d / "test_vectors.txt"
+    text = vec.read_text()
+    head, rest = text.split("\nx ", 1)
+    lines = rest.split("\n")
+    lines[5] = repr(float(lines[5]) + 1e-4 * max(1.0, abs(float(lines[5]))))  # one expected variable off
+    vec.write_text(head + "\nx " + "\n".join(lines))
+    rc, out = make_check(d)
+    assert rc != 0 and "FAILED: 1 variables differ" in out, out
+
+
+def test_window_on_a_static_problem_is_refused(simulated, tmp_path, capsys):
+    assert main(["codegen", str(simulated["sim_nilsson_14x20"]), "-o", str(tmp_path / "c"), "--window", "10"]) == 2
+    err = capsys.readouterr().err
+    assert "problem.yaml: kind: --window applies to dynamic_array problems" in err and err.count("\n") == 1
+    assert not (tmp_path / "c").exists()
+
+
+def test_window_beyond_the_data_is_refused(simulated, tmp_path):
+    with pytest.raises(InputError, match=r"data: expected a window of 1\.\.1000 samples .* found --window 5000"):
+        generate_c(simulated["sim_carlsson_32x1000"], tmp_path / "c", window=5000)
+
+
+def test_process_model_is_refused(simulated, tmp_path):
+    with pytest.raises(InputError, match="motion.process_model: factor process_model couples two samples"):
+        generate_c(simulated["sim_schopp_5x675"], tmp_path / "c", window=20)
+
+
+def test_missing_problem_file_and_file_as_output(tmp_path):
+    with pytest.raises(InputError, match="nope.yaml"):
+        generate_c(tmp_path / "nope.yaml", tmp_path / "c")
+    f = tmp_path / "file"
+    f.write_text("x")
+    with pytest.raises(InputError, match="expected an output directory, found a file"):
+        generate_c(PROBLEMS / "mimu4444_exp1_static.yaml", f)
+
+
+def test_window_with_a_results_file_is_refused(tmp_path):
+    with pytest.raises(InputError, match="--window and --start apply to a problem file"):
+        generate_c(ROOT / "reports" / "xsens_imutk" / "results.json", tmp_path / "c", window=10)
+
+
+def test_arithmetic_runs_round_trip():
+    rng = np.random.default_rng(1)
+    for v in (np.arange(10), np.repeat(np.arange(4), 5) * 3 + 7, rng.integers(0, 9, 30), np.array([5]),
+              np.concatenate([np.arange(0, 30, 3), np.arange(100, 90, -1)])):
+        runs = arithmetic_runs(v)
+        assert np.array_equal(expand_runs(runs), v)
+    assert len(arithmetic_runs(np.arange(0, 3000, 3))) == 1
