@@ -75,7 +75,8 @@ def cmd_report(args) -> int:
 def cmd_codegen(args) -> int:
     from .codegen import generate_c
 
-    files = generate_c(args.source, args.output, window=args.window, start=args.start)
+    files = generate_c(args.source, args.output, window=args.window, start=args.start,
+                       motion_only=args.motion_only)
     for name, path in files.items():
         print(f"wrote {path}")
     print(f"build and test with: make -C {args.output} check")
@@ -111,6 +112,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--window", type=int, default=None,
                    help="dynamic problems: samples per solve (default 200), the size the C solver is built for")
     s.add_argument("--start", type=int, default=0, help="dynamic problems: first sample of the test window (default 0)")
+    s.add_argument("--motion-only", action="store_true",
+                   help="dynamic problems: the array motion estimator (omega, omega_dot, s per sample; intrinsics "
+                        "and positions fixed at the problem's values, passed at run time as the fixed values)")
     s.set_defaults(func=cmd_codegen)
     return p
 

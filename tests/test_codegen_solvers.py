@@ -95,7 +95,7 @@ def test_make_check_fails_on_a_mismatch(simulated, tmp_path):
 def test_window_on_a_static_problem_is_refused(simulated, tmp_path, capsys):
     assert main(["codegen", str(simulated["sim_nilsson_14x20"]), "-o", str(tmp_path / "c"), "--window", "10"]) == 2
     err = capsys.readouterr().err
-    assert "problem.yaml: kind: --window applies to dynamic_array problems" in err and err.count("\n") == 1
+    assert "problem.yaml: kind: --window, --start and --motion-only apply to dynamic_array problems" in err and err.count("\n") == 1
     assert not (tmp_path / "c").exists()
 
 
@@ -107,6 +107,8 @@ def test_window_beyond_the_data_is_refused(simulated, tmp_path):
 def test_process_model_is_refused(simulated, tmp_path):
     with pytest.raises(InputError, match="motion.process_model: factor process_model couples two samples"):
         generate_c(simulated["sim_schopp_5x675"], tmp_path / "c", window=20)
+    with pytest.raises(InputError, match="motion.process_model: the motion estimator .* found true"):
+        generate_c(simulated["sim_schopp_5x675"], tmp_path / "c", window=20, motion_only=True)
 
 
 def test_missing_problem_file_and_file_as_output(tmp_path):
@@ -119,7 +121,7 @@ def test_missing_problem_file_and_file_as_output(tmp_path):
 
 
 def test_window_with_a_results_file_is_refused(tmp_path):
-    with pytest.raises(InputError, match="--window and --start apply to a problem file"):
+    with pytest.raises(InputError, match="--window, --start and --motion-only apply to a problem file"):
         generate_c(ROOT / "reports" / "xsens_imutk" / "results.json", tmp_path / "c", window=10)
 
 
@@ -130,3 +132,13 @@ def test_arithmetic_runs_round_trip():
         runs = arithmetic_runs(v)
         assert np.array_equal(expand_runs(runs), v)
     assert len(arithmetic_runs(np.arange(0, 3000, 3))) == 1
+
+
+def test_motion_estimator_matches_ipopt(simulated, tmp_path):
+    """--motion-only: ω, ω̇, s of every sample for the given geometry (Carlsson 2017), no global variables."""
+    d = tmp_path / "c"
+    vals = emit_and_check(simulated["sim_carlsson_32x1000"], d, "--window", "40", "--motion-only")
+    assert vals["max rel difference"] < 1e-10
+    header = (d / "castimate_solver.h").read_text()
+    assert "array motion estimator" in header and "#define CASTIMATE_P_IMU2_POSITION " in header
+    assert "#define CS_NG 0 " in (d / "castimate_problem.h").read_text()

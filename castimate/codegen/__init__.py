@@ -18,11 +18,13 @@ def is_problem_file(path: str | Path) -> bool:
     return Path(path).suffix.lower() in (".yaml", ".yml")
 
 
-def generate_c(source: str | Path, out_dir: str | Path, window: int | None = None, start: int = 0) -> dict[str, Path]:
+def generate_c(source: str | Path, out_dir: str | Path, window: int | None = None, start: int = 0,
+               motion_only: bool = False) -> dict[str, Path]:
     """Write C sources, header, test vectors, test program, Makefile and README into out_dir.
 
     ``source`` is a results.json (the compensation function) or a problem file (its solver; a
-    dynamic problem for ``window`` samples from sample ``start``). Returns {name: path} of the
+    dynamic problem for ``window`` samples from sample ``start``; ``motion_only``: the array motion
+    estimator, geometry and intrinsics fixed). Returns {name: path} of the
     files written. Raises InputError for bad input, NotConvergedError if the reference solve fails.
     """
     out_dir = Path(out_dir)
@@ -31,10 +33,11 @@ def generate_c(source: str | Path, out_dir: str | Path, window: int | None = Non
     if is_problem_file(source):
         from .solvers import generate_solver_files, reference_for
 
-        files = generate_solver_files(reference_for(source, window, start))
+        files = generate_solver_files(reference_for(source, window, start, motion_only))
     else:
-        if window is not None or start:
-            raise InputError(source, "", "--window and --start apply to a problem file, not a results file")
+        if window is not None or start or motion_only:
+            raise InputError(source, "", "--window, --start and --motion-only apply to a problem file, "
+                                         "not a results file")
         files = generate_files(source)
     written = {}
     for name, text in files.items():

@@ -104,6 +104,7 @@ class GNStructure:
     unit_pos: np.ndarray  # constraint position within its local block, or among the global ones
     value_w: np.ndarray  # w index of every value, groups in layout order, rows x components
     groups: list[tuple[str, int, int, int, bool]]  # (name, offset into the values, rows, components, matrix)
+    fixed: list[tuple[str, int, int]]  # (group, offset into p_fixed, count) of the groups with fixed components
 
     @property
     def n_global(self) -> int:
@@ -203,15 +204,18 @@ def gn_structure(solver: Solver) -> GNStructure:
             unit_pos[k] = n_gc
             n_gc += 1
 
-    value_w, groups, off = [], [], 0
+    value_w, groups, fixed, off = [], [], [], 0
     for g in lay.groups:
         W = lay.w_index(g.name)
         value_w.append(W.ravel())
         groups.append((g.name, off, g.rows, g.size, g.matrix))
         off += W.size
+        p = W[W >= n_x] - n_x
+        if len(p):
+            fixed.append((g.name, int(p.min()), len(p)))
     return GNStructure(
         n_x=n_x, n_p=lay.n_p, n_data=problem.data.size, x_scale=lay.x_scale, x0=lay.x0(), p0=lay.p0(),
         blocks=blocks, x_global=x_global, x_local=x_local, x_lpos=x_lpos, loc_x=loc_x, loc_c=loc_c,
         n_global_constraints=n_gc, prior_x=pi, prior_mean=pm, prior_std=ps,
         unit_w=U if U.size else np.full((0, 1), -1), unit_local=unit_local, unit_pos=unit_pos,
-        value_w=np.concatenate(value_w), groups=groups)
+        value_w=np.concatenate(value_w), groups=groups, fixed=fixed)

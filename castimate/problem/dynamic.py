@@ -13,7 +13,7 @@ Motion states are matrix groups (one row per sample), marginalised in the covari
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import casadi as ca
 import numpy as np
@@ -127,6 +127,20 @@ def position_group(config: DynamicConfig, t: TriadConfig) -> Group:
                       upper=np.inf if s.upper is None else s.upper,
                       prior_mean=np.nan if s.prior_mean is None else s.prior_mean,
                       prior_std=np.nan if s.prior_std is None else s.prior_std, scale=1e-3, unit="m")
+
+
+def geometry_fixed(config: DynamicConfig) -> DynamicConfig:
+    """The same array with every triad's intrinsics and position fixed at their start values: the
+    problem is then the array's per-sample maximum-likelihood motion estimator (Carlsson 2017,
+    sec. III, the ω, ω̇, s step of Algorithm 1 for a known geometry)."""
+    def fix(s: GroupSetting | None, n: int = 3) -> GroupSetting:
+        s = s or GroupSetting(free=(True,) * n)
+        return replace(s, free=(False,) * len(s.free))
+
+    triads = tuple(replace(t, accelerometer={g: fix(v) for g, v in t.accelerometer.items()},
+                           gyroscope=None if t.gyroscope is None else {g: fix(v) for g, v in t.gyroscope.items()},
+                           position_setting=fix(t.position_setting)) for t in config.triads)
+    return replace(config, triads=triads)
 
 
 @dataclass
