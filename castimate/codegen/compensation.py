@@ -30,7 +30,6 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..io.atomic import write_atomic
 from ..io.results import read_results
 from ..io.units import UnitConversion, parse_units, si_units
 
