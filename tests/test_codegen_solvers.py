@@ -142,3 +142,21 @@ def test_motion_estimator_matches_ipopt(simulated, tmp_path):
     header = (d / "castimate_solver.h").read_text()
     assert "array motion estimator" in header and "#define CASTIMATE_P_IMU2_POSITION " in header
     assert "#define CS_NG 0 " in (d / "castimate_problem.h").read_text()
+
+
+def test_sigma_masking_has_the_optimum_of_leaving_readings_out(shared_data):
+    """The C solver's fixed structure: saturated readings weighted out by σ instead of left out."""
+    from castimate.calibrate_dynamic import dynamic_inputs
+    from castimate.problem.dynamic import build_dynamic, build_dynamic_sigma_masked
+    from castimate.problem.spec import load_problem
+    from castimate.solve import Solver
+
+    inputs = dynamic_inputs(load_problem(PROBLEMS / "mimu4444_exp1_dynamic.yaml"))
+    data = inputs.data.window(1000, 60)
+    assert sum((~v).sum() for v in data.gyro_valid.values()) > 20  # saturated gyro readings in the window
+    a, b = build_dynamic(inputs.config, data), build_dynamic_sigma_masked(inputs.config, data)
+    assert b.lsq.blocks[1].n == 8 * 60 > a.lsq.blocks[1].n
+    sa, sb = Solver(a.lsq).solve(), Solver(b.lsq).solve()
+    assert sa.success and sb.success
+    for g in a.lsq.layout.groups:
+        np.testing.assert_allclose(sb.values[g.name], sa.values[g.name], rtol=1e-9, atol=1e-9 * np.max(g.scale))

@@ -43,6 +43,7 @@ class BlockTables:
     act: np.ndarray  # columns of z that are free in some instance (Jacobian columns)
     runs: list[np.ndarray]  # per column of z: (n_runs, 3) runs (start, step, count) of its w indices
     data0: int  # offset of the block's data in the data vector
+    factor: ca.Function  # the problem's own factor function (z, d) -> r
     res: ca.Function  # (z, d) -> r
     res_jac: ca.Function  # (z, d) -> (r, J[:, act]) dense, column-major
 
@@ -180,7 +181,7 @@ def gn_structure(solver: Solver) -> GNStructure:
         res, res_jac = block_functions(fb.residual, active, f"cs_b{k}_{fb.name}")
         nz, nd = fb.residual.size1_in(0), fb.residual.size1_in(1)
         blocks.append(BlockTables(fb.name, fb.n, nz, nd, fb.residual.size1_out(0), np.flatnonzero(active),
-                                  [arithmetic_runs(W[:, j]) for j in range(nz)], data0, res, res_jac))
+                                  [arithmetic_runs(W[:, j]) for j in range(nz)], data0, fb.residual, res, res_jac))
         data0 += fb.n * nd
 
     pi, pm, ps = lay.priors()

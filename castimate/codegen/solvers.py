@@ -102,7 +102,7 @@ def dynamic_reference(spec, window: int, start: int = 0, motion_only: bool = Fal
     ``motion_only``: every triad's intrinsics and position fixed at the problem file's values (or
     its ``model.intrinsics``): the array's per-sample ML motion estimator (Carlsson 2017)."""
     from ..calibrate_dynamic import dynamic_inputs
-    from ..problem.dynamic import build_dynamic, geometry_fixed
+    from ..problem.dynamic import build_dynamic_sigma_masked, geometry_fixed
 
     inputs = dynamic_inputs(spec)
     if inputs.static_problem is not None:
@@ -117,7 +117,7 @@ def dynamic_reference(spec, window: int, start: int = 0, motion_only: bool = Fal
     if motion_only and config.process_model:
         raise InputError(spec.path, "motion.process_model", "the motion estimator treats every sample on its own "
                          "(Carlsson 2017); expected process_model: false, found true")
-    problem = build_dynamic(config, data)
+    problem = build_dynamic_sigma_masked(config, data)  # saturated readings: sigma = MASKED_SIGMA
     solver = Solver(problem.lsq, _reference_options(spec.solver))
     x0 = problem.lsq.layout.x0()
     sol = _solve(spec, solver, x0)
@@ -298,19 +298,28 @@ const cs_block cs_blocks[CS_NBLOCK] = {
             + _array("int", "cs_unit_pos", st.unit_pos) + _array("int", "cs_value_w", st.value_w))
 
 
-def _data_layout(ref: Reference, st: GNStructure) -> list[str]:
-    """One line per factor block: its instances and what each instance's data holds."""
-    fields = {"accelerometer_pose": "y[3] sigma[3] vec(Rbar)[9] g", "gyroscope_pose": "y[3] sigma[3] vec(Rbar)[9]",
-              "accelerometer_sample": "y[3] sigma[3] vec(Rbar)[9]", "gyroscope_sample": "y[3] sigma[3] vec(Rbar)[9]",
-              "process_model": "dt sigma_s sigma_int sigma_omega_dot"}
+def _fields(fn) -> str:
+    """The data fields of a factor function, from its symbols: e.g. ``y[3] sigma[3] Rbar[9] g``."""
+    out: list[list] = []
+    for e in fn.sx_in(1).nz:
+        name = re.sub(r"_\d+$", "", str(e))
+        if out and out[-1][0] == name:
+            out[-1][1] += 1
+        else:
+            out.append([name, 1])
+    return " ".join(n if k == 1 else f"{n}[{k}]" for n, k in out)
+
+
+def _data_layout(st: GNStructure) -> list[str]:
+    """One line per factor block: its instances and what each instance's data holds (matrices column-major)."""
     return [f"data[{b.data0}..{b.data0 + b.n * b.nd - 1}]: {b.name}, {b.n} instances (triad-major) of {b.nd} "
-            f"doubles: {fields.get(b.name, '')}" for b in st.blocks]
+            f"doubles: {_fields(b.factor)}" for b in st.blocks]
 
 
 def _api_h(ref: Reference, st: GNStructure) -> str:
     defs = "\n".join(f"#define CASTIMATE_V_{_c_ident(n)} {off} /* {rows} x {cols} */"
                      for n, off, rows, cols, _ in st.groups)
-    layout = "\n".join(f" *   {_comment(s)}" for s in _data_layout(ref, st))
+    layout = "\n".join(f" *   {_comment(s)}" for s in _data_layout(st))
     pdefs = "\n".join(f"#define CASTIMATE_P_{_c_ident(n)} {off} /* {cnt} fixed components, in component order */"
                       for n, off, cnt in st.fixed)
     return f"""/* castimate_solver.h: a C solver of one castimate calibration problem.
@@ -551,12 +560,18 @@ clean:
 
 
 def _readme(ref: Reference, st: GNStructure) -> str:
+    from ..problem.dynamic import MASKED_SIGMA
+
     sol = ref.solution
+    masking = (f"Saturated readings: every sample of the window is an instance, whatever saturates. Give a "
+               f"saturated (masked) reading sigma = {MASKED_SIGMA:g}: its whitened residual and Jacobian then "
+               "vanish, as if it were left out, which is what castimate's saturation masking does (the test "
+               "vectors' data are built that way)." if ref.kind == "dynamic_array" else "")
     groups = "\n".join(f"| `{n}` | `CASTIMATE_V_{_c_ident(n)}` = {off} | {rows} x {cols} |"
                        for n, off, rows, cols, _ in st.groups if not n.startswith(("motion.", "pose.")))
     nuis = ", ".join(f"`{n}` ({rows} x {cols})" for n, off, rows, cols, _ in st.groups
                      if n.startswith(("motion.", "pose.")))
-    data = "\n".join(f"- {s}" for s in _data_layout(ref, st))
+    data = "\n".join(f"- {s}" for s in _data_layout(st))
     unit = ("The pose directions are unit vectors (|v|^2 = 1, an equality constraint in the Python "
             "solve). The C solver keeps that constraint: each Gauss-Newton step is computed with the "
             "constraint linearised (a KKT system per pose), then the direction is normalised again. "
@@ -618,6 +633,8 @@ calibration parameters, and an iteration costs time linear in the number of pose
 Convergence: the largest scaled step below `CASTIMATE_XTOL` (1e-10).
 
 {unit}
+
+{masking}
 
 Test vectors: `{VECTORS}` holds the fixed values, the data, the start, and IPOPT's solution (solved
 to tolerance {REFERENCE_TOL:g}): x, the physical values and the cost. Python: {sol.iterations} IPOPT

@@ -220,10 +220,14 @@ def initial_motion(config: DynamicConfig, data: DynamicData, gyro_triads: list[s
     return {OMEGA: omega, OMEGA_DOT: omega_dot, S: s}
 
 
+def _gyro_triads(config: DynamicConfig, data: DynamicData) -> list[str]:
+    return [t.name for t in config.triads if t.gyroscope is not None and t.name in data.gyro]
+
+
 def build_dynamic(config: DynamicConfig, data: DynamicData, start: dict | None = None) -> DynamicProblem:
     """Compose the dynamic problem; data and fixed values are NLP parameters."""
     N = data.n
-    gyro_triads = [t.name for t in config.triads if t.gyroscope is not None and t.name in data.gyro]
+    gyro_triads = _gyro_triads(config, data)
     start = {**initial_motion(config, data, gyro_triads), **(start or {})}
     groups = []
     for t in config.triads:
@@ -257,6 +261,29 @@ def build_dynamic(config: DynamicConfig, data: DynamicData, start: dict | None =
     problem = DynamicProblem(config, LeastSquaresProblem(Layout(groups), blocks), N, gyro_triads, rows)
     for blk, d in zip(blocks, problem.block_data(data)):
         blk.data = d
+    return problem
+
+
+#: σ of a masked (saturated) reading in :func:`build_dynamic_sigma_masked`: its whitened residual
+#: and Jacobian vanish (to 1e-30 of the others), as if the reading were left out.
+MASKED_SIGMA = 1e30
+
+
+def build_dynamic_sigma_masked(config: DynamicConfig, data: DynamicData) -> DynamicProblem:
+    """The dynamic problem with every sample an instance, masked readings weighted out by σ = MASKED_SIGMA.
+
+    Same optimum as :func:`build_dynamic` (which leaves masked readings out), but the structure no
+    longer depends on which samples saturate: a fixed-size solver (the C code) takes any window.
+    The start is that of the masked problem (gyro-aided, interpolated over saturated gyros)."""
+    full = replace(data, acc_valid={}, gyro_valid={})
+    problem = build_dynamic(config, full, initial_motion(config, data, _gyro_triads(config, data)))
+    blocks = problem.block_data(full)
+    for kind, names, blk in (("acc", config.names, blocks[0]),
+                             ("gyro", problem.gyro_triads, blocks[1] if problem.gyro_triads else None)):
+        for k, name in enumerate(names):
+            blk[k * data.n + np.flatnonzero(~data.valid(kind, name)), 3:6] = MASKED_SIGMA
+    for b, d in zip(problem.lsq.blocks, blocks):
+        b.data = d
     return problem
 
 
