@@ -57,9 +57,30 @@ def test_static_simulated_matches_ipopt_and_is_deterministic(simulated, tmp_path
     for name in FILES:
         assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), f"{name} differs"
     readme = (tmp_path / "a" / "README.md").read_text()
-    assert "unit vectors" in readme and "Schur complement" in readme
+    assert "Unit-norm groups (`pose.direction`)" in readme and "Schur complement" in readme
     header = (tmp_path / "a" / "castimate_solver.h").read_text()
     assert "CASTIMATE_V_IMU01_ACCELEROMETER_GAIN" in header or "ACCELEROMETER_GAIN" in header
+
+
+@pytest.mark.parametrize("model", ["gravity_direction: quaternion\n  misalignment: rotation",
+                                   "gravity_direction: pitch_roll"], ids=["quaternions", "pitch_roll"])
+def test_static_parametrisations_match_ipopt(simulated, tmp_path, model):
+    """Tilt quaternions (unit norm with a fixed q_z) per pose and misalignment quaternions (global unit-norm
+    rows), or unconstrained pitch/roll: the C solver reaches IPOPT's optimum in every parametrisation."""
+    src = simulated["sim_nilsson_14x20"]
+    text = src.read_text()
+    assert "  gravity: 9.8192\n" in text
+    variant = src.parent / f"variant_{len(model)}.yaml"
+    variant.write_text(text.replace("  gravity: 9.8192\n", f"  gravity: 9.8192\n  {model}\n"))
+    vals = emit_and_check(variant, tmp_path / "c")
+    assert vals["max rel difference"] < 1e-10
+    readme = (tmp_path / "c" / "README.md").read_text()
+    assert ("Unit-norm groups (`imu2.accelerometer.misalignment`" in readme) == ("rotation" in model)
+    assert ("no unit-norm constraints" in readme) == ("pitch_roll" in model)
+
+
+def test_static_single_triad_with_gyroscope_matches_ipopt(tmp_path):
+    emit_and_check(PROBLEMS / "xsens_imutk.yaml", tmp_path / "c")
 
 
 def test_static_real_mimu4444_matches_ipopt(shared_data, tmp_path):
