@@ -25,7 +25,8 @@
  * iteration grows linearly with the number of poses or samples. After a step the unit-norm rows
  * are normalised again (a retraction onto the sphere), so the iterates stay feasible and the fixed
  * point is the constrained optimum IPOPT finds: J^T r + A^T lam = 0, c = 0. A step is accepted if
- * it lowers the cost (then mu shrinks), else mu grows; the iteration stops when the largest step
+ * it lowers the cost (then mu shrinks by Nielsen's rule from the ratio of the actual to the predicted
+ * decrease), else mu grows; the iteration stops when the largest step
  * component (in the scaled variables x) is below CASTIMATE_XTOL.
  */
 #include <math.h>
@@ -373,7 +374,7 @@ static int indices_ready = 0;
 int castimate_solve(const double *p_fixed, const double *data, const double *x0, double *x,
                     castimate_solve_info *info)
 {
-    double f, f_trial, mu = CASTIMATE_MU0, dmax, xmax, predicted;
+    double f, f_trial, mu = CASTIMATE_MU0, nu = 2.0, dmax, xmax, predicted;
     static double x_trial[ALLOC(NX)];
     int it, i, status = CASTIMATE_MAX_ITER, n_eval = 0;
     if (data == 0 || x == 0) return CASTIMATE_BAD_INPUT;
@@ -417,12 +418,19 @@ int castimate_solve(const double *p_fixed, const double *data, const double *x0,
             /* Accept a step that lowers the cost, or one whose predicted decrease is below the
              * round-off of the cost (there the cost cannot rank steps any more). */
             if (f_trial >= 0.0 && (f_trial < f || predicted <= CASTIMATE_FTOL * f)) {
+                /* Nielsen's update from the gain ratio rho = actual / predicted decrease */
+                /* (in the round-off regime the ratio means nothing: shrink as for a perfect model) */
+                double rho = predicted > CASTIMATE_FTOL * f ? (f - f_trial) / predicted : 1.0, t = 2.0 * rho - 1.0;
+                double shrink = 1.0 - t * t * t;
                 accepted = dmax <= CASTIMATE_XTOL * (1.0 + xmax) ? 2 : 1;
                 memcpy(x, x_trial, sizeof(double) * NX);
                 f = f_trial;
-                mu = mu / 10.0 > 1e-15 ? mu / 10.0 : 1e-15;
+                mu *= shrink > 1.0 / 3.0 ? shrink : 1.0 / 3.0;
+                if (mu < 1e-15) mu = 1e-15;
+                nu = 2.0;
             } else {
-                mu *= 10.0;
+                mu *= nu;
+                nu *= 2.0;
             }
         }
         if (!accepted) {
