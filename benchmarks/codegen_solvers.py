@@ -126,10 +126,10 @@ def _unlimited_stack():
     resource.setrlimit(resource.RLIMIT_STACK, (resource.RLIM_INFINITY, resource.RLIM_INFINITY))
 
 
-def sqpmethod(ref, tmp: Path, timeout: float, max_c_mb: float) -> dict:
+def sqpmethod(ref, tmp: Path, timeout: float, max_c_mb: float, max_iter: int = 100) -> dict:
     opts = {"qpsol": "qrqp", "qpsol_options": {"print_iter": False, "print_header": False, "error_on_fail": False},
             "print_iteration": False, "print_header": False, "print_status": False, "print_time": False,
-            "max_iter": 100, "tol_pr": 1e-10, "tol_du": 1e-10}
+            "max_iter": max_iter, "tol_pr": 1e-10, "tol_du": 1e-10}
     t0 = time.perf_counter()
     nlp = ca.nlpsol("castimate_sqp", "sqpmethod", sqp_nlp(ref), opts)
     build_s = time.perf_counter() - t0
@@ -141,6 +141,7 @@ def sqpmethod(ref, tmp: Path, timeout: float, max_c_mb: float) -> dict:
     in_mem = nlp(x0=ref.x0, p=p, lbx=-inf, ubx=inf, lbg=0, ubg=0)
     out = {"build_s": build_s, "in_memory_solve_s": time.perf_counter() - t0,
            "iterations": int(nlp.stats()["iter_count"]), "status": nlp.stats()["return_status"]}
+    out["in_memory_s_per_iteration"] = out["in_memory_solve_s"] / max(out["iterations"], 1)
     x_mem = np.asarray(in_mem["x"]).ravel()
     out["max_rel_diff"] = float(np.max(np.abs(x_mem - ref.solution.x) / np.maximum(1, np.abs(ref.solution.x))))
     cg = ca.CodeGenerator("castimate_sqp.c", {"main": True, "with_header": False})
@@ -186,9 +187,11 @@ def sqpmethod(ref, tmp: Path, timeout: float, max_c_mb: float) -> dict:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--windows", default="10,20,50,200,1000", help="dynamic window sizes (samples)")
-    ap.add_argument("--sqp-max-window", type=int, default=50, help="largest dynamic window for sqpmethod")
+    ap.add_argument("--windows", default="50,100,200,1000", help="dynamic window sizes (samples)")
+    ap.add_argument("--sqp-max-window", type=int, default=100, help="largest dynamic window for sqpmethod")
     ap.add_argument("--sqp-timeout", type=float, default=300, help="limit of gcc and of the solve, seconds")
+    ap.add_argument("--sqp-dynamic-iterations", type=int, default=10,
+                    help="sqpmethod iteration limit on dynamic windows (its time per iteration is what scales)")
     ap.add_argument("--sqp-max-c-mb", type=float, default=60, help="do not compile larger sqpmethod C files")
     args = ap.parse_args()
     RESULTS.mkdir(parents=True, exist_ok=True)
@@ -220,7 +223,8 @@ def main() -> int:
             if window is None or window <= args.sqp_max_window:
                 d = tmp / f"sqp_{len(rows)}"
                 d.mkdir()
-                row["sqpmethod_qrqp"] = sqpmethod(ref, d, args.sqp_timeout, args.sqp_max_c_mb)
+                row["sqpmethod_qrqp"] = sqpmethod(ref, d, args.sqp_timeout, args.sqp_max_c_mb,
+                                                  100 if window is None else args.sqp_dynamic_iterations)
                 print(f"   sqpmethod+qrqp: {row['sqpmethod_qrqp']}", flush=True)
             rows.append(row)
     meta = {"nproc": os.cpu_count(), "python": platform.python_version(), "casadi": ca.__version__,
@@ -232,7 +236,7 @@ def main() -> int:
           f"{meta['nproc']} cores, Python {meta['python']}, CasADi {meta['casadi']}, gcc {meta['gcc']}. "
           "C size: the solver's .c/.h; gcc: the solver's objects (GN: driver -O2, generated -O1; sqp: -O1); "
           "object: text + data (bss = static work space); max diff: max |x_C - x_Python| / max(1, |x|), x scaled.", "",
-          "| problem | vars | Python IPOPT s | method | C kB | gcc s | object kB (bss kB) | C solve s | in-memory s | iterations | max diff |",
+          "| problem | vars | Python IPOPT s | method | C kB | gcc s | object kB (bss kB) | C solve s | in-memory s (per iteration) | iterations | max diff |",
           "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         for key, name in (("gauss_newton", "GN driver"), ("sqpmethod_qrqp", "sqpmethod+qrqp")):
@@ -241,9 +245,12 @@ def main() -> int:
             m = r[key]
             solve = f"{m['solve_s']:.4f}" if m.get("solve_s") is not None else m.get("note", "-")
             diff = f"{m['max_rel_diff']:.1e}" if "max_rel_diff" in m else "-"
+            if m.get("status") not in (None, "Solve_Succeeded", "Search_Direction_Becomes_Too_Small"):
+                diff += f" ({m['status']})"
             gcc = f"{m['gcc_s']:.1f}" if "gcc_s" in m else "-"
             obj = f"{m['text_data_bytes'] / 1e3:.0f} ({m['bss_bytes'] / 1e3:.0f})" if "text_data_bytes" in m else "-"
-            mem = f"{m['in_memory_solve_s']:.3f}" if "in_memory_solve_s" in m else "-"
+            mem = (f"{m['in_memory_solve_s']:.3f} ({m['in_memory_s_per_iteration']:.3f})"
+                   if "in_memory_solve_s" in m else "-")
             md.append(f"| {r['problem']} | {r['n_x']} | {r['python_ipopt_s']:.4f} | {name} | {m['c_bytes'] / 1e3:.0f} | "
                       f"{gcc} | {obj} | {solve} | {mem} | {m.get('iterations', '-')} | {diff} |")
 
