@@ -563,6 +563,16 @@ def _readme(ref: Reference, st: GNStructure) -> str:
     from ..problem.dynamic import MASKED_SIGMA
 
     sol = ref.solution
+    conditioning = ("\nGauss-Newton converges slowly where the problem is nearly singular: a window too short to "
+                    "determine the positions (20 samples of the Carlsson-like simulation took IPOPT 129 iterations "
+                    "and this solver more than its 100) returns CASTIMATE_MAX_ITER. Emit windows that determine "
+                    "the geometry (50 samples and more converged in 9-20 iterations)."
+                    if ref.kind == "dynamic_array" and st.n_global else "")
+    motion = ("Motion estimator: every intrinsic and position is fixed, so there are no global variables and "
+              "every sample is solved on its own (Carlsson 2017's maximum-likelihood omega, omega_dot, s). The "
+              "geometry comes in at run time as the fixed values p_fixed (offsets CASTIMATE_P_<GROUP> in "
+              "castimate_solver.h): castimate_solve(p, data, x0, x, &info) with p holding a new calibration."
+              if st.n_global == 0 and ref.kind == "dynamic_array" else "")
     masking = (f"Saturated readings: every sample of the window is an instance, whatever saturates. Give a "
                f"saturated (masked) reading sigma = {MASKED_SIGMA:g}: its whitened residual and Jacobian then "
                "vanish, as if it were left out, which is what castimate's saturation masking does (the test "
@@ -636,10 +646,13 @@ residual involves at most one pose (static) or one sample (dynamic), so J^T J is
 shaped: every pose's or sample's variables are eliminated by a Schur complement onto the
 calibration parameters, and an iteration costs time linear in the number of poses or samples.
 Convergence: the largest scaled step below `CASTIMATE_XTOL` (1e-10).
+{conditioning}
 
 {unit}
 
 {masking}
+
+{motion}
 
 Test vectors: `{VECTORS}` holds the fixed values, the data, the start, and IPOPT's solution (solved
 to tolerance {REFERENCE_TOL:g}): x, the physical values and the cost. Python: {sol.iterations} IPOPT
