@@ -4,6 +4,7 @@ Python/IPOPT solution on simulated and real problems, is deterministic, and bad 
 from __future__ import annotations
 
 import re
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -181,3 +182,73 @@ def test_sigma_masking_has_the_optimum_of_leaving_readings_out(shared_data):
     assert sa.success and sb.success
     for g in a.lsq.layout.groups:
         np.testing.assert_allclose(sb.values[g.name], sa.values[g.name], rtol=1e-9, atol=1e-9 * np.max(g.scale))
+
+
+START_PROGRAM = r"""
+/* A device's path: the start built in C from the data alone (neutral parameters, pose directions
+ * from the reference triad's readings), then the solve. */
+#include <math.h>
+#include <stdio.h>
+#include <string.h>
+#include "castimate_solver.h"
+
+static double p[CASTIMATE_NP + 1], data[CASTIMATE_NDATA], x0[CASTIMATE_NX], want[CASTIMATE_NX], x[CASTIMATE_NX];
+static double values[CASTIMATE_NVAL];
+
+static int section(FILE *f, double *out, long n)
+{
+    char line[256];
+    long i, m;
+    do {
+        if (!fgets(line, sizeof line, f)) return 1;
+    } while (line[0] == '#' || sscanf(line, "%*s %ld", &m) != 1);
+    for (i = 0; i < n; ++i)
+        if (fscanf(f, "%lf", &out[i]) != 1) return 1;
+    fgets(line, sizeof line, f);
+    return m != n;
+}
+
+int main(void)
+{
+    FILE *f = fopen("test_vectors.txt", "r");
+    int n, k, i;
+    double worst = 0.0;
+    castimate_solve_info info;
+    if (!f || section(f, p, CASTIMATE_NP) || section(f, data, CASTIMATE_NDATA) || section(f, x0, CASTIMATE_NX) ||
+        section(f, want, CASTIMATE_NX)) return 2;
+    fclose(f);
+    castimate_values(p, cs_x0, values);  /* neutral calibration parameters */
+    for (n = 0; n < POSES; ++n) {         /* reference triad = instances 0 .. POSES-1: y[3] sigma[3] Rbar[9] g */
+        const double *d = data + 16 * n, *R = d + 6;
+        double u[3], s = 0.0;
+        for (k = 0; k < 3; ++k) {         /* u = Rbar^T y, Rbar column-major */
+            u[k] = R[3 * k] * d[0] + R[3 * k + 1] * d[1] + R[3 * k + 2] * d[2];
+            s += u[k] * u[k];
+        }
+        for (k = 0; k < 3; ++k) values[CASTIMATE_V_POSE_DIRECTION + 3 * n + k] = u[k] / sqrt(s);
+    }
+    castimate_x_from_values(values, x0);
+    if (castimate_solve(p, data, x0, x, &info) != 0) return 1;
+    for (i = 0; i < CASTIMATE_NX; ++i) {
+        double e = fabs(x[i] - want[i]) / (fabs(want[i]) > 1 ? fabs(want[i]) : 1);
+        if (e > worst) worst = e;
+    }
+    printf("iterations %d, max rel difference %.3e\n", info.iterations, worst);
+    return worst < 1e-9 ? 0 : 1;
+}
+"""
+
+
+def test_start_from_the_data_alone_in_c(simulated, tmp_path):
+    """castimate_values / castimate_x_from_values: a start built in C from the data reaches IPOPT's optimum."""
+    d = tmp_path / "c"
+    generate_c(simulated["sim_nilsson_14x20"], d)
+    (d / "start_main.c").write_text(START_PROGRAM.replace("POSES", "20"))
+    rc, out = make_check(d)  # builds the objects (and checks)
+    assert rc == 0, out
+    build = subprocess.run(["gcc", "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-Wno-unused-result",
+                            "-o", "start_main", "start_main.c", "castimate_gn.o", "castimate_problem.o",
+                            "castimate_cg.o", "-lm"], cwd=d, capture_output=True, text=True)
+    assert build.returncode == 0, build.stderr
+    run = subprocess.run(["./start_main"], cwd=d, capture_output=True, text=True)
+    assert run.returncode == 0, run.stdout + run.stderr

@@ -379,6 +379,11 @@ int castimate_solve(const double *p_fixed, const double *data, const double *x0,
 /** Physical values of every parameter group (CASTIMATE_NVAL doubles) from x and p_fixed (NULL: cs_p0). */
 void castimate_values(const double *p_fixed, const double *x, double *values);
 
+/** The inverse for the free components: x (CASTIMATE_NX) from physical values (CASTIMATE_NVAL), e.g.
+ * a start for new data built with castimate_values(NULL, cs_x0, values), then the nuisance groups
+ * (pose directions, motion) overwritten from the new data. */
+void castimate_x_from_values(const double *values, double *x);
+
 #ifdef __cplusplus
 }} /* extern "C" */
 #endif
@@ -548,6 +553,12 @@ def _readme(ref: Reference, st: GNStructure) -> str:
                     "and this solver more than its 100) returns CASTIMATE_MAX_ITER. Emit windows that determine "
                     "the geometry (50 samples and more converged in 9-20 iterations)."
                     if ref.kind == "dynamic_array" and st.n_global else "")
+    start = ("Pose directions: u_n = Rbar_ref^T y_ref,n / |Rbar_ref^T y_ref,n|, the reference triad's "
+             "averaged reading in the body frame (Nilsson 2014; stored as the problem's direction "
+             "parametrisation)." if ref.kind == "static_array" else
+             "Motion (gyro-aided, castimate.problem.dynamic.initial_motion): s_n = the reference triad's "
+             "compensated reading (it sits at the origin), omega_n = the mean of the compensated gyroscopes "
+             "(interpolated over saturated ones), omega_dot_n = its finite-difference derivative.")
     motion = ("Motion estimator: every intrinsic and position is fixed, so there are no global variables and "
               "every sample is solved on its own (Carlsson 2017's maximum-likelihood omega, omega_dot, s). The "
               "geometry comes in at run time as the fixed values p_fixed (offsets CASTIMATE_P_<GROUP> in "
@@ -606,6 +617,12 @@ and include `castimate_solver.h`.
 - `void castimate_values(const double *p_fixed, const double *x, double *values)`: the physical
   values of every parameter group (gain, bias, non-orthogonality, misalignment per triad, positions),
   as the Python results have them.
+
+Start for new data: `cs_x0` is the Python start for the test vectors' data: the calibration
+parameters at the problem file's initial values (neutral: gain 1, the rest 0, unless given), and
+the nuisance variables from the data. {start} To solve new data, build a start the same way: get
+`values` from `castimate_values(NULL, cs_x0, values)` (or from a previous solution), overwrite the
+nuisance groups from the new data, and convert with `castimate_x_from_values(values, x0)`.
 
 Data layout (`CASTIMATE_NDATA` = {st.n_data} doubles, SI units):
 

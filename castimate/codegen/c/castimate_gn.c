@@ -461,3 +461,10 @@ void castimate_values(const double *p_fixed, const double *x, double *values)
     set_w(x, p_fixed, w_);
     for (i = 0; i < CS_NVAL; ++i) values[i] = w_[cs_value_w[i]];
 }
+
+void castimate_x_from_values(const double *values, double *x)
+{
+    int i;
+    for (i = 0; i < CS_NVAL; ++i)
+        if (cs_value_w[i] < NX) x[cs_value_w[i]] = values[i] / cs_x_scale[cs_value_w[i]];
+}
