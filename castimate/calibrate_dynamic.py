@@ -252,8 +252,19 @@ class DynamicInput:
 
     full: Recording
     data: DynamicData
-    saturation: dict
+    saturation: dict  # "<triad>.<sensor>" -> number of masked samples
     regressors: Regressors  # of the whole session, also for parts of it (cross-validation folds)
+
+
+@dataclass
+class DynamicInputs:
+    """What a dynamic solve starts from: the triads, the masked recording, and the static phase of a joint problem."""
+
+    config: DynamicConfig
+    data: DynamicData
+    saturation: dict  # "<triad>.<sensor>" -> number of masked samples
+    nominal: dict  # name -> nominal position in the body frame
+    static_problem: object = None  # StaticProblem of data.static (joint problems), else None
 
 
 def load_dynamic(spec: ProblemSpec, log: Log = _quiet) -> DynamicInput:
@@ -281,11 +292,9 @@ def load_dynamic(spec: ProblemSpec, log: Log = _quiet) -> DynamicInput:
     return DynamicInput(full, data, sat, Regressors.from_times(data.t, data.temp))
 
 
-def calibrate_dynamic(spec: ProblemSpec, log: Log = _quiet, max_restarts: int = 2,
-                      loaded: DynamicInput | None = None) -> DynamicOutcome:
-    """Run a dynamic array calibration end to end. Raises InputError or NotConvergedError.
-
-    ``loaded`` reuses a session already read with :func:`load_dynamic`."""
+def dynamic_inputs(spec: ProblemSpec, log: Log = _quiet, loaded: DynamicInput | None = None) -> DynamicInputs:
+    """Configure the triads (and the static phase of a joint problem) for a session read with
+    :func:`load_dynamic` (read here if not given)."""
     loaded = loaded or load_dynamic(spec, log)
     full, data, sat = loaded.full, loaded.data, loaded.saturation
     config = replace(dynamic_config(spec, full, log), regressors=loaded.regressors)
@@ -300,6 +309,17 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = _quiet, max_restarts: int = 
                              f"needs a logged temperature, but {spec.data.path.name} has none for triad {missing[0]!r}")
     nominal = {t.name: (t.position - next(x for x in config.triads if x.name == config.reference).position)
                if t.position is not None else np.zeros(3) for t in config.triads}
+    return DynamicInputs(config, data, sat, nominal, static_problem)
+
+
+def calibrate_dynamic(spec: ProblemSpec, log: Log = _quiet, max_restarts: int = 2,
+                      loaded: DynamicInput | None = None) -> DynamicOutcome:
+    """Run a dynamic array calibration end to end. Raises InputError or NotConvergedError.
+
+    ``loaded`` reuses a session already read with :func:`load_dynamic`."""
+    inputs = dynamic_inputs(spec, log, loaded)
+    config, data, sat, nominal, static_problem = (inputs.config, inputs.data, inputs.saturation, inputs.nominal,
+                                                  inputs.static_problem)
 
     if spec.solver.method == "bcd":
         problem, solver, sol, attempts = _solve_bcd(spec, config, data, log)

@@ -100,7 +100,8 @@ def cmd_diagnose(args) -> int:
 def cmd_codegen(args) -> int:
     from .codegen import generate_c
 
-    files = generate_c(args.results, args.output)
+    files = generate_c(args.source, args.output, window=args.window, start=args.start,
+                       motion_only=args.motion_only)
     for name, path in files.items():
         print(f"wrote {path}")
     print(f"build and test with: make -C {args.output} check")
@@ -133,9 +134,17 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("-o", "--output", required=True, help="output directory")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     s.set_defaults(func=cmd_diagnose)
-    s = sub.add_parser("codegen", help="write C99 code of the compensation function of a results.json into DIR")
-    s.add_argument("results", help="a results.json (solve the problem first)")
+    s = sub.add_parser("codegen", help="write C99 code into DIR: the solver of a problem file, or the "
+                                        "compensation function of a results.json")
+    s.add_argument("source", help="a problem file (PROBLEM.yaml: its solver in C, test vectors from the "
+                                  "Python solve) or a results.json (the compensation function)")
     s.add_argument("-o", "--output", required=True, help="output directory")
+    s.add_argument("--window", type=int, default=None,
+                   help="dynamic problems: samples per solve (default 200), the size the C solver is built for")
+    s.add_argument("--start", type=int, default=0, help="dynamic problems: first sample of the test window (default 0)")
+    s.add_argument("--motion-only", action="store_true",
+                   help="dynamic problems: the array motion estimator (omega, omega_dot, s per sample; intrinsics "
+                        "and positions fixed at the problem's values, passed at run time as the fixed values)")
     s.set_defaults(func=cmd_codegen)
     return p
 

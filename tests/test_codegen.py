@@ -107,14 +107,11 @@ def test_make_check_fails_on_a_mismatch(tmp_path):
     assert rc != 0 and "FAILED" in out, out
 
 
-def test_problem_file_is_refused_with_advice(tmp_path, capsys):
+def test_problem_file_for_the_compensation_function_is_refused_with_advice(tmp_path):
     problem = ROOT / "problems" / "mimu4444_exp1_static.yaml"
     with pytest.raises(InputError, match="solve it first") as e:
-        generate_c(problem, tmp_path / "c")
+        load_calibration(problem)
     assert "\n" not in str(e.value) and "results.json" in str(e.value)
-    assert main(["codegen", str(problem), "-o", str(tmp_path / "c")]) == 2
-    assert "solve it first" in capsys.readouterr().err
-    assert not (tmp_path / "c").exists()
 
 
 def test_unconverged_results_are_refused(tmp_path):

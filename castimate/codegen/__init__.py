@@ -1,5 +1,49 @@
-"""C code generation (``castimate codegen``): the compensation function of a calibration as plain C99."""
+"""C code generation (``castimate codegen``).
 
-from .compensation import generate_c, generate_files, load_calibration
+- From a ``results.json``: the compensation function of a calibration (:mod:`.compensation`).
+- From a problem file: a C solver of the problem, so a device can recalibrate without Python
+  (:mod:`.solvers`, :mod:`.gn_structure`, the driver ``c/castimate_gn.c``).
+"""
 
-__all__ = ["generate_c", "generate_files", "load_calibration"]
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import InputError
+from ..io.atomic import write_atomic
+from .compensation import generate_files, load_calibration
+
+
+def is_problem_file(path: str | Path) -> bool:
+    return Path(path).suffix.lower() in (".yaml", ".yml")
+
+
+def generate_c(source: str | Path, out_dir: str | Path, window: int | None = None, start: int = 0,
+               motion_only: bool = False) -> dict[str, Path]:
+    """Write C sources, header, test vectors, test program, Makefile and README into out_dir.
+
+    ``source`` is a results.json (the compensation function) or a problem file (its solver; a
+    dynamic problem for ``window`` samples from sample ``start``; ``motion_only``: the array motion
+    estimator, geometry and intrinsics fixed). Returns {name: path} of the
+    files written. Raises InputError for bad input, NotConvergedError if the reference solve fails.
+    """
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(out_dir, "", "expected an output directory, found a file")
+    if is_problem_file(source):
+        from .solvers import generate_solver_files, reference_for
+
+        files = generate_solver_files(reference_for(source, window, start, motion_only))
+    else:
+        if window is not None or start or motion_only:
+            raise InputError(source, "", "--window, --start and --motion-only apply to a problem file, "
+                                         "not a results file")
+        files = generate_files(source)
+    written = {}
+    for name, text in files.items():
+        write_atomic(out_dir / name, text)
+        written[name] = out_dir / name
+    return written
+
+
+__all__ = ["generate_c", "generate_files", "is_problem_file", "load_calibration"]

@@ -84,6 +84,10 @@ class DynamicData:
         return replace(self, t=self.t[idx], acc=pick(self.acc), gyro=pick(self.gyro), acc_valid=pick(self.acc_valid),
                        gyro_valid=pick(self.gyro_valid), temp=pick(self.temp))
 
+    def window(self, start: int, n: int) -> "DynamicData":
+        """Samples start .. start + n - 1 (a fixed-size window, e.g. for the C solver)."""
+        return self.take(np.arange(self.n)[start:start + n])
+
     def valid(self, kind: str, name: str) -> np.ndarray:
         m = (self.acc_valid if kind == "acc" else self.gyro_valid).get(name)
         return np.ones(self.n, bool) if m is None else m
@@ -174,6 +178,20 @@ def position_group(config: DynamicConfig, t: TriadConfig) -> Group:
                       upper=np.inf if s.upper is None else s.upper,
                       prior_mean=np.nan if s.prior_mean is None else s.prior_mean,
                       prior_std=np.nan if s.prior_std is None else s.prior_std, scale=1e-3, unit="m")
+
+
+def geometry_fixed(config: DynamicConfig) -> DynamicConfig:
+    """The same array with every triad's intrinsics and position fixed at their start values: the
+    problem is then the array's per-sample maximum-likelihood motion estimator (Carlsson 2017,
+    sec. III, the ω, ω̇, s step of Algorithm 1 for a known geometry)."""
+    def fix(s: GroupSetting | None, n: int = 3) -> GroupSetting:
+        s = s or GroupSetting(free=(True,) * n)
+        return replace(s, free=(False,) * len(s.free))
+
+    triads = tuple(replace(t, accelerometer={g: fix(v) for g, v in t.accelerometer.items()},
+                           gyroscope=None if t.gyroscope is None else {g: fix(v) for g, v in t.gyroscope.items()},
+                           position_setting=fix(t.position_setting)) for t in config.triads)
+    return replace(config, triads=triads)
 
 
 @dataclass
@@ -267,10 +285,14 @@ def _neighbours(N: int) -> tuple[np.ndarray, np.ndarray]:
     return np.maximum(i - 1, 0), np.minimum(i + 1, N - 1)
 
 
+def _gyro_triads(config: DynamicConfig, data: DynamicData) -> list[str]:
+    return [t.name for t in config.triads if t.gyroscope is not None and t.name in data.gyro]
+
+
 def build_dynamic(config: DynamicConfig, data: DynamicData, start: dict | None = None) -> DynamicProblem:
     """Compose the dynamic problem; data and fixed values are NLP parameters."""
     N = data.n
-    gyro_triads = [t.name for t in config.triads if t.gyroscope is not None and t.name in data.gyro]
+    gyro_triads = _gyro_triads(config, data)
     start = {**initial_motion(config, data, gyro_triads), **(start or {})}
     groups = []
     for t in config.triads:
@@ -321,6 +343,29 @@ def build_dynamic(config: DynamicConfig, data: DynamicData, start: dict | None =
     problem = DynamicProblem(config, LeastSquaresProblem(Layout(groups), blocks), N, gyro_triads, rows)
     for blk, d in zip(blocks, problem.block_data(data)):
         blk.data = d
+    return problem
+
+
+#: σ of a masked (saturated) reading in :func:`build_dynamic_sigma_masked`: its whitened residual
+#: and Jacobian vanish (to 1e-30 of the others), as if the reading were left out.
+MASKED_SIGMA = 1e30
+
+
+def build_dynamic_sigma_masked(config: DynamicConfig, data: DynamicData) -> DynamicProblem:
+    """The dynamic problem with every sample an instance, masked readings weighted out by σ = MASKED_SIGMA.
+
+    Same optimum as :func:`build_dynamic` (which leaves masked readings out), but the structure no
+    longer depends on which samples saturate: a fixed-size solver (the C code) takes any window.
+    The start is that of the masked problem (gyro-aided, interpolated over saturated gyros)."""
+    full = replace(data, acc_valid={}, gyro_valid={})
+    problem = build_dynamic(config, full, initial_motion(config, data, _gyro_triads(config, data)))
+    blocks = problem.block_data(full)
+    for kind, names, blk in (("acc", config.names, blocks[0]),
+                             ("gyro", problem.gyro_triads, blocks[1] if problem.gyro_triads else None)):
+        for k, name in enumerate(names):
+            blk[k * data.n + np.flatnonzero(~data.valid(kind, name)), 3:6] = MASKED_SIGMA
+    for b, d in zip(problem.lsq.blocks, blocks):
+        b.data = d
     return problem
 
 
