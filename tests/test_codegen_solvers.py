@@ -218,8 +218,8 @@ int main(void)
         section(f, want, CASTIMATE_NX)) return 2;
     fclose(f);
     castimate_values(p, cs_x0, values);  /* neutral calibration parameters */
-    for (n = 0; n < POSES; ++n) {         /* reference triad = instances 0 .. POSES-1: y[3] sigma[3] Rbar[9] g */
-        const double *d = data + 16 * n, *R = d + 6;
+    for (n = 0; n < POSES; ++n) {         /* reference triad = instances 0 .. POSES-1: y[3] sigma[3] Rbar[9] g, 4 effect regressors */
+        const double *d = data + 20 * n, *R = d + 6;
         double u[3], s = 0.0;
         for (k = 0; k < 3; ++k) {         /* u = Rbar^T y, Rbar column-major */
             u[k] = R[3 * k] * d[0] + R[3 * k + 1] * d[1] + R[3 * k + 2] * d[2];
