@@ -28,6 +28,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
+from .jit import compile_functions
 from .problem.parameters import Layout
 
 
@@ -54,6 +55,9 @@ class SolverOptions:
     method
         ``ipopt`` (default) or ``bcd``: Carlsson 2017's block coordinate descent (Algorithm 1), a
         baseline for dynamic problems with gyroscopes where only positions are free.
+    jit
+        Compile the factors' local functions to C (:mod:`castimate.jit`, cached on disk); the
+        results are the same as on CasADi's virtual machine, about ten times faster.
     """
 
     method: str = "ipopt"
@@ -63,6 +67,7 @@ class SolverOptions:
     print_level: int = 0
     hessian: str = "exact"
     identifiability_tol: float = 1e-10
+    jit: bool = True
 
     def ipopt(self) -> dict:
         return {
@@ -159,7 +164,7 @@ class _Compiled:
     exact local Hessian of a Schopp accelerometer factor from about 6500 to about 2400 instructions.
     """
 
-    def __init__(self, fn: ca.Function, active: np.ndarray, hessian: str):
+    def __init__(self, fn: ca.Function, active: np.ndarray, hessian: str, jit: bool):
         nz, nd = fn.size1_in(0), fn.size1_in(1)
         z, d = ca.SX.sym("z", nz), ca.SX.sym("d", nd)
         r = fn(z, d)
@@ -175,14 +180,17 @@ class _Compiled:
         self.hess = ca.Function(f"{fn.name()}_hess", [z, d], [ca.vertcat(*[H[loc[a], loc[b]] for a, b in self.pairs])
                                                                if self.pairs else ca.SX(0, 1)])
         self.jac = ca.Function(f"{fn.name()}_jac", [z, d], [ca.densify(J)])
-        self.res = fn
+        self.res = ca.Function(f"{fn.name()}_res", [z, d], [r])
+        if jit:
+            self.res, self.jac, self.hess = compile_functions([self.jac, self.hess], [self.res]) or \
+                (self.res, self.jac, self.hess)
         self.nz, self.nd, self.m = nz, nd, fn.size1_out(0)
 
 
 class _Block:
     """A factor block bound to the layout: its index matrix into w and its compiled functions."""
 
-    def __init__(self, block: FactorBlock, layout: Layout, cache: dict, hessian: str):
+    def __init__(self, block: FactorBlock, layout: Layout, cache: dict, hessian: str, jit: bool):
         self.block = block
         cols = []
         for g, rows in block.inputs:
@@ -196,7 +204,7 @@ class _Block:
         active = (self.w_idx < layout.n_x).any(axis=0)
         key = (id(block.residual), active.tobytes())
         if key not in cache:
-            cache[key] = _Compiled(block.residual, active, hessian)
+            cache[key] = _Compiled(block.residual, active, hessian, jit)
         self.f = cache[key]
 
 
@@ -209,7 +217,7 @@ class Solver:
         lay = problem.layout
         self.n_x = n = lay.n_x
         cache: dict = {}
-        self.blocks = [_Block(b, lay, cache, options.hessian) for b in problem.blocks if b.n]
+        self.blocks = [_Block(b, lay, cache, options.hessian, options.jit) for b in problem.blocks if b.n]
         x = ca.MX.sym("x", n)
         p = self._p_sym = ca.MX.sym("p", lay.n_p + problem.data.size)
         scale = lay.x_scale
