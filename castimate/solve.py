@@ -101,12 +101,18 @@ class FactorBlock:
     data
         (N, nd) data of the instances; they enter the NLP as parameters, so one build serves any
         number of data sets.
+    valid
+        (N,) instances whose residuals count (default all). The data of the others must make
+        their residuals exactly zero (a masked sample with σ = inf): they keep a block's
+        instances on a regular grid, which the solver exploits, and are left out of the reported
+        residuals and degrees of freedom.
     """
 
     name: str
     residual: ca.Function
     inputs: list[tuple[str | tuple[str, ...], np.ndarray | None]]
     data: np.ndarray
+    valid: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -208,8 +214,129 @@ class _Block:
         self.f = cache[key]
 
 
+class _NotStaged(Exception):
+    """A block touches stage variables without the stage structure."""
+
+
+class _StagedBlock:
+    """How the instances of one block map to stages: instance t = j * K + k belongs to stage
+    ``base + j`` (plus the offset ``rel`` of each input component, 0 or 1) and sees the same
+    variables of it for every k; which calibration variables it sees depends on k only."""
+
+    def __init__(self, b: "_Block", st: "_Stages"):
+        n = len(st.stage_of)
+        W = b.w_idx
+        free = W < n
+        stg = np.where(free, st.stage_of[np.where(free, W, 0)], -1)
+        is_st = (stg >= 0).any(axis=0)
+        if not is_st.any():
+            raise LookupError  # a block of calibration variables only
+        if not (stg[:, is_st] >= 0).all():
+            raise _NotStaged
+        N = W.shape[0]
+        base = stg[:, is_st].min(axis=1)
+        K = int(np.count_nonzero(base == base[0]))
+        if N % K or not np.array_equal(base, base[0] + np.arange(N) // K):
+            raise _NotStaged
+        rel = np.where(is_st, stg - base[:, None], -1)
+        q = np.where(is_st, st.within[np.where(free, W, 0)], W)  # stage position, or w index
+        J = N // K
+        if not ((rel.reshape(J, K, -1) == rel[:K]).all() and (q.reshape(J, K, -1) == q[:K]).all()) \
+                or rel.max() > 1 or not (np.where(is_st, q[:K] == q[0], True)).all():
+            raise _NotStaged  # (each instance of a stage sees the same stage variables)
+        self.K, self.J, self.base = K, J, int(base[0])
+        self.rel, self.q, self.is_st = rel[:K], q[:K], is_st
+
+
+class _Stages:
+    """The stage structure that makes assembly linear in the number of samples.
+
+    Stages are the rows of the nuisance matrix groups with the most free variables (the motion
+    states of each sample). Inside the NLP the decision vector is ordered [calibration variables
+    (everything else) | stage 0 | stage 1 | ...], each stage holding its row of every stage group.
+    A block is *staged* when its instances come in runs of K per stage (t = j K + k, say sample j
+    and triad k) and each touches its stage and possibly the next one. Then the upper-triangular
+    Hessian's columns of stage s hold the same pattern for every s: rows of calibration
+    variables, of stage s-1 and of stage s. Its nonzeros are the columns of
+    V = sum over blocks and stage offsets of S Y, where Y (pairs * K x stages) is the block's
+    mapped local Hessian reshaped and S a small constant matrix for one stage; and the sparsity is
+    built from Kronecker products. Nothing of the size of the Hessian crosses from Python to
+    CasADi, and the sums over instances that share an entry (the motion block of a sample seen by
+    every triad) happen in that one sparse product per block.
+
+    Calibration x calibration entries of staged blocks are summed over stages (``sum2``) and
+    assembled with priors and constraints like any other block's entries.
+    """
+
+    def __init__(self, lay: Layout, groups):
+        n = lay.n_x
+        self.R = groups[0].rows
+        self.X = np.hstack([lay.w_index(g.name)[:, g.free[0]] for g in groups])  # (R, m) x indices of each stage
+        self.m = self.X.shape[1]
+        in_stage = np.zeros(n, bool)
+        in_stage[self.X.ravel()] = True
+        glob = np.flatnonzero(~in_stage)
+        self.c = len(glob)
+        self.perm = np.concatenate([glob, self.X.ravel()])  # NLP order -> layout index
+        self.stage_of = np.full(n, -1)
+        self.stage_of[self.X] = np.arange(self.R)[:, None]
+        self.within = np.full(n, -1)
+        self.within[self.X] = np.arange(self.m)[None, :]
+        self.scale = lay.x_scale[self.X[0]]
+
+    @staticmethod
+    def find(lay: Layout, blocks) -> tuple["_Stages | None", dict]:
+        """The stage structure and the staged blocks {block index: _StagedBlock}, or (None, {}) if
+        the problem has none or a block touches stage variables otherwise."""
+        by_rows: dict = {}
+        for g in lay.groups:
+            if g.matrix and g.nuisance and g.free.any():
+                by_rows.setdefault(g.rows, []).append(g)
+        if not by_rows:
+            return None, {}
+        groups = max(by_rows.values(), key=lambda gs: sum(int(g.free.sum()) for g in gs))
+        for g in groups:  # uniform rows, no priors or constraints on them
+            f = g.free[0]
+            if g.rows < 2 or not (g.free == f).all() or g.unit_norm or np.isfinite(g.prior_std[g.free]).any() \
+                    or not (g.scale[:, f] == g.scale[0, f]).all():
+                return None, {}
+        st = _Stages(lay, groups)
+        staged = {}
+        for i, b in enumerate(blocks):
+            try:
+                staged[i] = _StagedBlock(b, st)
+            except LookupError:
+                pass
+            except _NotStaged:
+                return None, {}
+        return st, staged
+
+    def z(self, b: "_Block", sb: _StagedBlock, x, w) -> ca.MX:
+        """The block's inputs (nz x N), instance t = j K + k, from the NLP's x and w: per run of
+        consecutive components, the calibration values of every k repeated over the stages, or a
+        window of the stage values repeated over k."""
+        Xs = ca.mtimes(ca.diag(ca.DM(self.scale)), ca.reshape(x[self.c:], self.m, self.R))  # physical, (m, R)
+        K, J, nz = sb.K, sb.J, b.w_idx.shape[1]
+        parts, a = [], 0
+        while a < nz:
+            e = a + 1
+            while e < nz and sb.is_st[e] == sb.is_st[a] and sb.rel[0, e] == sb.rel[0, a]:
+                e += 1
+            if sb.is_st[a]:
+                s0 = sb.base + int(sb.rel[0, a])
+                win = Xs[sb.q[0, a:e].tolist(), s0: s0 + J]  # (e - a, J)
+                parts.append(ca.reshape(ca.repmat(win, K, 1), e - a, K * J))
+            else:
+                parts.append(ca.repmat(ca.reshape(w[sb.q[:, a:e].ravel().tolist()], e - a, K), 1, J))
+            a = e
+        return ca.vertcat(*parts)
+
+
 class Solver:
-    """IPOPT on a :class:`LeastSquaresProblem`, built once and solved for any data or fixed values."""
+    """IPOPT on a :class:`LeastSquaresProblem`, built once and solved for any data or fixed values.
+
+    Public methods take and return x in the layout's order; inside the NLP the variables may be
+    reordered by stage (:class:`_Stages`)."""
 
     def __init__(self, problem: LeastSquaresProblem, options: SolverOptions = SolverOptions()):
         t0 = time.perf_counter()
@@ -218,29 +345,34 @@ class Solver:
         self.n_x = n = lay.n_x
         cache: dict = {}
         self.blocks = [_Block(b, lay, cache, options.hessian, options.jit) for b in problem.blocks if b.n]
-        x = ca.MX.sym("x", n)
+        self._stages, self._staged = st, staged = _Stages.find(lay, self.blocks)
+        self._perm = st.perm if st else np.arange(n)  # NLP order -> layout index
+        x = ca.MX.sym("x", n)  # in NLP order
         p = self._p_sym = ca.MX.sym("p", lay.n_p + problem.data.size)
         scale = lay.x_scale
-        w = ca.vertcat(x * scale, p[: lay.n_p])
+        x_layout = x[np.argsort(self._perm).tolist()] if st else x
+        w = ca.vertcat(x_layout * scale, p[: lay.n_p])
 
         # residuals: each block's function mapped over its instances
-        residuals, hess_parts, off = [], [], lay.n_p
-        for b in self.blocks:
+        residuals, hess_out, keep, off = [], [], [], lay.n_p
+        for i, b in enumerate(self.blocks):
             N, f = b.block.n, b.f
-            Z = ca.reshape(w[b.w_idx.ravel().tolist()], f.nz, N)
+            Z = st.z(b, staged[i], x, w) if i in staged else ca.reshape(w[b.w_idx.ravel().tolist()], f.nz, N)
             D = ca.reshape(p[off: off + f.nd * N], f.nd, N)
             b.data_offset = off
             off += f.nd * N
             residuals.append(ca.vec(f.res.map(N)(Z, D)))
-            if f.pairs:
-                hess_parts.append(ca.vec(f.hess.map(N)(Z, D)))
-        self.n_data_residuals = sum(b.block.n_residuals for b in self.blocks)
+            hess_out.append(f.hess.map(N)(Z, D) if f.pairs else None)
+            keep.append(np.repeat(np.ones(N, bool) if b.block.valid is None else b.block.valid, f.m))
         pi, pm, ps = lay.priors()
         self._prior = (pi, pm, ps)
+        # residuals of instances that are not valid (masked data) are exactly zero and not reported
+        self._keep = np.concatenate(keep + [np.ones(len(pi), bool)])
+        self.n_data_residuals = int(self._keep.sum()) - len(pi)
         prior_r = (w[pi.tolist()] - pm) / ps if len(pi) else ca.MX(0, 1)
         r_data = ca.vertcat(*residuals) if residuals else ca.MX(0, 1)
         r_all = ca.vertcat(r_data, prior_r)
-        self.n_residuals = r_all.shape[0]
+        self.n_residuals = int(self._keep.sum())
 
         # constraints |row|^2 = 1, rows grouped by width for vectorisation
         self._unit = U = lay.unit_norm_rows()
@@ -258,10 +390,7 @@ class Solver:
         lam_g = ca.MX.sym("lam_g", self.n_constraints)
 
         # exact Hessian of the Lagrangian, upper triangle, assembled from the local Hessians
-        A, B, sparsity = self._hessian_pattern(lay, scale, pi, ps)
-        H_nz = lam_f * ca.mtimes(_dm(A), ca.vertcat(*hess_parts, ca.DM.ones(len(pi))))
-        if self.n_constraints:
-            H_nz += ca.mtimes(_dm(B), lam_g)
+        sparsity, H_nz = self._hessian(scale, pi, ps, hess_out, lam_f, lam_g)
         hess_lag = ca.Function("nlp_hess_l", [x, p, lam_f, lam_g], [ca.MX(sparsity, H_nz)],
                                ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
         nlp = {"x": x, "p": p, "f": 0.5 * ca.sumsqr(r_all), "g": c}
@@ -275,56 +404,145 @@ class Solver:
         self.theta = np.flatnonzero(~nuisance)  # reported parameters: their covariance is computed
         self.build_s = time.perf_counter() - t0
 
-    def _hessian_pattern(self, lay: Layout, scale, pi, ps):
-        """Constant maps from local Hessian entries (and prior and constraint curvature) to the
-        nonzeros of the global upper-triangular Hessian, with the chain rule of the x scaling."""
-        n = self.n_x
-        rows, cols, src, val = [], [], [], []
+    def _hessian(self, scale, pi, ps, hess_out, lam_f, lam_g) -> tuple[ca.Sparsity, ca.MX]:
+        """Sparsity and nonzeros of the upper-triangular Hessian of the Lagrangian (NLP order).
+
+        Calibration columns: a constant sparse matrix A maps local Hessian entries (every instance
+        of an unstaged block; for a staged block, its entries summed over stages) and the priors'
+        curvature to the nonzeros, with the chain rule of the x scaling; B adds the unit-norm
+        constraints' curvature times their multipliers. Stage columns: see :class:`_Stages`.
+        """
+        n, st = self.n_x, self._stages
+        ipos = np.empty(n, int)
+        ipos[self._perm] = np.arange(n)  # layout index -> NLP index
+        sx = scale[self._perm]  # scale in NLP order
+        c = st.c if st else n
+        rows, cols, src, val, sources, stage = [], [], [], [], [], []
         col0 = 0
-        for b in self.blocks:
-            pairs = b.f.pairs
-            if not pairs:
+        for i, (b, out) in enumerate(zip(self.blocks, hess_out)):
+            if out is None:
                 continue
-            a_idx = np.array([a for a, _ in pairs])
-            b_idx = np.array([bb for _, bb in pairs])
-            gi, gj = b.w_idx[:, a_idx], b.w_idx[:, b_idx]  # (N, n_pairs) positions in w
-            k = np.nonzero((gi < n) & (gj < n))
-            i, j = gi[k], gj[k]
-            rows.append(np.minimum(i, j))
-            cols.append(np.maximum(i, j))
-            # entry (a, b) of instance t sits at column-major position t * n_pairs + pair index
-            src.append(col0 + k[0] * len(pairs) + k[1])
-            v = scale[i] * scale[j]
-            v[(i == j) & (a_idx[k[1]] != b_idx[k[1]])] *= 2  # both (a,b) and (b,a) land on the diagonal
+            P = len(b.f.pairs)
+            a_idx = np.array([a for a, _ in b.f.pairs])
+            b_idx = np.array([bb for _, bb in b.f.pairs])
+            sb = self._staged.get(i)
+            W = b.w_idx if sb is None else b.w_idx[: sb.K]
+            gi, gj = W[:, a_idx], W[:, b_idx]  # (instances, pairs) positions in w
+            both = (gi < n) & (gj < n)
+            if sb is None:
+                sources.append(ca.vec(out))  # entry p of instance t at t * P + p
+            else:
+                Y = ca.reshape(out, P * sb.K, sb.J)  # entry p of instance j K + k at row k P + p, column j
+                sources.append(ca.sum2(Y))
+                sa, sb_ = sb.is_st[a_idx][None, :], sb.is_st[b_idx][None, :]
+                stage.append(self._stage_entries(i, sb, Y, a_idx, b_idx, ipos, sx))
+                both &= ~sa & ~sb_
+            k = np.nonzero(both)
+            ii, jj = ipos[gi[k]], ipos[gj[k]]
+            rows.append(np.minimum(ii, jj))
+            cols.append(np.maximum(ii, jj))
+            src.append(col0 + k[0] * P + k[1])
+            v = sx[ii] * sx[jj]
+            v[(ii == jj) & (a_idx[k[1]] != b_idx[k[1]])] *= 2  # both (a,b) and (b,a) land on the diagonal
             val.append(v)
-            col0 += b.block.n * len(pairs)
+            col0 += W.shape[0] * P
         # priors: d^2/dx^2 of 1/2 ((x s - m) / std)^2 = (s / std)^2
-        rows.append(pi), cols.append(pi), src.append(col0 + np.arange(len(pi))), val.append((scale[pi] / ps) ** 2)
-        n_src = col0 + len(pi)
+        pin = ipos[pi]
+        rows.append(pin), cols.append(pin), src.append(col0 + np.arange(len(pi))), val.append((sx[pin] / ps) ** 2)
+        sources.append(ca.DM.ones(len(pi)))
         # unit-norm constraints: d^2/dx^2 of |x s|^2 - 1 = 2 s^2 on the free components
         crow, ccol, cval = [], [], []
         for j, row in enumerate(self._unit[self._c_perm]):
-            f = row[(row >= 0) & (row < n)]
-            crow.append(f), ccol.append(np.full(len(f), j)), cval.append(2 * scale[f] ** 2)
+            f = ipos[row[(row >= 0) & (row < n)]]
+            crow.append(f), ccol.append(np.full(len(f), j)), cval.append(2 * sx[f] ** 2)
         R, C = np.concatenate(rows + crow), np.concatenate(cols + crow)
-        pattern = sp.coo_matrix((np.ones(len(R)), (R, C)), shape=(n, n)).tocsc()
+        pattern = sp.coo_matrix((np.ones(len(R)), (R, C)), shape=(c, c)).tocsc()
         pattern.sum_duplicates()
         pattern.sort_indices()
-        sparsity = ca.Sparsity(n, n, pattern.indptr.tolist(), pattern.indices.tolist())
-        pos = sp.csc_matrix((np.arange(pattern.nnz) + 1.0, pattern.indices, pattern.indptr), shape=(n, n))
+        pos = sp.csc_matrix((np.arange(pattern.nnz) + 1.0, pattern.indices, pattern.indptr), shape=(c, c))
 
-        def nz_of(r, c):
-            return np.asarray(pos[r, c]).ravel().astype(int) - 1
+        def nz_of(r, cc):
+            return np.asarray(pos[r, cc]).ravel().astype(int) - 1
 
         r_all, c_all = np.concatenate(rows), np.concatenate(cols)
-        A = sp.csc_matrix((np.concatenate(val), (nz_of(r_all, c_all), np.concatenate(src))), shape=(pattern.nnz, n_src))
+        A = sp.csc_matrix((np.concatenate(val), (nz_of(r_all, c_all), np.concatenate(src))), shape=(pattern.nnz, col0 + len(pi)))
+        H_nz = lam_f * ca.mtimes(_dm(A), ca.vertcat(*sources))
         if crow:
             cr = np.concatenate(crow)
-            B = sp.csc_matrix((np.concatenate(cval), (nz_of(cr, cr), np.concatenate(ccol))),
-                              shape=(pattern.nnz, self.n_constraints))
-        else:
-            B = sp.csc_matrix((pattern.nnz, 0))
-        return A, B, sparsity
+            H_nz += ca.mtimes(_dm(sp.csc_matrix((np.concatenate(cval), (nz_of(cr, cr), np.concatenate(ccol))),
+                                                shape=(pattern.nnz, self.n_constraints))), lam_g)
+        sparsity = ca.Sparsity(c, c, pattern.indptr.tolist(), pattern.indices.tolist())
+        if st is None:
+            return sparsity, H_nz
+        stage_sp, V = self._stage_columns(stage)
+        sparsity = ca.vertcat(ca.horzcat(sparsity, stage_sp[0]), ca.horzcat(ca.Sparsity(st.R * st.m, c), stage_sp[1]))
+        return sparsity, ca.vertcat(H_nz, lam_f * V)
+
+    def _stage_entries(self, i, sb: _StagedBlock, Y, a_idx, b_idx, ipos, sx) -> dict:
+        """The stage-column entries of one staged block's local Hessian pairs, for one stage:
+        kind (0: calibration row, 1: previous stage's row, 2: own stage's row), row (NLP index or
+        stage position), column (stage position), shift (stage of instance group j is j + shift),
+        source row of Y and value factor."""
+        st, n = self._stages, self.n_x
+        K, P = sb.K, len(a_idx)
+        kk = np.repeat(np.arange(K), P)
+        a, b = np.tile(a_idx, K), np.tile(b_idx, K)
+        sa, sbb = sb.is_st[a], sb.is_st[b]
+        keep = (sa | sbb) & np.where(sa, True, sb.q[kk, a] < n) & np.where(sbb, True, sb.q[kk, b] < n)
+        kk, a, b, sa, sbb = kk[keep], a[keep], b[keep], sa[keep], sbb[keep]
+        src = (kk * P + np.tile(np.arange(P), K)[keep])
+
+        def virtual(comp, s):  # position in NLP order relative to stage j (stage comps after all others)
+            return np.where(s, st.c + sb.rel[kk, comp] * st.m + sb.q[kk, comp], ipos[np.where(s, 0, sb.q[kk, comp])])
+
+        va, vb = virtual(a, sa), virtual(b, sbb)
+        swap = va > vb
+        col, row = np.where(swap, a, b), np.where(swap, b, a)
+        s_row = np.where(swap, sbb, sa)
+        rel_c, q_c = sb.rel[kk, col], sb.q[kk, col]
+        d = np.where(s_row, sb.rel[kk, row] - rel_c, 0)
+        if (d < -1).any():
+            raise AssertionError("stage offsets are 0 or 1")
+        kind = np.where(s_row, np.where(d < 0, 1, 2), 0)
+        r = np.where(s_row, sb.q[kk, row], ipos[np.where(s_row, 0, sb.q[kk, row])])
+        v = np.where(s_row, st.scale[np.where(s_row, r, 0)], sx[np.where(s_row, 0, r)]) * st.scale[q_c]
+        v[s_row & (va == vb) & (a != b)] *= 2
+        return {"Y": Y, "K": K, "P": P, "J": sb.J, "kind": kind, "row": r, "col": q_c, "shift": sb.base + rel_c,
+                "src": src, "val": v}
+
+    def _stage_columns(self, entries: list[dict]):
+        """Sparsity of the stage columns (calibration rows; stage rows) and their nonzeros, stage
+        after stage: every stage has the same pattern, the first lacks the previous stage's rows."""
+        st = self._stages
+        c, m, R = st.c, st.m, st.R
+        vrow = np.concatenate([np.where(e["kind"] == 0, e["row"], c + (e["kind"] - 1) * m + e["row"]) for e in entries])
+        vcol = np.concatenate([e["col"] for e in entries])
+        B = sp.coo_matrix((np.ones(len(vrow)), (vrow, vcol)), shape=(c + 2 * m, m)).tocsc()
+        B.sum_duplicates()
+        B.sort_indices()
+        pos = sp.csc_matrix((np.arange(B.nnz) + 1.0, B.indices, B.indptr), shape=B.shape)
+        V, off = 0, 0
+        for e in entries:
+            n_e = len(e["kind"])
+            vr, vc = vrow[off: off + n_e], vcol[off: off + n_e]
+            off += n_e
+            nz = np.asarray(pos[vr, vc]).ravel().astype(int) - 1
+            for d in np.unique(e["shift"]):
+                sel = e["shift"] == d
+                S = sp.csc_matrix((e["val"][sel], (nz[sel], e["src"][sel])), shape=(B.nnz, e["K"] * e["P"]))
+                Yd = ca.horzcat(ca.MX(e["K"] * e["P"], int(d)), e["Y"], ca.MX(e["K"] * e["P"], R - int(d) - e["J"]))
+                V = V + ca.mtimes(_dm(S), Yd)
+        V = ca.densify(V)
+        first = np.flatnonzero((B.indices < c) | (B.indices >= c + m))  # the first stage has no previous one
+
+        def part(lo, hi):
+            M = B[lo:hi].tocsc()
+            M.sort_indices()
+            return ca.Sparsity(hi - lo, m, M.indptr.tolist(), M.indices.tolist())
+
+        cal = ca.kron(ca.Sparsity.dense(1, R), part(0, c))
+        own = ca.kron(ca.Sparsity.diag(R), part(c + m, c + 2 * m)).unite(ca.kron(ca.Sparsity.band(R, -1), part(c, c + m)))
+        return (cal, own), ca.vertcat(V[first.tolist(), 0], ca.vec(V[:, 1:]))
 
     # -- numeric ---------------------------------------------------------------------------------
     def _p(self, p_fixed, data):
@@ -334,8 +552,8 @@ class Solver:
         return np.concatenate([np.asarray(p_fixed, float), np.asarray(data, float).ravel()])
 
     def residuals(self, x, p_fixed=None, data=None) -> np.ndarray:
-        """All whitened residuals (data, then priors) at scaled x."""
-        return np.asarray(self._res_all(x, self._p(p_fixed, data))).ravel()
+        """All whitened residuals (data of the valid instances, then priors) at scaled x."""
+        return np.asarray(self._res_all(np.asarray(x, float)[self._perm], self._p(p_fixed, data))).ravel()[self._keep]
 
     def jacobians(self, x, p_fixed=None, data=None) -> tuple[sp.csr_matrix, sp.csr_matrix]:
         """Sparse Jacobians w.r.t. scaled x of the whitened residuals (data, then priors) and of the
@@ -363,7 +581,7 @@ class Solver:
         pi, _, ps = self._prior
         rows.append(row0 + np.arange(len(pi))), cols.append(pi), vals.append(scale[pi] / ps)
         J = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                          shape=(self.n_residuals, n))
+                          shape=(len(self._keep), n))[np.flatnonzero(self._keep)]
         gr, gc, gv = [], [], []
         for j, row in enumerate(self._unit):
             f = row[(row >= 0) & (row < n)]
@@ -457,11 +675,14 @@ class Solver:
         x0 = lay.x0() if x0 is None else np.asarray(x0, float)
         lbx, ubx = lay.bounds()
         p = self._p(p_fixed, data)
+        perm = self._perm
         t0 = time.perf_counter()
-        sol = self.nlp(x0=x0, p=p, lbx=lbx, ubx=ubx, lbg=0, ubg=0, lam_g0=0 if lam_g0 is None else lam_g0)
+        sol = self.nlp(x0=x0[perm], p=p, lbx=lbx[perm], ubx=ubx[perm], lbg=0, ubg=0,
+                       lam_g0=0 if lam_g0 is None else lam_g0)
         wall = time.perf_counter() - t0
         st = self.nlp.stats()
-        x = np.asarray(sol["x"]).ravel()
+        x = np.empty(self.n_x)
+        x[perm] = np.asarray(sol["x"]).ravel()
         pf, data = p[: lay.n_p], p[lay.n_p:]
         values = lay.unpack(x, pf)
         cov = self.covariance(x, pf, data)
@@ -493,7 +714,7 @@ class Solver:
             cost=cost,
             chi2=2.0 * cost,
             dof=int(self.n_residuals - (x.size - self.n_constraints)),
-            residual=np.asarray(self._res(x, p)).ravel(),
+            residual=np.asarray(self._res(x[perm], p)).ravel()[self._keep[: len(self._keep) - len(self._prior[0])]],
             covariance=cov,
             lam_g=lam,
         )

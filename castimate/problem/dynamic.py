@@ -131,12 +131,18 @@ class DynamicProblem:
     rows: dict  # "acc" | "gyro" -> triad name -> indices of the valid samples
 
     def block_data(self, data: DynamicData) -> list[np.ndarray]:
-        """Data of every block in problem order (accelerometers, gyroscopes, process model), triad-major."""
+        """Data of every block in problem order (accelerometers, gyroscopes, process model). Sensor
+        blocks are sample-major over every triad; a masked sample gets y = 0 and σ = inf, so its
+        residual and derivatives are exactly zero (its block instance is not ``valid``)."""
         R = {t.name: t.R_nominal for t in self.config.triads}
 
         def stack(names, kind, y, sigma):
-            return np.vstack([np.hstack([y[n][self.rows[kind][n]], np.broadcast_to(sigma[n], (len(self.rows[kind][n]), 3)),
-                                         np.tile(R[n].ravel(order="F"), (len(self.rows[kind][n]), 1))]) for n in names])
+            ok = np.stack([np.isin(np.arange(self.n_samples), self.rows[kind][n]) for n in names], axis=1)  # (N, K)
+            Y = np.where(ok[..., None], np.stack([y[n] for n in names], axis=1), 0.0)
+            S = np.where(ok[..., None], np.stack([np.broadcast_to(sigma[n], (self.n_samples, 3)) for n in names], axis=1),
+                         np.inf)
+            Rv = np.broadcast_to(np.stack([R[n].ravel(order="F") for n in names]), (self.n_samples, len(names), 9))
+            return np.concatenate([Y, S, Rv], axis=2).reshape(-1, 15)
 
         out = [stack(self.config.names, "acc", data.acc, data.acc_sigma)]
         if self.gyro_triads:
@@ -214,20 +220,22 @@ def build_dynamic(config: DynamicConfig, data: DynamicData, start: dict | None =
     rows = {"acc": {n: np.flatnonzero(data.valid("acc", n)) for n in config.names},
             "gyro": {n: np.flatnonzero(data.valid("gyro", n)) for n in gyro_triads}}
 
-    def instances(kind, names):  # (triad index, sample index) of every instance, triad-major
-        return (np.concatenate([np.full(len(rows[kind][n]), k) for k, n in enumerate(names)]),
-                np.concatenate([rows[kind][n] for n in names]))
+    def instances(kind, names):  # (triad index, sample index) of every instance, sample-major; which are valid
+        k, n = np.tile(np.arange(len(names)), N), np.repeat(np.arange(N), len(names))
+        return k, n, np.stack([np.isin(np.arange(N), rows[kind][t]) for t in names], axis=1).ravel()
 
-    k, n = instances("acc", config.names)
+    # One instance per (sample, triad), sample-major and including masked samples (zero residual,
+    # not valid): the Solver assembles such blocks sample by sample (see solve.py, "Stages").
+    k, n, ok = instances("acc", config.names)
     blocks = [FactorBlock("accelerometer_sample", accelerometer_sample_factor(config.misalignment),
                           [(tuple(group_name(t, "accelerometer", g) for t in config.names), k) for g in ACC_FACTOR_GROUPS]
                           + [(tuple(f"{t}.position" for t in config.names), k), (OMEGA, n), (OMEGA_DOT, n), (S, n)],
-                          np.zeros((len(k), 0)))]
+                          np.zeros((len(k), 0)), valid=ok)]
     if gyro_triads:
-        k, n = instances("gyro", gyro_triads)
+        k, n, ok = instances("gyro", gyro_triads)
         blocks.append(FactorBlock("gyroscope_sample", gyroscope_sample_factor(),
                                   [(tuple(group_name(t, "gyroscope", g) for t in gyro_triads), k) for g in GYRO_FACTOR_GROUPS]
-                                  + [(OMEGA, n)], np.zeros((len(k), 0))))
+                                  + [(OMEGA, n)], np.zeros((len(k), 0)), valid=ok))
     if config.process_model and N > 1:
         a, b = np.arange(N - 1), np.arange(1, N)
         blocks.append(FactorBlock("process_model", process_factor(),
