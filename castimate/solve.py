@@ -191,10 +191,11 @@ class _Compiled:
         self.hess = ca.Function(f"{fn.name()}_hess", args, [ca.vertcat(*[H[loc[a], loc[b]] for a, b in self.pairs])
                                                             if self.pairs else ca.SX(0, 1)])
         self.jac = ca.Function(f"{fn.name()}_jac", args, [ca.densify(J)])
+        self.grad = ca.Function(f"{fn.name()}_grad", args, [ca.densify(ca.mtimes(J.T, r))])
         self.res = ca.Function(f"{fn.name()}_res", args, [r])
         if jit:
-            self.res, self.jac, self.hess = compile_functions([self.jac, self.hess], [self.res]) or \
-                (self.res, self.jac, self.hess)
+            self.res, self.jac, self.grad, self.hess = \
+                compile_functions([self.jac, self.grad, self.hess], [self.res]) or (self.res, self.jac, self.grad, self.hess)
         self.nz, self.nd, self.m, self.n_cal = nz, nd, fn.size1_out(0), n_cal
 
 
@@ -383,7 +384,7 @@ class Solver:
         Xp = st.values(x) if st else None
 
         # residuals and local Jacobians: each block's functions mapped over its instances
-        residuals, jacobians, keep, off = [], [], [], lay.n_p
+        residuals, jacobians, gradients, keep, off = [], [], [], [], lay.n_p
         for i, b in enumerate(self.blocks):
             N, f = b.block.n, b.f
             b.data_offset = off
@@ -395,9 +396,10 @@ class Solver:
                 args = (_tile(b.Zc, sb.J), _spread(sb.zs(Xp, sb.base, sb.J), sb.K), b.D)
             else:
                 args = (ca.reshape(w[b.w_idx.ravel().tolist()], f.nz, N), ca.MX(0, N), b.D)
-            mapped = [g.map(N) for g in (f.res, f.jac)]
+            mapped = [g.map(N) for g in (f.res, f.jac, f.grad)]
             residuals.append(mapped[0](*args))
             jacobians.append(mapped[1](*args))
+            gradients.append(mapped[2](*args))
             keep.append(np.repeat(np.ones(N, bool) if b.block.valid is None else b.block.valid, f.m))
             b.args = args
         pi, pm, ps = lay.priors()
@@ -410,7 +412,7 @@ class Solver:
         r_data = ca.vertcat(*[ca.vec(r) for r in residuals]) if residuals else ca.MX(0, 1)
         r_all = ca.vertcat(r_data, prior_r)
         f_obj = 0.5 * ca.sumsqr(r_all)
-        grad_f = ca.Function("nlp_grad_f", [x, p], [f_obj, self._gradient(scale, prior_r, residuals, jacobians)],
+        grad_f = ca.Function("nlp_grad_f", [x, p], [f_obj, self._gradient(scale, prior_r, gradients)],
                              ["x", "p"], ["f", "grad"])
 
         # constraints |row|^2 = 1, rows grouped by width for vectorisation
@@ -450,9 +452,9 @@ class Solver:
         self.theta = np.flatnonzero(~nuisance)  # reported parameters: their covariance is computed
         self.build_s = time.perf_counter() - t0
 
-    def _gradient(self, scale, prior_r, residuals, jacobians) -> ca.MX:
+    def _gradient(self, scale, prior_r, gradients) -> ca.MX:
         """Gradient of 1/2 |r|^2 in NLP order, J^T r assembled like the Hessian from the local
-        gradients (Jacobian times residual of each instance): a sparse matrix maps those of
+        gradients (na, N) (local Jacobian times residual of each instance): a sparse matrix maps those of
         unstaged blocks, staged blocks' calibration entries summed over stages and the priors'
         to the calibration variables; staged blocks' stage entries are summed over the K
         instances of a stage by one small product per stage offset."""
@@ -462,18 +464,18 @@ class Solver:
         c = st.c if st else n
         rows, src, val, sources, stage = [], [], [], [], 0
         col0 = 0
-        for i, (b, r, J) in enumerate(zip(self.blocks, residuals, jacobians)):
+        for i, (b, g) in enumerate(zip(self.blocks, gradients)):
             na = len(b.f.act)
             if not na:
                 continue
-            g = ca.sum1(J * _spread(r, na))  # (1, na N): local gradient of instance t at t na + a
+            g = ca.vec(g)  # local gradient of instance t at t na + a
             sb = self._staged.get(i)
             W = b.w_idx[:, b.f.act] if sb is None else b.w_idx[: sb.K, b.f.act]
             glob = W < n if sb is None else (W < n) & ~sb.is_st[b.f.act][None, :]
             t, a = np.nonzero(glob)
             rows.append(ipos[W[t, a]]), val.append(scale[W[t, a]])
             if sb is None:
-                sources.append(g.T)
+                sources.append(g)
                 src.append(col0 + t * na + a)
                 col0 += W.shape[0] * na
                 continue
