@@ -7,11 +7,14 @@ A problem is a weighted nonlinear least-squares problem with equality constraint
                lbx <= x <= ubx
 
 The residual is a factor graph: each :class:`FactorBlock` is one small CasADi function of a few
-parameter groups and a few data, mapped over its instances (``Function.map``). IPOPT gets the exact
-sparse Hessian of the Lagrangian, assembled from the blocks' local Hessians through a sparsity
-pattern computed once in numpy. Build time and memory therefore grow linearly with the number of
-instances; differentiating one monolithic expression graph (CasADi's default) colours a Hessian
-with a dense border and grows about quadratically.
+parameter groups and a few data, mapped over its instances (``Function.map``), its local
+residual, Jacobian, gradient and Hessian compiled to C (:mod:`castimate.jit`). IPOPT gets the
+gradient and the exact sparse Hessian of the Lagrangian assembled from the local ones: for blocks
+of calibration parameters through a constant sparse matrix computed in numpy; for blocks that
+touch per-sample motion states stage by stage (:class:`_Stages`), so that nothing the size of the
+Hessian is passed from Python to CasADi. Build time and memory therefore grow linearly with the
+number of instances; differentiating one monolithic expression graph (CasADi's default) colours a
+Hessian with a dense border and grows about quadratically.
 
 Uncertainty comes from the Fisher information J^T J at the solution, restricted to the tangent
 space of the constraints; its inverse's blocks for the calibration parameters are the marginals
@@ -119,10 +122,6 @@ class FactorBlock:
     def n(self) -> int:
         return self.data.shape[0]
 
-    @property
-    def n_residuals(self) -> int:
-        return self.n * self.residual.size1_out(0)
-
 
 @dataclass
 class LeastSquaresProblem:
@@ -194,8 +193,8 @@ class _Compiled:
         self.grad = ca.Function(f"{fn.name()}_grad", args, [ca.densify(ca.mtimes(J.T, r))])
         self.res = ca.Function(f"{fn.name()}_res", args, [r])
         if jit:
-            self.res, self.jac, self.grad, self.hess = \
-                compile_functions([self.jac, self.grad, self.hess], [self.res]) or (self.res, self.jac, self.grad, self.hess)
+            local = (self.res, self.jac, self.grad, self.hess)
+            self.res, self.jac, self.grad, self.hess = compile_functions(list(local[1:]), [self.res]) or local
         self.nz, self.nd, self.m, self.n_cal = nz, nd, fn.size1_out(0), n_cal
 
 
@@ -565,7 +564,8 @@ class Solver:
             return np.asarray(pos[r, cc]).ravel().astype(int) - 1
 
         r_all, c_all = np.concatenate(rows), np.concatenate(cols)
-        A = sp.csc_matrix((np.concatenate(val), (nz_of(r_all, c_all), np.concatenate(src))), shape=(pattern.nnz, col0 + len(pi)))
+        A = sp.csc_matrix((np.concatenate(val), (nz_of(r_all, c_all), np.concatenate(src))),
+                          shape=(pattern.nnz, col0 + len(pi)))
         H_nz = lam_f * ca.mtimes(_dm(A), ca.vertcat(*sources))
         if crow:
             cr = np.concatenate(crow)
@@ -660,7 +660,8 @@ class Solver:
             return ca.Sparsity(hi - lo, m, M.indptr.tolist(), M.indices.tolist())
 
         cal = ca.kron(ca.Sparsity.dense(1, R), part(0, c))
-        own = ca.kron(ca.Sparsity.diag(R), part(c + m, c + 2 * m)).unite(ca.kron(ca.Sparsity.band(R, -1), part(c, c + m)))
+        own = ca.kron(ca.Sparsity.diag(R), part(c + m, c + 2 * m)) \
+            .unite(ca.kron(ca.Sparsity.band(R, -1), part(c, c + m)))  # own stage; previous stage
         return (cal, own), ca.vertcat(V[first.tolist(), 0], ca.vec(V[:, 1:])), sums
 
 
