@@ -289,9 +289,9 @@ class _Stages:
     (everything else) | stage 0 | stage 1 | ...], each stage holding its row of every stage group.
     A block is *staged* when its instances come in runs of K per stage (t = j K + k: sample j,
     triad k) and each touches its stage and possibly the next (:class:`_StagedBlock`). Its local
-    functions are mapped twice: over the K instances of a stage, with the stage variables shared
-    (``reduce_in``), then over the stages, with the K calibration inputs shared; nothing of the
-    size of (instances x inputs) is formed.
+    functions are mapped over the instances, the K calibration inputs tiled over the stages and
+    each stage's variables spread over its K instances, each by one sparse product (CasADi's
+    ``repmat`` and ``reduce_in`` make one node per copy, which grew superlinearly).
 
     The upper-triangular Hessian's columns of stage s then have the same pattern for every s: rows
     of calibration variables, of stage s-1 and of stage s (the first stage lacks s-1). One function
@@ -300,8 +300,9 @@ class _Stages:
     an entry, such as a sample's motion block seen by every triad, included); mapped over the
     stages, its output matrix *is* the stage columns' nonzero vector, and their sparsity is built
     from Kronecker products. Nothing of the size of the Hessian crosses from Python to CasADi. The
-    calibration x calibration entries are summed over the stages in the same map (``reduce_out``)
-    and assembled with the priors and constraints like any other block's.
+    calibration x calibration entries are a second output of the same map, summed over the stages
+    by a product with ones, and assembled with the priors and constraints like any other block's.
+    The gradient is assembled the same way from the local gradients (:meth:`Solver._gradient`).
     """
 
     def __init__(self, lay: Layout, groups):
@@ -392,7 +393,7 @@ class Solver:
             if i in staged:
                 sb = staged[i]
                 b.Zc = ca.reshape(w[sb.q[:, : f.n_cal].ravel().tolist()], f.n_cal, sb.K)
-                args = (_tile(b.Zc, sb.J), _spread(sb.zs(Xp, sb.base, sb.J), sb.K), b.D)
+                args = (_tile(b.Zc, sb.J), _spread(sb.zs(Xp, 0, sb.J), sb.K), b.D)
             else:
                 args = (ca.reshape(w[b.w_idx.ravel().tolist()], f.nz, N), ca.MX(0, N), b.D)
             mapped = [g.map(N) for g in (f.res, f.jac, f.grad)]
