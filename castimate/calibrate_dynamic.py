@@ -464,17 +464,20 @@ def _solve_bcd(spec: ProblemSpec, config: DynamicConfig, data: DynamicData, log:
 
 
 def measurement_residuals(problem, data: DynamicData, sol: Solution) -> tuple[dict, dict]:
-    """Residuals y - model per triad and sample (m/s^2, rad/s), NaN where a sample was masked."""
+    """Residuals y - model per triad and sample (m/s^2, rad/s), NaN where a sample was masked.
+    The solution's residuals are those of the valid instances, sample-major over the triads."""
     r = sol.residual
     out_a, out_g, off = {}, {}, 0
     for kind, names, sig, out in (("acc", problem.config.names, data.acc_sigma, out_a),
                                   ("gyro", problem.gyro_triads, data.gyro_sigma, out_g)):
-        for n in names:
-            rows = problem.rows[kind][n]
-            full = np.full((data.n, 3), np.nan)
-            full[rows] = r[off: off + 3 * len(rows)].reshape(-1, 3) * sig[n]
-            off += 3 * len(rows)
-            out[n] = full
+        if not names:
+            continue
+        ok = np.stack([np.isin(np.arange(data.n), problem.rows[kind][n]) for n in names], axis=1)  # (N, K)
+        full = np.full((data.n, len(names), 3), np.nan)
+        full[ok] = r[off: off + 3 * int(ok.sum())].reshape(-1, 3)
+        off += 3 * int(ok.sum())
+        for i, n in enumerate(names):
+            out[n] = full[:, i] * sig[n]
     return out_a, out_g
 
 

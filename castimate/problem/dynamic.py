@@ -203,7 +203,9 @@ class DynamicProblem:
     rows: dict  # "acc" | "gyro" -> triad name -> indices of the valid samples
 
     def block_data(self, data: DynamicData) -> list[np.ndarray]:
-        """Data of every block in problem order (accelerometers, gyroscopes, process model), triad-major."""
+        """Data of every block in problem order (accelerometers, gyroscopes, process model). Sensor
+        blocks are sample-major over every triad; a masked sample gets y = 0 and σ = inf, so its
+        residual and derivatives are exactly zero (its block instance is not ``valid``)."""
         R = {t.name: t.R_nominal for t in self.config.triads}
 
         reg = self.config.regressors or Regressors.from_times(data.t, data.temp)
@@ -211,12 +213,14 @@ class DynamicProblem:
         inv_span = 1.0 / (data.t[nxt] - data.t[prev]) if data.n > 1 else np.zeros(data.n)
 
         def stack(names, kind, y, sigma):
-            def one(n):
-                i = self.rows[kind][n]
-                return np.hstack([y[n][i], np.broadcast_to(sigma[n], (len(i), 3)), np.tile(R[n].ravel(order="F"), (len(i), 1)),
-                                  reg.sample_moments(data.t[i], data.temp[n][i] if n in data.temp else None, n),
-                                  inv_span[i, None]])
-            return np.vstack([one(n) for n in names])
+            ok = np.stack([np.isin(np.arange(self.n_samples), self.rows[kind][n]) for n in names], axis=1)  # (N, K)
+            Y = np.where(ok[..., None], np.stack([y[n] for n in names], axis=1), 0.0)
+            S = np.where(ok[..., None], np.stack([np.broadcast_to(sigma[n], (self.n_samples, 3)) for n in names], axis=1),
+                         np.inf)
+            Rv = np.broadcast_to(np.stack([R[n].ravel(order="F") for n in names]), (self.n_samples, len(names), 9))
+            reg_ = np.stack([reg.sample_moments(data.t, data.temp.get(n), n) for n in names], axis=1)  # (N, K, 4)
+            span = np.broadcast_to(inv_span[:, None, None], (self.n_samples, len(names), 1))
+            return np.concatenate([Y, S, Rv, reg_, span], axis=2).reshape(-1, 20)
 
         out = [stack(self.config.names, "acc", data.acc, data.acc_sigma)]
         if self.gyro_triads:
@@ -304,9 +308,9 @@ def build_dynamic(config: DynamicConfig, data: DynamicData, start: dict | None =
     rows = {"acc": {n: np.flatnonzero(data.valid("acc", n)) for n in config.names},
             "gyro": {n: np.flatnonzero(data.valid("gyro", n)) for n in gyro_triads}}
 
-    def instances(kind, names):  # (triad index, sample index) of every instance, triad-major
-        return (np.concatenate([np.full(len(rows[kind][n]), k) for k, n in enumerate(names)]),
-                np.concatenate([rows[kind][n] for n in names]))
+    def instances(kind, names):  # (triad index, sample index) of every instance, sample-major; which are valid
+        k, n = np.tile(np.arange(len(names)), N), np.repeat(np.arange(N), len(names))
+        return k, n, np.stack([np.isin(np.arange(N), rows[kind][t]) for t in names], axis=1).ravel()
 
     if config.regressors is None:
         config = replace(config, regressors=Regressors.from_times(data.t, data.temp))
@@ -315,7 +319,9 @@ def build_dynamic(config: DynamicConfig, data: DynamicData, start: dict | None =
     def effect_inputs(sensor, names, k):
         return [(tuple(group_name(t, sensor, e.name) for t in names), k) for e in fxs.included(config.effects, sensor)]
 
-    k, n = instances("acc", config.names)
+    # One instance per (sample, triad), sample-major and including masked samples (zero residual,
+    # not valid): the Solver assembles such blocks sample by sample (see solve.py, "Stages").
+    k, n, ok = instances("acc", config.names)
     effects = fxs.included(config.effects, "accelerometer")
     blocks = [FactorBlock("accelerometer_sample", accelerometer_sample_factor(config),
                           [(tuple(group_name(t, "accelerometer", g) for t in config.names), k) for g in ACC_FACTOR_GROUPS]
@@ -323,9 +329,9 @@ def build_dynamic(config: DynamicConfig, data: DynamicData, start: dict | None =
                           + effect_inputs("accelerometer", config.names, k)
                           + ([(g, i) for i in (prev[n], nxt[n]) for g in (OMEGA, OMEGA_DOT, S)]
                              if _needs_neighbours(effects) else []),
-                          np.zeros((len(k), 0)))]
+                          np.zeros((len(k), 0)), valid=ok)]
     if gyro_triads:
-        k, n = instances("gyro", gyro_triads)
+        k, n, ok = instances("gyro", gyro_triads)
         effects = fxs.included(config.effects, "gyroscope")
         blocks.append(FactorBlock("gyroscope_sample", gyroscope_sample_factor(config),
                                   [(tuple(group_name(t, "gyroscope", g) for t in gyro_triads), k) for g in GYRO_FACTOR_GROUPS]
@@ -334,7 +340,7 @@ def build_dynamic(config: DynamicConfig, data: DynamicData, start: dict | None =
                                      if any(e.name == "g_sensitivity" for e in effects) else [])
                                   + effect_inputs("gyroscope", gyro_triads, k)
                                   + ([(OMEGA, prev[n]), (OMEGA, nxt[n])] if _needs_neighbours(effects) else []),
-                                  np.zeros((len(k), 0))))
+                                  np.zeros((len(k), 0)), valid=ok))
     if config.process_model and N > 1:
         a, b = np.arange(N - 1), np.arange(1, N)
         blocks.append(FactorBlock("process_model", process_factor(),
@@ -363,7 +369,7 @@ def build_dynamic_sigma_masked(config: DynamicConfig, data: DynamicData) -> Dyna
     for kind, names, blk in (("acc", config.names, blocks[0]),
                              ("gyro", problem.gyro_triads, blocks[1] if problem.gyro_triads else None)):
         for k, name in enumerate(names):
-            blk[k * data.n + np.flatnonzero(~data.valid(kind, name)), 3:6] = MASKED_SIGMA
+            blk[np.flatnonzero(~data.valid(kind, name)) * len(names) + k, 3:6] = MASKED_SIGMA  # sample-major
     for b, d in zip(problem.lsq.blocks, blocks):
         b.data = d
     return problem

@@ -498,6 +498,10 @@ def _solver(c: _Check, s) -> SolverOptions:
             kw[k] = c.choice(v, w, ("exact", "gauss_newton"))
         elif k == "method":
             kw[k] = c.choice(v, w, ("ipopt", "bcd"))
+        elif isinstance(default, bool):
+            if not isinstance(v, bool):
+                c.fail(w, f"expected true or false, found {v!r}")
+            kw[k] = v
         elif isinstance(default, int):
             kw[k] = c.number(v, w, integer=True)
             if k == "max_iter" and kw[k] < 1:

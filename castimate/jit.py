@@ -1,0 +1,69 @@
+"""Compiled local functions: CasADi's C code generator, the system C compiler and an on-disk cache.
+
+CasADi evaluates SX functions on a virtual machine at about 7 ns per instruction; the exact local
+Hessian of one Schopp accelerometer factor has about 4500 instructions, so its 3375 instances took
+0.1 s per evaluation, and compiled C does the same in 0.01 s with bit-identical results. Compiling
+costs about 1-2 s of gcc per library, so each library is cached under its source's SHA-256 in
+``$CASTIMATE_CACHE_DIR`` (default ``$XDG_CACHE_HOME/castimate/jit`` or ``~/.cache/castimate/jit``):
+only the first build of a problem structure pays it. Without a C compiler, or if compiling fails,
+the functions stay on the virtual machine (same results, slower).
+
+Functions that take part in CasADi's automatic differentiation (the residual, whose reverse mode
+gives IPOPT the gradient of the objective) are emitted together with their reverse derivative
+under the name ``adj1_<name>``, which is where ``casadi.external`` looks for it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+import casadi as ca
+
+FLAGS = ("-O2", "-shared", "-fPIC")
+
+
+def cache_dir() -> Path:
+    env = os.environ.get("CASTIMATE_CACHE_DIR")
+    if env:
+        return Path(env)
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "castimate" / "jit"
+
+
+def compiler() -> str | None:
+    """The C compiler (``$CC``, else gcc or cc on the PATH), or None."""
+    return shutil.which(os.environ.get("CC", "")) or shutil.which("gcc") or shutil.which("cc")
+
+
+def compile_functions(functions: list[ca.Function], differentiable: list[ca.Function] = ()) -> list[ca.Function] | None:
+    """Compiled equivalents of ``differentiable + functions`` (in that order), or None when no
+    compiler is available or compilation fails. Names must be unique among them."""
+    cc = compiler()
+    if cc is None:
+        return None
+    gen = ca.CodeGenerator("castimate_local.c", {"with_header": False})
+    for f in differentiable:
+        gen.add(f)
+        rev = f.reverse(1)
+        gen.add(ca.Function(f"adj1_{f.name()}", rev.sx_in(), rev.call(rev.sx_in()), rev.name_in(), rev.name_out()))
+    for f in functions:
+        gen.add(f)
+    source = gen.dump()
+    key = hashlib.sha256("\n".join([ca.__version__, " ".join(FLAGS), source]).encode()).hexdigest()[:32]
+    lib = cache_dir() / f"{key}.so"
+    if not lib.exists():
+        try:
+            lib.parent.mkdir(parents=True, exist_ok=True)
+            with tempfile.TemporaryDirectory(dir=lib.parent) as tmp:
+                src, out = Path(tmp) / "local.c", Path(tmp) / "local.so"
+                src.write_text(source)
+                subprocess.run([cc, *FLAGS, str(src), "-o", str(out), "-lm"], check=True, capture_output=True)
+                os.replace(out, lib)  # atomic: concurrent builds of the same structure are harmless
+        except (OSError, subprocess.CalledProcessError):
+            return None
+    return [ca.external(f.name(), str(lib)) for f in [*differentiable, *functions]]

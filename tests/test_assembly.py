@@ -1,0 +1,125 @@
+"""The solver's assembled derivatives against CasADi's own automatic differentiation.
+
+``Solver`` assembles IPOPT's gradient and exact Hessian of the Lagrangian from local functions
+(unstaged blocks through a sparse matrix, staged blocks stage by stage, see ``castimate.solve``).
+Here they must equal ``ca.gradient`` and ``ca.hessian`` of the NLP's own objective and constraints,
+at a random point and for random multipliers, on small static and dynamic problems with priors,
+unit-norm constraints, masked samples, a process model and free intrinsics.
+"""
+
+from dataclasses import replace
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from castimate.problem.dynamic import DynamicConfig, DynamicData, build_dynamic
+from castimate.problem.static import GroupSetting, TriadConfig, build_static
+from castimate.simulate_dynamic import dynamic_measurements, euler_consistent, smooth_random_motion
+from castimate.solve import Solver, SolverOptions
+
+from test_static import make_case
+
+FREE3, FIXED3 = GroupSetting(free=(True,) * 3), GroupSetting(free=(False,) * 3)
+
+
+def dynamic_case(n=40, process_model=True):
+    """4 triads (3 with gyroscopes), quaternion misalignments, a position prior, a free gain,
+    masked accelerometer and gyroscope samples."""
+    rng = np.random.default_rng(3)
+    names = ["a", "b", "c", "d"]
+    pos = np.array([[0, 0, 0], [0.03, 0, 0], [0, 0.04, 0.01], [0.02, -0.03, 0]], float)
+    motion = euler_consistent(smooth_random_motion(n, 100.0, 8.0, 40.0, rng))
+    Rs = np.stack([np.eye(3)] * 4)
+    gyro = {"T_g": Rs, "b_g": np.zeros((4, 3)), "sigma": 1e-3, "saturation": None}
+    acc, gy, _ = dynamic_measurements(motion, pos, Rs, np.zeros((4, 3)), rng, 0.02, gyro=gyro, names=names)
+    quat = GroupSetting(free=(True,) * 4, initial=(1.0, 0.0, 0.0, 0.0))
+    triads = []
+    for i, nm in enumerate(names):
+        a = {"gain": FREE3 if nm == "c" else FIXED3, "bias": FIXED3, "nonorthogonality": FIXED3,
+             "misalignment": quat if i else GroupSetting(free=(False,) * 4)}
+        g = {"gain": FIXED3, "bias": FREE3 if nm == "b" else FIXED3, "misalignment": FIXED3} if i < 3 else None
+        ps = GroupSetting(free=(True,) * 3, prior_mean=tuple(pos[i]), prior_std=(0.01,) * 3) if nm == "d" else None
+        triads.append(TriadConfig(nm, np.eye(3), a, g, pos[i] + 1e-3, ps))
+    acc_valid = {"b": np.arange(n) % 7 != 3}
+    gyro_valid = {"a": np.arange(n) % 5 != 1}
+    data = DynamicData(motion.t, acc, {nm: np.full(3, 0.02) for nm in names}, {nm: gy[nm] for nm in names[:3]},
+                       {nm: np.full(3, 1e-3) for nm in names[:3]}, acc_valid, gyro_valid)
+    cfg = DynamicConfig(tuple(triads), "a", "rotation", process_model=process_model)
+    return build_dynamic(cfg, data)
+
+
+def static_case():
+    """4 triads with gyroscopes, 8 poses (unit-vector directions), a prior on one triad's gain."""
+    cfg, poses, _, _ = make_case(M=4, P=8, gyro=True)
+    t = cfg.triads[1]
+    prior = GroupSetting(free=(True,) * 3, prior_mean=(1.0,) * 3, prior_std=(0.05,) * 3)
+    cfg = replace(cfg, triads=(cfg.triads[0], replace(t, accelerometer={**t.accelerometer, "gain": prior}),
+                               *cfg.triads[2:]))
+    return build_static(cfg, poses)
+
+
+def reference_derivatives(solver: Solver):
+    """CasADi's gradient and Hessian of the NLP's Lagrangian (NLP order), as functions."""
+    nlp = solver.nlp.oracle()
+    x, p = ca.MX.sym("x", solver.n_x), ca.MX.sym("p", nlp.size1_in(1))
+    lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", solver.n_constraints)
+    f, g = nlp(x, p)
+    lag = lam_f * f + ca.dot(lam_g, g)
+    return (ca.Function("reference_gradient", [x, p], [ca.gradient(f, x)]),
+            ca.Function("reference_hessian", [x, p, lam_f, lam_g], [ca.triu(ca.hessian(lag, x)[0])]))
+
+
+@pytest.mark.parametrize("kind", ["dynamic", "dynamic_no_process_model", "static"])
+@pytest.mark.parametrize("hessian", ["exact", "gauss_newton"])
+def test_assembled_derivatives_equal_casadi_ad(kind, hessian):
+    prob = static_case() if kind == "static" else dynamic_case(process_model=kind == "dynamic")
+    solver = Solver(prob.lsq, SolverOptions(hessian=hessian, jit=False))
+    assert (solver._stages is None) == (kind == "static")  # the dynamic problems are assembled by stage
+    rng = np.random.default_rng(0)
+    lay = prob.lsq.layout
+    x = (lay.x0() * (1 + 0.05 * rng.standard_normal(lay.n_x)))[solver._perm]  # NLP order
+    p = solver._p(None, None)
+    lam_f, lam_g = 0.7, rng.standard_normal(solver.n_constraints)
+    grad_ref, hess_ref = reference_derivatives(solver)
+
+    f_val, grad = solver.nlp.get_function("nlp_grad_f")(x, p)
+    g_ref = np.asarray(grad_ref(x, p)).ravel()
+    np.testing.assert_allclose(np.asarray(grad).ravel(), g_ref, rtol=1e-10, atol=1e-10 * np.abs(g_ref).max())
+
+    H = solver.nlp.get_function("nlp_hess_l")(x, p, lam_f, lam_g)
+    assert H.sparsity().is_triu()
+    H, R = np.asarray(ca.densify(H)), np.asarray(ca.densify(hess_ref(x, p, lam_f, lam_g)))
+    if hessian == "exact":
+        np.testing.assert_allclose(H, R, rtol=1e-9, atol=1e-9 * np.abs(R).max())
+    else:  # Gauss-Newton: J^T J (priors included) plus the constraints' curvature
+        J, _ = solver.jacobians(x[np.argsort(solver._perm)])
+        lam = np.zeros(solver.n_constraints)
+        lam[solver._c_perm] = lam_g
+        curv = np.zeros(lay.n_x)
+        for j, row in enumerate(solver._unit):
+            f = row[(row >= 0) & (row < lay.n_x)]
+            curv[f] += 2 * lam[j] * lay.x_scale[f] ** 2
+        expect = np.triu((lam_f * (J.T @ J).toarray() + np.diag(curv))[np.ix_(solver._perm, solver._perm)])
+        np.testing.assert_allclose(H, expect, rtol=1e-9, atol=1e-9 * np.abs(expect).max())
+
+
+def test_compiled_and_virtual_machine_assembly_agree():
+    prob = dynamic_case()
+    a, b = Solver(prob.lsq, SolverOptions(jit=True)), Solver(prob.lsq, SolverOptions(jit=False))
+    x = prob.lsq.layout.x0()[a._perm]
+    p = a._p(None, None)
+    lam_g = np.linspace(-1, 1, a.n_constraints)
+    ha, hb = (np.asarray(s.nlp.get_function("nlp_hess_l")(x, p, 1.0, lam_g).nonzeros()) for s in (a, b))
+    np.testing.assert_allclose(ha, hb, rtol=1e-13, atol=0)
+
+
+def test_masked_samples_are_not_residuals():
+    prob = dynamic_case()
+    solver = Solver(prob.lsq, SolverOptions(jit=False))
+    n = prob.n_samples
+    masked = int((np.arange(n) % 7 == 3).sum() + (np.arange(n) % 5 == 1).sum())
+    full = 3 * n * 4 + 3 * n * 3 + 9 * (n - 1)
+    assert solver.n_data_residuals == full - 3 * masked
+    J, _ = solver.jacobians(prob.lsq.layout.x0())
+    assert J.shape[0] == solver.n_residuals == solver.residuals(prob.lsq.layout.x0()).size
