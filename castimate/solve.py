@@ -562,6 +562,8 @@ class Solver:
         pos = sp.csc_matrix((np.arange(pattern.nnz) + 1.0, pattern.indices, pattern.indptr), shape=(c, c))
 
         def nz_of(r, cc):
+            if not len(r):  # scipy returns a sparse matrix, not an array, for empty fancy indices
+                return np.zeros(0, int)
             return np.asarray(pos[r, cc]).ravel().astype(int) - 1
 
         r_all, c_all = np.concatenate(rows), np.concatenate(cols)

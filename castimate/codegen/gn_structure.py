@@ -170,7 +170,9 @@ def gn_structure(solver: Solver) -> GNStructure:
     # factor blocks: index runs, data offsets, generated functions
     blocks, data0 = [], 0
     for k, b in enumerate(solver.blocks):
-        fb, W = b.block, b.w_idx
+        fb = b.block
+        W = np.empty_like(b.w_idx)
+        W[:, b.order] = b.w_idx  # the factor function's input order (the Solver may reorder its columns)
         touched = np.where(W < n_x, x_local[np.minimum(W, n_x - 1)], -1)
         lo = np.where(touched >= 0, touched, np.iinfo(int).max).min(axis=1)
         hi = touched.max(axis=1)

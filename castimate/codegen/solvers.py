@@ -292,7 +292,7 @@ def _fields(fn) -> str:
 
 def _data_layout(st: GNStructure) -> list[str]:
     """One line per factor block: its instances and what each instance's data holds (matrices column-major)."""
-    return [f"data[{b.data0}..{b.data0 + b.n * b.nd - 1}]: {b.name}, {b.n} instances (triad-major) of {b.nd} "
+    return [f"data[{b.data0}..{b.data0 + b.n * b.nd - 1}]: {b.name}, {b.n} instances of {b.nd} "
             f"doubles: {_fields(b.factor)}" for b in st.blocks]
 
 
