@@ -756,7 +756,7 @@ def test_temperature_effect_without_temperature(doc, tmp_path):
                  "needs a logged temperature, but data.csv has none for triad 'imu1'")
 
 
-def test_diagnose_refuses_a_joint_problem():
+def test_diagnose_refuses_a_joint_problem(shared_data):
     from castimate.diagnose import diagnose
     spec = load_problem(Path(__file__).resolve().parents[1] / "problems" / "mimu4444_exp1_joint.yaml")
     expect_error(lambda: diagnose(spec), spec.path, "data.static",
