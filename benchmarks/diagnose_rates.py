@@ -9,6 +9,7 @@ effect counts as detected when it is added first. Dynamic: the same with DYNAMIC
 benchmarks/results/diagnose_rates.{json,md}.
 
     python benchmarks/diagnose_rates.py [RUNS] [DYNAMIC_RUNS]
+    python benchmarks/diagnose_rates.py --dynamic-only DYNAMIC_RUNS   (writes diagnose_rates_dynamic.*)
 """
 
 import json
@@ -26,10 +27,13 @@ from castimate.montecarlo import diagnose_trials  # noqa: E402
 from castimate.simulate import REALISTIC_DYNAMIC_EFFECTS, REALISTIC_EFFECTS  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-runs = int(sys.argv[1]) if len(sys.argv) > 1 else 50
-dynamic_runs = int(sys.argv[2]) if len(sys.argv) > 2 else 10
-cases = [("sim_effects_8x24", e, runs) for e in [None, *REALISTIC_EFFECTS]] + \
+dynamic_only = sys.argv[1:2] == ["--dynamic-only"]
+args = sys.argv[2:] if dynamic_only else sys.argv[1:]
+runs = 0 if dynamic_only else int(args[0]) if args else 50
+dynamic_runs = int(args[-1]) if dynamic_only and args else int(args[1]) if len(args) > 1 else 10
+cases = [("sim_effects_8x24", e, runs) for e in ([] if dynamic_only else [None, *REALISTIC_EFFECTS])] + \
     [("sim_dynamic_effects_8x600", e, dynamic_runs) for e in [None, *REALISTIC_DYNAMIC_EFFECTS]]
+name = "diagnose_rates_dynamic" if dynamic_only else "diagnose_rates"
 magnitudes = {**REALISTIC_EFFECTS, **REALISTIC_DYNAMIC_EFFECTS}
 rows, t0 = [], time.perf_counter()
 with tempfile.TemporaryDirectory() as tmp:
@@ -49,7 +53,7 @@ with tempfile.TemporaryDirectory() as tmp:
 wall = time.perf_counter() - t0
 out = ROOT / "benchmarks" / "results"
 out.mkdir(exist_ok=True)
-(out / "diagnose_rates.json").write_text(json.dumps({"runs": runs, "dynamic_runs": dynamic_runs, "wall_s": wall,
+(out / f"{name}.json").write_text(json.dumps({"runs": runs, "dynamic_runs": dynamic_runs, "wall_s": wall,
                                                      "rows": rows}, indent=1) + "\n")
 md = [f"# castimate diagnose: detection and false alarms ({wall:.0f} s)", "",
       "Static scenario `problems/sim_effects_8x24.yaml`: 8 IMUs with gyroscopes, 24 poses, temperature logged. "
@@ -63,5 +67,5 @@ for r in rows:
     md.append(f"| {r['scenario']} | {r['effect']} | {r['magnitude'] if r['magnitude'] is not None else '–'} | {det} | {first} | "
               f"{r['false_alarms']}/{r['runs']} ({100 * r['false_alarms'] / r['runs']:.0f} %) | "
               f"{', '.join(f'{k} ×{v}' for k, v in r['wrongly_added'].items()) or '–'} | {r['mean_wall_s']:.1f} |")
-(out / "diagnose_rates.md").write_text("\n".join(md) + "\n")
+(out / f"{name}.md").write_text("\n".join(md) + "\n")
 print("\n".join(md))
