@@ -3,7 +3,6 @@ the simulator against the symbolic model, and recovery of simulated effects with
 
 import casadi as ca
 import numpy as np
-import pytest
 
 from castimate.models import effects as fx
 from castimate.problem.effects import EFFECTS, STATIC, effects_for
