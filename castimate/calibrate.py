@@ -82,6 +82,16 @@ def pose_averages(spec: ProblemSpec, rec: Recording) -> tuple[PoseAverages, Dete
     return avg, det
 
 
+def check_temperature(spec: ProblemSpec, logged: set[str]) -> None:
+    """Refuse an included temperature effect on a triad whose temperature the data do not log."""
+    for e in (BY_KEY[k] for k in spec.model.effects):
+        missing = [n for n in spec.array.names if e.needs == "temperature" and n not in logged
+                   and (n, e.sensor, e.name) in spec.model.settings]
+        if missing:
+            raise InputError(spec.path, f"model.{e.sensor}.{e.name}",
+                             f"needs a logged temperature, but {spec.data.path.name} has none for triad {missing[0]!r}")
+
+
 def static_config(spec: ProblemSpec, avg: PoseAverages) -> tuple[StaticConfig, dict[str, str]]:
     """The static problem structure; ``rotation: auto`` is recovered from the pose means.
 
@@ -110,10 +120,7 @@ def static_config(spec: ProblemSpec, avg: PoseAverages) -> tuple[StaticConfig, d
             {**{g: s[t.name, "gyroscope", g] for g in ("gain", "bias", "misalignment")},
              **m.effect_settings(t.name, "gyroscope")} if has_gyro else None,
             t.position))
-        for e in (BY_KEY[k] for k in m.effects):
-            if e.needs == "temperature" and (t.name, e.sensor, e.name) in s and t.name not in avg.temp_mean:
-                raise InputError(spec.path, f"model.{e.sensor}.{e.name}",
-                                 f"needs a logged temperature, but {spec.data.path.name} has none for triad {t.name!r}")
+    check_temperature(spec, set(avg.temp_mean))
     m = spec.model
     return StaticConfig(tuple(triads), spec.array.reference, m.gravity, m.gravity_direction, m.misalignment,
                         m.effects), notes

@@ -14,11 +14,10 @@ from typing import Callable
 
 import numpy as np
 
-from .calibrate import load_recording
+from .calibrate import check_temperature, load_recording
 from .errors import InputError, NotConvergedError
 from .io.readers import read_recording
 from .io.recording import Recording
-from .problem.effects import BY_KEY
 from .problem.static import Regressors
 from .models.rotation import rotation_to_quaternion
 from .problem.dynamic import (OMEGA, OMEGA_DOT, DynamicConfig, DynamicData, MotionSigmas, build_dynamic,
@@ -301,12 +300,7 @@ def dynamic_inputs(spec: ProblemSpec, log: Log = _quiet, loaded: DynamicInput | 
     static_problem = None
     if spec.data.static_range is not None:
         static_problem, config = _static_phase(spec, full, config, log)
-    for e in (BY_KEY[k] for k in config.effects):
-        missing = [n for n in config.names if e.needs == "temperature" and n not in data.temp
-                   and (n, e.sensor, e.name) in spec.model.settings]
-        if missing:
-            raise InputError(spec.path, f"model.{e.sensor}.{e.name}",
-                             f"needs a logged temperature, but {spec.data.path.name} has none for triad {missing[0]!r}")
+    check_temperature(spec, set(data.temp))
     nominal = {t.name: (t.position - next(x for x in config.triads if x.name == config.reference).position)
                if t.position is not None else np.zeros(3) for t in config.triads}
     return DynamicInputs(config, data, sat, nominal, static_problem)
