@@ -780,3 +780,14 @@ SCENARIO_EFFECT_CASES = [
 def test_scenario_effect_errors(tmp_path, edits, where, found):
     p = write_yaml(tmp_path / "scenario.yaml", {"kind": "static_array", "triads": 3, "poses": 20, **edits})
     expect_error(lambda: simulate_scenario(p, tmp_path / "out"), p, where, found)
+
+
+@pytest.mark.parametrize("edits, where, found", [
+    ({"imus": 1}, "imus", "expected 2 to 32 IMUs of the Carlsson board, found 1"),
+    ({"effects": {"accelerometer.bias_drift": "realistic"}}, "effects.accelerometer.bias_drift", "unknown key"),
+    ({"effects": {"gyroscope.time_offset": "realistic"}, "gyroscope": False}, "effects.gyroscope.time_offset",
+     "a gyroscope effect needs gyroscope: true"),
+], ids=["too_few_imus", "static_effect_in_dynamic_scenario", "gyro_effect_without_gyro"])
+def test_dynamic_scenario_effect_errors(tmp_path, edits, where, found):
+    p = write_yaml(tmp_path / "scenario.yaml", {"kind": "dynamic_array", "geometry": "carlsson", "samples": 50, **edits})
+    expect_error(lambda: simulate_scenario(p, tmp_path / "out"), p, where, found)
