@@ -97,28 +97,6 @@ def gauss_newton(ref, tmp: Path) -> dict:
 # 2. CasADi's sqpmethod + qrqp, emitted whole
 
 
-def sqp_nlp(ref):
-    """The Python solve's NLP: (x, p) -> f, g with p = [fixed values; data], as in castimate.solve."""
-    solver, lay = ref.solver, ref.solver.problem.layout
-    x = ca.MX.sym("x", lay.n_x)
-    p = ca.MX.sym("p", lay.n_p + ref.data.size)
-    w = ca.vertcat(x * lay.x_scale, p[:lay.n_p])
-    rs, off = [], lay.n_p
-    for b in solver.blocks:
-        N, fn = b.block.n, b.block.residual
-        nz, nd = fn.size1_in(0), fn.size1_in(1)
-        Z = ca.reshape(w[b.w_idx.ravel().tolist()], nz, N)
-        rs.append(ca.vec(fn.map(N)(Z, ca.reshape(p[off:off + nd * N], nd, N))))
-        off += nd * N
-    pi, pm, ps = lay.priors()
-    if len(pi):
-        rs.append((w[pi.tolist()] - pm) / ps)
-    r = ca.vertcat(*rs)
-    U = lay.unit_norm_rows()
-    g = ca.vertcat(*[ca.sumsqr(w[row[row >= 0].tolist()]) - 1 for row in U]) if len(U) else ca.MX(0, 1)
-    return {"x": x, "p": p, "f": 0.5 * ca.sumsqr(r), "g": g}
-
-
 def _unlimited_stack():
     """CasADi's generated main keeps its work array on the stack (tens of MB here)."""
     import resource
@@ -131,7 +109,7 @@ def sqpmethod(ref, tmp: Path, timeout: float, max_c_mb: float, max_iter: int = 1
             "print_iteration": False, "print_header": False, "print_status": False, "print_time": False,
             "max_iter": max_iter, "tol_pr": 1e-10, "tol_du": 1e-10}
     t0 = time.perf_counter()
-    nlp = ca.nlpsol("castimate_sqp", "sqpmethod", sqp_nlp(ref), opts)
+    nlp = ca.nlpsol("castimate_sqp", "sqpmethod", ref.solver.symbolic_nlp(), opts)
     build_s = time.perf_counter() - t0
     n, m = ref.x0.size, nlp.size1_in("lbg")
     inf = np.full(n, np.inf)

@@ -82,7 +82,7 @@ class SolverOptions:
             "ipopt.mumps_pivot_order": 5,  # METIS ordering
             "print_time": False,
             "record_time": True,
-            "calc_lam_p": False,  # the multipliers of the data are never used; their AD graph is large
+            "calc_lam_p": False,
         }
 
 
@@ -162,14 +162,19 @@ class Solution:
         return self.chi2 / self.dof if self.dof > 0 else float("nan")
 
 
+CHUNK = 4096  # instances per call of a local function: bounds the work arrays, not the results
+
+
 class _Compiled:
-    """Local functions of one factor: residual, Jacobian and the Hessian entries worth assembling.
+    """Local functions of one factor, each evaluated over many instances at once.
 
     Each takes (z_cal, z_stage, d): the factor's inputs split into the components that are not
     stage variables and those that are (:class:`_Stages`; none for an unstaged block), and its data.
-    Derivatives are taken only with respect to the components that are free in some instance
-    (``active``): fixed intrinsics feed the residual but are never differentiated, which cut the
-    exact local Hessian of a Schopp accelerometer factor from about 6500 to about 2400 instructions.
+    ``res`` gives the residual, ``jac`` its Jacobian, ``rgh`` the residual, the local gradient J^T r
+    and the local Hessian entries ``pairs`` (exact, or J^T J for Gauss-Newton). Derivatives are
+    taken only with respect to the components that are free in some instance (``active``): fixed
+    intrinsics feed the residual but are never differentiated, which cut the exact local Hessian of
+    a Schopp accelerometer factor from about 6500 to about 2400 instructions.
     """
 
     def __init__(self, fn: ca.Function, order: np.ndarray, n_cal: int, active: np.ndarray, hessian: str, jit: bool):
@@ -180,22 +185,38 @@ class _Compiled:
         self.act = act = np.flatnonzero(active)
         za = ca.vertcat(*[z[int(i)] for i in act]) if len(act) else ca.SX(0, 1)
         J = ca.jacobian(r, za)
+        JtJ = ca.mtimes(J.T, J)
         # exact: the Hessian of 1/2 |r|^2 = J^T J + sum_i r_i Hess(r_i); Gauss-Newton leaves out the sum
-        H = ca.hessian(0.5 * ca.sumsqr(r), za)[0] if hessian == "exact" else ca.mtimes(J.T, J)
-        sp_H = H.sparsity()
+        H = ca.hessian(0.5 * ca.sumsqr(r), za)[0] if hessian == "exact" else JtJ
+        sp_H = H.sparsity().unite(JtJ.sparsity())  # the information J^T J is assembled on the same pattern
         # entries (a <= b), as indices into z, that are structurally nonzero
-        self.pairs = [(int(act[a]), int(act[b])) for b in range(len(act)) for a in range(b + 1) if sp_H.has_nz(a, b)]
-        loc = {int(i): k for k, i in enumerate(act)}
+        self.pairs = np.array([(int(act[a]), int(act[b])) for b in range(len(act)) for a in range(b + 1)
+                               if sp_H.has_nz(a, b)], int).reshape(-1, 2)
+        loc = np.full(nz, -1)
+        loc[act] = np.arange(len(act))
+        self.pair_loc = loc[self.pairs]  # the pairs as indices into the active components
+        h = ca.vertcat(*[H[int(a), int(b)] for a, b in self.pair_loc]) if len(self.pairs) else ca.SX(0, 1)
         args = [zc, zs, d]
-        self.hess = ca.Function(f"{fn.name()}_hess", args, [ca.vertcat(*[H[loc[a], loc[b]] for a, b in self.pairs])
-                                                            if self.pairs else ca.SX(0, 1)])
-        self.jac = ca.Function(f"{fn.name()}_jac", args, [ca.densify(J)])
-        self.grad = ca.Function(f"{fn.name()}_grad", args, [ca.densify(ca.mtimes(J.T, r))])
-        self.res = ca.Function(f"{fn.name()}_res", args, [r])
-        if jit:
-            local = (self.res, self.jac, self.grad, self.hess)
-            self.res, self.jac, self.grad, self.hess = compile_functions(list(local[1:]), [self.res]) or local
+        name = fn.name()
+        local = [ca.Function(f"{name}_res", args, [r]),
+                 ca.Function(f"{name}_jac", args, [ca.densify(J)]),
+                 ca.Function(f"{name}_rgh", args, [r, ca.densify(ca.mtimes(J.T, r)), ca.densify(h)])]
+        self.res, self.jac, self.rgh = (compile_functions(local) if jit else None) or local
         self.nz, self.nd, self.m, self.n_cal = nz, nd, fn.size1_out(0), n_cal
+        self._buffers: dict = {}
+
+    def __call__(self, fn: ca.Function, args: list[np.ndarray], outs: list[np.ndarray]):
+        """Evaluate ``fn`` on n instances in place: ``args`` and ``outs`` are C-contiguous (n, size)
+        arrays, one row per instance (CasADi's buffers point into them; nothing is copied)."""
+        key = (fn.name(), args[0].shape[0])
+        if key not in self._buffers:
+            self._buffers[key] = fn.map(key[1]).buffer()
+        buf, run = self._buffers[key]
+        for i, a in enumerate(args):
+            buf.set_arg(i, memoryview(a))
+        for i, o in enumerate(outs):
+            buf.set_res(i, memoryview(o))
+        run()
 
 
 class _Block:
@@ -210,7 +231,7 @@ class _Block:
         for g, rows in block.inputs:
             W = layout.w_index(g) if isinstance(g, str) else np.vstack([layout.w_index(n) for n in g])
             cols.append(np.broadcast_to(W[0], (block.n, W.shape[1])) if rows is None else W[np.asarray(rows)])
-        self.w_idx = np.hstack(cols).astype(int)
+        self.w_idx = np.ascontiguousarray(np.hstack(cols), dtype=int)  # C order: gathers by rows stay C order
         nz = block.residual.size1_in(0)
         if self.w_idx.shape[1] != nz:
             raise ValueError(f"factor block {block.name}: inputs give {self.w_idx.shape[1]} values, "
@@ -219,7 +240,7 @@ class _Block:
         self.n_x = layout.n_x
 
     def reorder(self, order: np.ndarray):
-        self.w_idx, self.order = self.w_idx[:, order], self.order[order]
+        self.w_idx, self.order = np.ascontiguousarray(self.w_idx[:, order]), self.order[order]
 
     def compile(self, cache: dict, n_cal: int, hessian: str, jit: bool):
         active = (self.w_idx < self.n_x).any(axis=0)
@@ -267,18 +288,11 @@ class _StagedBlock:
         # calibration components first, then the stage components by offset and position
         self.order = np.lexsort((q[0], rel[0], is_st))
 
-    def zs(self, Xp: ca.MX, offset: int, R: int) -> ca.MX:
-        """The stage components (n_s, R) of the instance groups j = s - offset ... for s = 0..R-1,
-        from the stage values padded by one column on either side."""
-        a, out, nz = self.n_cal, [], len(self.is_st)
-        while a < nz:
-            e = a + 1
-            while e < nz and self.rel[0, e] == self.rel[0, a]:
-                e += 1
-            s0 = 1 + self.base + int(self.rel[0, a]) - offset
-            out.append(Xp[self.q[0, a:e].tolist(), s0: s0 + R])
-            a = e
-        return ca.vertcat(*out)
+    def stage_inputs(self, Xs: np.ndarray, j0: int, j1: int) -> np.ndarray:
+        """The stage components (j1 - j0, n_s) of instance groups j0 ... j1 - 1, from the stage
+        values Xs (R, m) in physical units (inputs after the calibration ones, as ordered)."""
+        rel, q = self.rel[0, self.n_cal:], self.q[0, self.n_cal:]
+        return Xs[(self.base + j0 + rel)[None, :] + np.arange(j1 - j0)[:, None], q[None, :]]
 
 
 class _Stages:
@@ -288,21 +302,12 @@ class _Stages:
     states of each sample). Inside the NLP the decision vector is ordered [calibration variables
     (everything else) | stage 0 | stage 1 | ...], each stage holding its row of every stage group.
     A block is *staged* when its instances come in runs of K per stage (t = j K + k: sample j,
-    triad k) and each touches its stage and possibly the next (:class:`_StagedBlock`). Its local
-    functions are mapped over the instances, the K calibration inputs tiled over the stages and
-    each stage's variables spread over its K instances, each by one sparse product (CasADi's
-    ``repmat`` and ``reduce_in`` make one node per copy, which grew superlinearly).
+    triad k) and each touches its stage and possibly the next (:class:`_StagedBlock`).
 
     The upper-triangular Hessian's columns of stage s then have the same pattern for every s: rows
-    of calibration variables, of stage s-1 and of stage s (the first stage lacks s-1). One function
-    per stage computes their nonzeros from the local Hessians of every instance that touches them,
-    through a small constant sparse matrix per block and offset (sums over the instances that share
-    an entry, such as a sample's motion block seen by every triad, included); mapped over the
-    stages, its output matrix *is* the stage columns' nonzero vector, and their sparsity is built
-    from Kronecker products. Nothing of the size of the Hessian crosses from Python to CasADi. The
-    calibration x calibration entries are a second output of the same map, summed over the stages
-    by a product with ones, and assembled with the priors and constraints like any other block's.
-    The gradient is assembled the same way from the local gradients (:meth:`Solver._gradient`).
+    of calibration variables, of stage s-1 and of stage s (the first stage lacks s-1), and the
+    local entries of instance group j land on them through one small constant matrix per block
+    and stage offset (:class:`_Assembly`).
     """
 
     def __init__(self, lay: Layout, groups):
@@ -353,181 +358,87 @@ class _Stages:
             staged[i] = _StagedBlock(b, st)
         return st, staged
 
-    def values(self, x: ca.MX) -> ca.MX:
-        """The stage variables in physical units (m, R), padded by a copy of the first and last
-        stage on either side (instances beyond the ends are evaluated there and weighted zero)."""
-        Xs = ca.mtimes(ca.diag(ca.DM(self.scale)), ca.reshape(x[self.c:], self.m, self.R))
-        return ca.horzcat(Xs[:, 0], Xs, Xs[:, self.R - 1])
 
+class _Assembly:
+    """Objective, gradient and Hessian of 1/2 |r|^2 (NLP order, scaled x) from the local functions
+    of every instance, evaluated in numpy a chunk at a time.
 
-class Solver:
-    """IPOPT on a :class:`LeastSquaresProblem`, built once and solved for any data or fixed values.
+    Calibration entries: a constant sparse matrix maps the local entries that land on calibration
+    variables (every instance of an unstaged block; a staged block's, summed over its stage groups)
+    and the priors' to their place, with the chain rule of the x scaling. Stage entries: the
+    columns of every stage have the same pattern (:class:`_Stages`), so the local entries of one
+    stage group land on them through one small constant matrix per block and stage offset, applied
+    to the whole chunk at once. Memory is the result plus one chunk of local values, and time is
+    linear in the number of instances; no expression graph grows with the data.
+    """
 
-    Public methods take and return x in the layout's order; inside the NLP the variables may be
-    ordered by stage (:class:`_Stages`)."""
+    def __init__(self, blocks: list[_Block], layout: Layout, stages: _Stages | None, staged: dict,
+                 perm: np.ndarray, unit_rows: np.ndarray, n_constraints: int):
+        self.blocks, self.layout, self.st, self.staged = blocks, layout, stages, staged
+        self.n = n = layout.n_x
+        self.ipos = np.empty(n, int)
+        self.ipos[perm] = np.arange(n)  # layout index -> NLP index
+        self.scale = layout.x_scale
+        self.c = stages.c if stages else n
+        self.prior = layout.priors()
+        self._gradient_plan()
+        self._hessian_plan(unit_rows, n_constraints)
+        self._cache = None
 
-    def __init__(self, problem: LeastSquaresProblem, options: SolverOptions = SolverOptions()):
-        t0 = time.perf_counter()
-        self.problem, self.options = problem, options
-        lay = problem.layout
-        self.n_x = n = lay.n_x
-        self.blocks = [_Block(b, lay) for b in problem.blocks if b.n]
-        self._stages, self._staged = st, staged = _Stages.find(lay, self.blocks)
-        cache: dict = {}
+    # -- plans -----------------------------------------------------------------------------------
+    def _gradient_plan(self):
+        n, st, ipos, scale = self.n, self.st, self.ipos, self.scale
+        rows, src, val, ncol = [], [], [], 0
+        self.g_plan = []
         for i, b in enumerate(self.blocks):
-            b.compile(cache, staged[i].n_cal if i in staged else b.w_idx.shape[1], options.hessian, options.jit)
-        self._perm = st.perm if st else np.arange(n)  # NLP order -> layout index
-        x = ca.MX.sym("x", n)  # in NLP order
-        p = self._p_sym = ca.MX.sym("p", lay.n_p + problem.data.size)
-        scale = lay.x_scale
-        w = ca.vertcat((x[np.argsort(self._perm).tolist()] if st else x) * scale, p[: lay.n_p])
-        Xp = st.values(x) if st else None
-
-        # residuals and local Jacobians: each block's functions mapped over its instances
-        residuals, jacobians, gradients, keep, off = [], [], [], [], lay.n_p
-        for i, b in enumerate(self.blocks):
-            N, f = b.block.n, b.f
-            b.data_offset = off
-            b.D = ca.reshape(p[off: off + f.nd * N], f.nd, N)
-            off += f.nd * N
-            if i in staged:
-                sb = staged[i]
-                b.Zc = ca.reshape(w[sb.q[:, : f.n_cal].ravel().tolist()], f.n_cal, sb.K)
-                args = (_tile(b.Zc, sb.J), _spread(sb.zs(Xp, 0, sb.J), sb.K), b.D)
-            else:
-                args = (ca.reshape(w[b.w_idx.ravel().tolist()], f.nz, N), ca.MX(0, N), b.D)
-            mapped = [g.map(N) for g in (f.res, f.jac, f.grad)]
-            residuals.append(mapped[0](*args))
-            jacobians.append(mapped[1](*args))
-            gradients.append(mapped[2](*args))
-            keep.append(np.repeat(np.ones(N, bool) if b.block.valid is None else b.block.valid, f.m))
-            b.args = args
-        pi, pm, ps = lay.priors()
-        self._prior = (pi, pm, ps)
-        # residuals of instances that are not valid (masked data) are exactly zero and not reported
-        self._keep = np.concatenate(keep + [np.ones(len(pi), bool)])
-        self.n_data_residuals = int(self._keep.sum()) - len(pi)
-        self.n_residuals = int(self._keep.sum())
-        prior_r = (w[pi.tolist()] - pm) / ps if len(pi) else ca.MX(0, 1)
-        r_data = ca.vertcat(*[ca.vec(r) for r in residuals]) if residuals else ca.MX(0, 1)
-        r_all = ca.vertcat(r_data, prior_r)
-        f_obj = 0.5 * ca.sumsqr(r_all)
-        grad_f = ca.Function("nlp_grad_f", [x, p], [f_obj, self._gradient(scale, prior_r, gradients)],
-                             ["x", "p"], ["f", "grad"])
-
-        # constraints |row|^2 = 1, rows grouped by width for vectorisation
-        self._unit = U = lay.unit_norm_rows()
-        self.n_constraints = U.shape[0]
-        c_parts = []
-        self._unit_order = []
-        for width in sorted({int((row >= 0).sum()) for row in U}):
-            sel = np.flatnonzero((U >= 0).sum(axis=1) == width)
-            idx = U[sel][:, :width]
-            c_parts.append(ca.sum1(ca.reshape(w[idx.ravel().tolist()], width, len(sel)) ** 2).T - 1)
-            self._unit_order.append(sel)
-        c = ca.vertcat(*c_parts) if c_parts else ca.MX(0, 1)
-        self._c_perm = np.concatenate(self._unit_order) if self._unit_order else np.zeros(0, int)
-        lam_f = ca.MX.sym("lam_f")
-        lam_g = ca.MX.sym("lam_g", self.n_constraints)
-
-        # exact Hessian of the Lagrangian, upper triangle, assembled from the local Hessians
-        sparsity, H_nz = self._hessian(scale, pi, ps, Xp, lam_f, lam_g)
-        hess_lag = ca.Function("nlp_hess_l", [x, p, lam_f, lam_g], [ca.MX(sparsity, H_nz)],
-                               ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
-        # the derivative functions are given, so that CasADi never differentiates (or propagates
-        # sparsity through) the whole residual graph, which grows quadratically with its size
-        jac_g = ca.Function("nlp_jac_g", [x, p], [c, ca.jacobian(c, x)], ["x", "p"], ["g", "jac_g_x"])
-        # (the objective as an opaque call: nlpsol's analysis of an inlined f took 5 s at 5000 x 32)
-        f_call = ca.Function("objective", [x, p], [f_obj], {"never_inline": True})(x, p)
-        nlp = {"x": x, "p": p, "f": f_call, "g": c}
-        self.nlp = ca.nlpsol("castimate", "ipopt", nlp, {**options.ipopt(), "hess_lag": hess_lag, "grad_f": grad_f,
-                                                         "jac_g": jac_g})
-        self._res = ca.Function("data_residual", [x, p], [r_data])
-        self._res_all = ca.Function("residual", [x, p], [r_all])
-        self._jac = ca.Function("local_jacobians", [x, p], jacobians)
-        nuisance = np.zeros(n, bool)
-        for g in lay.groups:
-            if g.nuisance:
-                nuisance[lay.x_indices(g.name)] = True
-        self.theta = np.flatnonzero(~nuisance)  # reported parameters: their covariance is computed
-        self.build_s = time.perf_counter() - t0
-
-    def _gradient(self, scale, prior_r, gradients) -> ca.MX:
-        """Gradient of 1/2 |r|^2 in NLP order, J^T r assembled like the Hessian from the local
-        gradients (na, N) (local Jacobian times residual of each instance): a sparse matrix maps those of
-        unstaged blocks, staged blocks' calibration entries summed over stages and the priors'
-        to the calibration variables; staged blocks' stage entries are summed over the K
-        instances of a stage by one small product per stage offset."""
-        n, st = self.n_x, self._stages
-        ipos = np.empty(n, int)
-        ipos[self._perm] = np.arange(n)
-        c = st.c if st else n
-        rows, src, val, sources, stage = [], [], [], [], 0
-        col0 = 0
-        for i, (b, g) in enumerate(zip(self.blocks, gradients)):
-            na = len(b.f.act)
-            if not na:
-                continue
-            g = ca.vec(g)  # local gradient of instance t at t na + a
-            sb = self._staged.get(i)
-            W = b.w_idx[:, b.f.act] if sb is None else b.w_idx[: sb.K, b.f.act]
-            glob = W < n if sb is None else (W < n) & ~sb.is_st[b.f.act][None, :]
+            f, sb = b.f, self.staged.get(i)
+            na = len(f.act)
+            W = (b.w_idx if sb is None else b.w_idx[: sb.K])[:, f.act]
+            glob = W < n if sb is None else (W < n) & ~sb.is_st[f.act][None, :]
             t, a = np.nonzero(glob)
             rows.append(ipos[W[t, a]]), val.append(scale[W[t, a]])
+            plan = {"col": ncol, "stage": []}
             if sb is None:
-                sources.append(g)
-                src.append(col0 + t * na + a)
-                col0 += W.shape[0] * na
-                continue
-            G = ca.reshape(g, na * sb.K, sb.J)
-            sources.append(ca.mtimes(G[(t * na + a).tolist(), :], ca.DM.ones(sb.J)))
-            src.append(col0 + np.arange(len(t)))
-            col0 += len(t)
-            act_st = np.flatnonzero(sb.is_st[b.f.act])
-            for rel in np.unique(sb.rel[0, b.f.act[act_st]]):
-                sel = act_st[sb.rel[0, b.f.act[act_st]] == rel]
-                k, a = np.repeat(np.arange(sb.K), len(sel)), np.tile(sel, sb.K)
-                q = sb.q[0, b.f.act[a]]
-                S = sp.csc_matrix((st.scale[q], (q, k * na + a)), shape=(st.m, na * sb.K))
-                s0 = sb.base + int(rel)
-                stage = stage + ca.horzcat(ca.MX(st.m, s0), ca.mtimes(_dm(S), G), ca.MX(st.m, st.R - s0 - sb.J))
-        pi, _, ps = self._prior
-        rows.append(ipos[pi]), val.append(scale[pi] / ps), src.append(col0 + np.arange(len(pi)))
-        sources.append(prior_r)
-        A = sp.csc_matrix((np.concatenate(val), (np.concatenate(rows), np.concatenate(src))), shape=(c, col0 + len(pi)))
-        grad = ca.mtimes(_dm(A), ca.vertcat(*sources))
-        return ca.vertcat(grad, ca.vec(ca.densify(stage))) if st else grad
+                src.append(ncol + t * na + a)
+                ncol += W.shape[0] * na
+            else:  # calibration entries summed over stage groups; stage entries by offset
+                plan["sel"] = t * na + a
+                src.append(ncol + np.arange(len(t)))
+                ncol += len(t)
+                act_st = np.flatnonzero(sb.is_st[f.act])
+                for rel in np.unique(sb.rel[0, f.act[act_st]]):
+                    sel = act_st[sb.rel[0, f.act[act_st]] == rel]
+                    k, a2 = np.repeat(np.arange(sb.K), len(sel)), np.tile(sel, sb.K)
+                    q = sb.q[0, f.act[a2]]
+                    S = sp.csr_matrix((st.scale[q], (q, k * na + a2)), shape=(st.m, na * sb.K))
+                    plan["stage"].append((sb.base + int(rel), S))
+            self.g_plan.append(plan)
+        pi, _, ps = self.prior
+        rows.append(ipos[pi]), val.append(scale[pi] / ps), src.append(ncol + np.arange(len(pi)))
+        self.g_prior_col = ncol
+        ncol += len(pi)
+        self.A_g = sp.csr_matrix((np.concatenate(val), (np.concatenate(rows), np.concatenate(src))),
+                                 shape=(self.c, ncol))
 
-    def _hessian(self, scale, pi, ps, Xp, lam_f, lam_g) -> tuple[ca.Sparsity, ca.MX]:
-        """Sparsity and nonzeros of the upper-triangular Hessian of the Lagrangian (NLP order).
-
-        Calibration columns: a constant sparse matrix A maps local Hessian entries (every instance
-        of an unstaged block; for a staged block, its entries summed over stages) and the priors'
-        curvature to the nonzeros, with the chain rule of the x scaling; B adds the unit-norm
-        constraints' curvature times their multipliers. Stage columns: see :class:`_Stages`.
-        """
-        n, st = self.n_x, self._stages
-        ipos = np.empty(n, int)
-        ipos[self._perm] = np.arange(n)  # layout index -> NLP index
-        sx = scale[self._perm]  # scale in NLP order
-        c = st.c if st else n
-        rows, cols, src, val, sources, stage = [], [], [], [], [], []
-        col0 = 0
+    def _hessian_plan(self, unit_rows, n_constraints):
+        n, st, ipos = self.n, self.st, self.ipos
+        sx = self.scale[np.argsort(ipos)]  # scale in NLP order
+        c = self.c
+        rows, cols, src, val, entries, ncol = [], [], [], [], [], 0
+        self.h_plan = []
         for i, b in enumerate(self.blocks):
-            if not b.f.pairs:
+            f, sb = b.f, self.staged.get(i)
+            P = len(f.pairs)
+            plan = {"col": ncol}
+            self.h_plan.append(plan)
+            if not P:
                 continue
-            P = len(b.f.pairs)
-            a_idx = np.array([a for a, _ in b.f.pairs])
-            b_idx = np.array([bb for _, bb in b.f.pairs])
-            sb = self._staged.get(i)
+            a_idx, b_idx = f.pairs[:, 0], f.pairs[:, 1]
             W = b.w_idx if sb is None else b.w_idx[: sb.K]
             gi, gj = W[:, a_idx], W[:, b_idx]  # (instances, pairs) positions in w
             both = (gi < n) & (gj < n)
-            if sb is None:
-                sources.append(ca.vec(b.f.hess.map(b.block.n)(*b.args)))  # entry p of instance t at t * P + p
-            else:
-                sources.append(i)  # placeholder: the staged block's entries summed over stages, k * P + p
-                stage.append(self._stage_entries(i, sb, a_idx, b_idx, ipos, sx))
+            if sb is not None:
+                entries.append(self._stage_entries(i, sb, a_idx, b_idx, sx))
                 both &= ~sb.is_st[a_idx][None, :] & ~sb.is_st[b_idx][None, :]
             k = np.nonzero(both)
             ii, jj = ipos[gi[k]], ipos[gj[k]]
@@ -537,22 +448,21 @@ class Solver:
             v[(ii == jj) & (a_idx[k[1]] != b_idx[k[1]])] *= 2  # both (a,b) and (b,a) land on the diagonal
             val.append(v)
             if sb is None:
-                src.append(col0 + k[0] * P + k[1])
-                col0 += W.shape[0] * P
-            else:  # the staged block's sums over stages are of these entries only
-                stage[-1]["global"] = k[0] * P + k[1]
-                src.append(col0 + np.arange(len(k[0])))
-                col0 += len(k[0])
-        if st:
-            stage_sp, V, sums = self._stage_columns(stage, Xp)
-            sources = [sums[s] if isinstance(s, int) else s for s in sources]
+                src.append(ncol + k[0] * P + k[1])
+                ncol += W.shape[0] * P
+            else:  # summed over stage groups: the entries of one stage group, k P + p
+                plan["sel"] = k[0] * P + k[1]
+                src.append(ncol + np.arange(len(k[0])))
+                ncol += len(k[0])
         # priors: d^2/dx^2 of 1/2 ((x s - m) / std)^2 = (s / std)^2
+        pi, _, ps = self.prior
         pin = ipos[pi]
-        rows.append(pin), cols.append(pin), src.append(col0 + np.arange(len(pi))), val.append((sx[pin] / ps) ** 2)
-        sources.append(ca.DM.ones(len(pi)))
-        # unit-norm constraints: d^2/dx^2 of |x s|^2 - 1 = 2 s^2 on the free components
+        rows.append(pin), cols.append(pin), src.append(ncol + np.arange(len(pi))), val.append((sx[pin] / ps) ** 2)
+        self.h_prior_col = ncol
+        ncol += len(pi)
+        # unit-norm constraints (in CasADi's order): d^2/dx^2 of |x s|^2 - 1 = 2 s^2 on the free components
         crow, ccol, cval = [], [], []
-        for j, row in enumerate(self._unit[self._c_perm]):
+        for j, row in enumerate(unit_rows):
             f = ipos[row[(row >= 0) & (row < n)]]
             crow.append(f), ccol.append(np.full(len(f), j)), cval.append(2 * sx[f] ** 2)
         R, C = np.concatenate(rows + crow), np.concatenate(cols + crow)
@@ -566,26 +476,25 @@ class Solver:
                 return np.zeros(0, int)
             return np.asarray(pos[r, cc]).ravel().astype(int) - 1
 
-        r_all, c_all = np.concatenate(rows), np.concatenate(cols)
-        A = sp.csc_matrix((np.concatenate(val), (nz_of(r_all, c_all), np.concatenate(src))),
-                          shape=(pattern.nnz, col0 + len(pi)))
-        H_nz = lam_f * ca.mtimes(_dm(A), ca.vertcat(*sources))
-        if crow:
-            cr = np.concatenate(crow)
-            H_nz += ca.mtimes(_dm(sp.csc_matrix((np.concatenate(cval), (nz_of(cr, cr), np.concatenate(ccol))),
-                                                shape=(pattern.nnz, self.n_constraints))), lam_g)
-        sparsity = ca.Sparsity(c, c, pattern.indptr.tolist(), pattern.indices.tolist())
-        if st is None:
-            return sparsity, H_nz
-        sparsity = ca.vertcat(ca.horzcat(sparsity, stage_sp[0]), ca.horzcat(ca.Sparsity(st.R * st.m, c), stage_sp[1]))
-        return sparsity, ca.vertcat(H_nz, lam_f * V)
+        self.A_h = sp.csr_matrix((np.concatenate(val), (nz_of(np.concatenate(rows), np.concatenate(cols)),
+                                                        np.concatenate(src))), shape=(pattern.nnz, ncol))
+        cr = np.concatenate(crow) if crow else np.zeros(0, int)
+        self.C_h = sp.csr_matrix((np.concatenate(cval) if cval else np.zeros(0), (nz_of(cr, cr),
+                                  np.concatenate(ccol) if ccol else np.zeros(0, int))),
+                                 shape=(pattern.nnz, n_constraints))
+        self.n_cal_nz = pattern.nnz
+        self._cal_pattern = pattern
+        self.sparsity = ca.Sparsity(c, c, pattern.indptr.tolist(), pattern.indices.tolist())
+        if st:
+            self._stage_columns(entries)
+        self.nnz = self.sparsity.nnz()
 
-    def _stage_entries(self, i, sb: _StagedBlock, a_idx, b_idx, ipos, sx) -> dict:
-        """The stage-column entries of one staged block's local Hessian pairs, for one stage:
+    def _stage_entries(self, i, sb: _StagedBlock, a_idx, b_idx, sx) -> dict:
+        """The stage-column entries of one staged block's local Hessian pairs, for one stage group:
         kind (0: calibration row, 1: previous stage's row, 2: own stage's row), row (NLP index or
         stage position), column (stage position), shift (the stage of instance group j is
         j + shift), source k P + p and value factor (chain rule of the scaling)."""
-        st, n = self._stages, self.n_x
+        st, n, ipos = self.st, self.n, self.ipos
         K, P = sb.K, len(a_idx)
         kk = np.repeat(np.arange(K), P)
         a, b = np.tile(a_idx, K), np.tile(b_idx, K)
@@ -610,11 +519,10 @@ class Solver:
         return {"block": i, "sb": sb, "P": P, "kind": kind, "row": r, "col": q_c, "shift": sb.base + rel_c,
                 "src": src, "val": v}
 
-    def _stage_columns(self, entries: list[dict], Xp):
-        """Sparsity of the stage columns ((calibration rows, stage rows)), their nonzeros stage
-        after stage, and every staged block's calibration x calibration entries summed over the
-        stages ({block index: (K P,) vector})."""
-        st = self._stages
+    def _stage_columns(self, entries: list[dict]):
+        """The pattern B of one stage's columns (rows: calibration, previous stage, own stage), the
+        matrices from local entries to its nonzeros, and the full sparsity."""
+        st = self.st
         c, m, R = st.c, st.m, st.R
         vrow = np.concatenate([np.where(e["kind"] == 0, e["row"], c + (e["kind"] - 1) * m + e["row"]) for e in entries])
         vcol = np.concatenate([e["col"] for e in entries])
@@ -622,40 +530,17 @@ class Solver:
         B.sum_duplicates()
         B.sort_indices()
         pos = sp.csc_matrix((np.arange(B.nnz) + 1.0, B.indices, B.indptr), shape=B.shape)
-
-        # one stage: v = sum over staged blocks b and shifts d of S_bd vec(local Hessians of
-        # instance group s - d), weighted zero where that group does not exist
-        sym_in, call_in, v, sums, off = [], [], 0, {}, 0
+        off = 0
         for e in entries:
-            i, sb, P = e["block"], e["sb"], e["P"]
-            b = self.blocks[i]
             n_e = len(e["kind"])
             nz = np.asarray(pos[vrow[off: off + n_e], vcol[off: off + n_e]]).ravel().astype(int) - 1
             off += n_e
-            zc = ca.MX.sym("zc", b.f.n_cal, sb.K)
-            sym_in.append(zc), call_in.append(_tile(b.Zc, R))
-            Dm = ca.reshape(b.D, b.f.nd * sb.K, sb.J)
-            shifts = np.unique(e["shift"]) if len(e["shift"]) else np.array([sb.base])
-            for d in shifts:
-                d = int(d)
-                zs, D, wgt = ca.MX.sym("zs", b.f.nz - b.f.n_cal), ca.MX.sym("d", b.f.nd, sb.K), ca.MX.sym("w")
-                sym_in += [zs, D, wgt]
-                lo, hi = d, R - d - sb.J  # instance groups missing at either end, padded by the end ones
-                Dp = ca.horzcat(*([ca.repmat(Dm[:, 0], 1, lo)] if lo else []), Dm,
-                                *([ca.repmat(Dm[:, sb.J - 1], 1, hi)] if hi else []))
-                call_in += [sb.zs(Xp, d, R), ca.reshape(Dp, b.f.nd, sb.K * R),
-                            ca.DM(((np.arange(R) >= d) & (np.arange(R) < d + sb.J)).astype(float)).T]
-                h = ca.vec(b.f.hess.map(sb.K)(zc, ca.repmat(zs, 1, sb.K), D))
-                sel = e["shift"] == d
-                S = sp.csc_matrix((e["val"][sel], (nz[sel], e["src"][sel])), shape=(B.nnz, sb.K * P))
-                v = v + wgt * ca.mtimes(_dm(S), h)
-                if d == shifts[0]:
-                    sums[i] = wgt * h[e["global"].tolist()]
-        order = list(sums)
-        out = ca.Function("stage_hessian", sym_in, [ca.densify(v), *[sums[i] for i in order]]).map(R).call(call_in)
-        V = out[0]
-        sums = {i: ca.mtimes(out[1 + k], ca.DM.ones(R)) for k, i in enumerate(order)}
-        first = np.flatnonzero((B.indices < c) | (B.indices >= c + m))  # the first stage has no previous one
+            plan, K = self.h_plan[e["block"]], e["sb"].K
+            plan["stage"] = [(int(d), sp.csr_matrix((e["val"][sel], (nz[sel], e["src"][sel])), shape=(B.nnz, K * e["P"])))
+                             for d in np.unique(e["shift"]) for sel in [e["shift"] == d]]
+        self.n_stage_nz = B.nnz
+        self.first = np.flatnonzero((B.indices < c) | (B.indices >= c + m))  # the first stage has no previous one
+        self._B = B
 
         def part(lo, hi):
             M = B[lo:hi].tocsc()
@@ -665,8 +550,278 @@ class Solver:
         cal = ca.kron(ca.Sparsity.dense(1, R), part(0, c))
         own = ca.kron(ca.Sparsity.diag(R), part(c + m, c + 2 * m)) \
             .unite(ca.kron(ca.Sparsity.band(R, -1), part(c, c + m)))  # own stage; previous stage
-        return (cal, own), ca.vertcat(V[first.tolist(), 0], ca.vec(V[:, 1:])), sums
+        self.sparsity = ca.vertcat(ca.horzcat(self.sparsity, cal), ca.horzcat(ca.Sparsity(R * m, c), own))
 
+    def csc(self, values: np.ndarray) -> sp.csc_matrix:
+        """The upper-triangular Hessian nonzeros ``values`` as a scipy matrix (NLP order)."""
+        if not hasattr(self, "_csc_pattern"):
+            P = self._cal_pattern
+            if self.st:
+                st, B = self.st, self._B
+                c, m, R = st.c, st.m, st.R
+                ones = lambda M: sp.csc_matrix((np.ones(M.nnz), M.indices, M.indptr), shape=M.shape)  # noqa: E731
+                cal_cols = sp.kron(sp.csr_matrix(np.ones((1, R))), ones(B[:c]))
+                own = sp.kron(sp.eye(R), ones(B[c + m:])) + sp.kron(sp.eye(R, k=1), ones(B[c: c + m]))
+                P = sp.bmat([[P, cal_cols], [None, own]], format="csc")
+                P.eliminate_zeros()  # scipy's kron stores blocks that are more than half full densely
+                P.sort_indices()
+            if P.nnz != self.nnz:
+                raise AssertionError("Hessian pattern mismatch")
+            self._csc_pattern = (P.indices, P.indptr)
+        n = self.n
+        return sp.csc_matrix((values, *self._csc_pattern), shape=(n, n))
+
+    # -- evaluation ------------------------------------------------------------------------------
+    def _chunks(self, i: int, w: np.ndarray, Xs, D: np.ndarray):
+        """(t0, t1, j0, j1, [z_cal, z_stage, d]) for the instances t0 ... t1 - 1 of block i, CHUNK
+        at a time (whole stage groups j0 ... j1 - 1 for a staged block)."""
+        b, sb = self.blocks[i], self.staged.get(i)
+        N = b.block.n
+        if sb is None:
+            for t0 in range(0, N, CHUNK):
+                t1 = min(N, t0 + CHUNK)
+                yield t0, t1, None, None, [w[b.w_idx[t0:t1]], np.empty((t1 - t0, 0)), D[t0:t1]]
+            return
+        K = sb.K
+        Zc = w[sb.q[:, : sb.n_cal]]
+        step = max(1, CHUNK // K)
+        for j0 in range(0, sb.J, step):
+            j1 = min(sb.J, j0 + step)
+            yield j0 * K, j1 * K, j0, j1, [np.tile(Zc, (j1 - j0, 1)), np.repeat(sb.stage_inputs(Xs, j0, j1), K, axis=0),
+                                           D[j0 * K: j1 * K]]
+
+    def _inputs(self, x: np.ndarray, p: np.ndarray):
+        """w (layout order, physical units, then the fixed values) and the stage values (R, m)."""
+        lay = self.layout
+        w = np.concatenate([x[self.ipos] * self.scale, p[: lay.n_p]])
+        Xs = (x[self.c:].reshape(self.st.R, self.st.m) * self.st.scale) if self.st else None
+        return w, Xs
+
+    def _data(self, i: int, p: np.ndarray) -> np.ndarray:
+        b = self.blocks[i]
+        return p[b.data_offset: b.data_offset + b.block.n * b.f.nd].reshape(b.block.n, b.f.nd)
+
+    def local(self, x, p, which: str) -> list[np.ndarray]:
+        """One local function (``res`` or ``jac``) of every block over all instances: (N, size)."""
+        w, Xs = self._inputs(x, p)
+        out = []
+        for i, b in enumerate(self.blocks):
+            fn = getattr(b.f, which)
+            R = np.empty((b.block.n, fn.size1_out(0) * fn.size2_out(0)))
+            for t0, t1, _, _, args in self._chunks(i, w, Xs, self._data(i, p)):
+                b.f(fn, args, [R[t0:t1]])
+            out.append(R)
+        return out
+
+    def prior_residual(self, w):
+        pi, pm, ps = self.prior
+        return (w[pi] - pm) / ps
+
+    def assemble(self, x, p, information: bool = False):
+        """(f, gradient, Hessian nonzeros) of 1/2 |r|^2 at x; with ``information`` only the
+        Hessian, of J^T J (the Fisher information), from the local Jacobians."""
+        st = self.st
+        w, Xs = self._inputs(x, p)
+        s_g, s_h = np.zeros(self.A_g.shape[1]), np.zeros(self.A_h.shape[1])
+        GS = np.zeros((st.R, st.m)) if st else None
+        VT = np.zeros((st.R, self.n_stage_nz)) if st else None
+        f_val = 0.0
+        for i, b in enumerate(self.blocks):
+            f, gp, hp = b.f, self.g_plan[i], self.h_plan[i]
+            na, P, m = len(f.act), len(f.pairs), f.m
+            sb = self.staged.get(i)
+            for t0, t1, j0, j1, args in self._chunks(i, w, Xs, self._data(i, p)):
+                nI = t1 - t0
+                if information:
+                    Jl = np.empty((nI, na * m))
+                    f(f.jac, args, [Jl])
+                    Jl = Jl.reshape(nI, na, m)
+                    h = np.einsum("tpi,tpi->tp", Jl[:, f.pair_loc[:, 0]], Jl[:, f.pair_loc[:, 1]])
+                else:
+                    r, g, h = np.empty((nI, m)), np.empty((nI, na)), np.empty((nI, P))
+                    f(f.rgh, args, [r, g, h])
+                    f_val += 0.5 * float(np.einsum("ij,ij->", r, r))
+                    _scatter(gp, sb, g, t0, t1, j0, j1, s_g, GS)
+                _scatter(hp, sb, h, t0, t1, j0, j1, s_h, VT)
+        pr = self.prior_residual(w)
+        f_val += 0.5 * float(pr @ pr)
+        s_g[self.g_prior_col:] = pr
+        s_h[self.h_prior_col:] = 1.0
+        H = np.empty(self.nnz)
+        H[: self.n_cal_nz] = self.A_h @ s_h
+        if st:
+            n0 = self.n_cal_nz + len(self.first)
+            H[self.n_cal_nz: n0] = VT[0, self.first]
+            H[n0:] = VT[1:].ravel()
+        if information:
+            return H
+        grad = self.A_g @ s_g
+        return f_val, (np.concatenate([grad, GS.ravel()]) if st else grad), H
+
+    def objective(self, x, p) -> float:
+        c = self._cache
+        if c is not None and _same(c, x, p):
+            return c["f"]
+        r = self.local(x, p, "res")
+        pr = self.prior_residual(self._inputs(x, p)[0])
+        return 0.5 * (sum(float(np.einsum("ij,ij->", a, a)) for a in r) + float(pr @ pr))
+
+    def derivatives(self, x, p):
+        """(f, gradient, Hessian nonzeros of the objective) at x, cached for the Hessian call
+        that follows the gradient's at the same point."""
+        c = self._cache
+        if c is None or not _same(c, x, p):
+            f, g, H = self.assemble(x, p)
+            self._cache = c = {"x": x.copy(), "p_key": _p_key(p), "f": f, "g": g, "H": H}
+        return c["f"], c["g"], c["H"]
+
+
+def _scatter(plan: dict, sb, v: np.ndarray, t0, t1, j0, j1, sources: np.ndarray, stage: np.ndarray | None):
+    """Add the local values v (instances t0 ... t1 - 1, entries) of one block to the source vector
+    of the calibration entries and to the stage entries (stage s in row s)."""
+    width = v.shape[1]
+    if not width:
+        return
+    col = plan["col"]
+    if sb is None:
+        sources[col + t0 * width: col + t1 * width] = v.ravel()
+        return
+    V = v.reshape(j1 - j0, sb.K * width)  # one row per stage group
+    sel = plan["sel"]
+    sources[col: col + len(sel)] += V[:, sel].sum(axis=0)
+    for d, S in plan["stage"]:
+        stage[d + j0: d + j1] += (S @ V.T).T
+
+
+def _p_key(p: np.ndarray):
+    return float(p.sum()), p[::997].copy()
+
+
+def _same(cache: dict, x: np.ndarray, p: np.ndarray) -> bool:
+    s, sample = cache["p_key"]
+    return np.array_equal(cache["x"], x) and float(p.sum()) == s and np.array_equal(p[::997], sample)
+
+
+class _Callback(ca.Callback):
+    """A numpy function as a CasADi function, computed in place on CasADi's own buffers."""
+
+    def __init__(self, name: str, sp_in: list[ca.Sparsity], sp_out: list[ca.Sparsity], fn, gradient=None):
+        ca.Callback.__init__(self)
+        self._in, self._out, self._fn, self._gradient = sp_in, sp_out, fn, gradient
+        self.construct(name, {})
+
+    def get_n_in(self):
+        return len(self._in)
+
+    def get_n_out(self):
+        return len(self._out)
+
+    def get_sparsity_in(self, i):
+        return self._in[i]
+
+    def get_sparsity_out(self, i):
+        return self._out[i]
+
+    def has_eval_buffer(self):
+        return True
+
+    def eval_buffer(self, arg, res):
+        self._fn([np.frombuffer(a, float) for a in arg], [np.frombuffer(r, float) for r in res])
+        return 0
+
+    # reverse mode of a scalar function of (x, p) from its gradient in x: IPOPT's interface builds
+    # the Lagrangian's gradient with it (for the bound multipliers). The derivative in p, the data,
+    # is never evaluated (calc_lam_p is off) and is returned as structural zeros.
+    def has_reverse(self, nadj):
+        return self._gradient is not None
+
+    def get_reverse(self, nadj, name, inames, onames, opts):
+        x, p = ca.MX.sym("x", self._in[0]), ca.MX.sym("p", self._in[1])
+        out, adj = ca.MX.sym("out", 1), ca.MX.sym("adj", 1, nadj)
+        g = self._gradient(x, p)[1]
+        return ca.Function(name, [x, p, out, adj], [ca.mtimes(g, adj), ca.MX(self._in[1].size1(), nadj)],
+                           inames, onames, opts)
+
+
+class Solver:
+    """IPOPT on a :class:`LeastSquaresProblem`, built once and solved for any data or fixed values.
+
+    Public methods take and return x in the layout's order; inside the NLP the variables may be
+    ordered by stage (:class:`_Stages`)."""
+
+    def __init__(self, problem: LeastSquaresProblem, options: SolverOptions = SolverOptions()):
+        t0 = time.perf_counter()
+        self.problem, self.options = problem, options
+        lay = problem.layout
+        self.n_x = n = lay.n_x
+        self.blocks = [_Block(b, lay) for b in problem.blocks if b.n]
+        self._stages, self._staged = st, staged = _Stages.find(lay, self.blocks)
+        cache: dict = {}
+        off = lay.n_p
+        for i, b in enumerate(self.blocks):
+            b.compile(cache, staged[i].n_cal if i in staged else b.w_idx.shape[1], options.hessian, options.jit)
+            b.data_offset = off
+            off += b.block.n * b.f.nd
+        self.n_p = off
+        self._perm = st.perm if st else np.arange(n)  # NLP order -> layout index
+        keep = [np.repeat(np.ones(b.block.n, bool) if b.block.valid is None else b.block.valid, b.f.m)
+                for b in self.blocks]
+        self._prior = pi, _, _ = lay.priors()
+        # residuals of instances that are not valid (masked data) are exactly zero and not reported
+        self._keep = np.concatenate(keep + [np.ones(len(pi), bool)])
+        self.n_data_residuals = int(self._keep.sum()) - len(pi)
+        self.n_residuals = int(self._keep.sum())
+
+        # constraints |row|^2 = 1, rows grouped by width for vectorisation
+        self._unit = U = lay.unit_norm_rows()
+        self.n_constraints = U.shape[0]
+        x = ca.MX.sym("x", n)  # in NLP order
+        p = ca.MX.sym("p", self.n_p)
+        w = ca.vertcat((x[np.argsort(self._perm).tolist()] if st else x) * lay.x_scale, p[: lay.n_p])
+        c_parts, self._unit_order = [], []
+        for width in sorted({int((row >= 0).sum()) for row in U}):
+            sel = np.flatnonzero((U >= 0).sum(axis=1) == width)
+            idx = U[sel][:, :width]
+            c_parts.append(ca.sum1(ca.reshape(w[idx.ravel().tolist()], width, len(sel)) ** 2).T - 1)
+            self._unit_order.append(sel)
+        c = ca.vertcat(*c_parts) if c_parts else ca.MX(0, 1)
+        self._c_perm = np.concatenate(self._unit_order) if self._unit_order else np.zeros(0, int)
+
+        # objective, gradient and Hessian of the Lagrangian: numpy assembly of the local functions
+        A = self._assembly = _Assembly(self.blocks, lay, st, staged, self._perm, U[self._c_perm], self.n_constraints)
+        dense = ca.Sparsity.dense
+        io = [dense(n), dense(self.n_p)]
+
+        def objective(a, o):
+            o[0][0] = A.objective(a[0], a[1])
+
+        def gradient(a, o):
+            f, g, _ = A.derivatives(a[0], a[1])
+            o[0][0], o[1][:] = f, g
+
+        def hessian(a, o):
+            _, _, H = A.derivatives(a[0], a[1])
+            np.multiply(H, a[2][0], out=o[0])
+            o[0][: A.n_cal_nz] += A.C_h @ a[3]
+
+        grad_cb = _Callback("gradient", io, [dense(1), dense(n)], gradient)
+        self._callbacks = cbs = [_Callback("objective", io, [dense(1)], objective, grad_cb), grad_cb,
+                                 _Callback("hessian", io + [dense(1), dense(self.n_constraints)], [A.sparsity], hessian)]
+        lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", self.n_constraints)
+        # the derivative functions are given, so that CasADi never differentiates the objective
+        grad_f = ca.Function("nlp_grad_f", [x, p], cbs[1](x, p), ["x", "p"], ["f", "grad"])
+        hess_lag = ca.Function("nlp_hess_l", [x, p, lam_f, lam_g], [cbs[2](x, p, lam_f, lam_g)],
+                               ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
+        jac_g = ca.Function("nlp_jac_g", [x, p], [c, ca.jacobian(c, x)], ["x", "p"], ["g", "jac_g_x"])
+        nlp = {"x": x, "p": p, "f": cbs[0](x, p), "g": c}
+        self.nlp = ca.nlpsol("castimate", "ipopt", nlp, {**options.ipopt(), "hess_lag": hess_lag, "grad_f": grad_f,
+                                                         "jac_g": jac_g})
+        nuisance = np.zeros(n, bool)
+        for g in lay.groups:
+            if g.nuisance:
+                nuisance[lay.x_indices(g.name)] = True
+        self.theta = np.flatnonzero(~nuisance)  # reported parameters: their covariance is computed
+        self.build_s = time.perf_counter() - t0
 
     # -- numeric ---------------------------------------------------------------------------------
     def _p(self, p_fixed, data):
@@ -675,43 +830,80 @@ class Solver:
         data = self.problem.data if data is None else data
         return np.concatenate([np.asarray(p_fixed, float), np.asarray(data, float).ravel()])
 
+    def _x(self, x) -> np.ndarray:
+        """Layout order -> NLP order."""
+        return np.asarray(x, float)[self._perm]
+
     def residuals(self, x, p_fixed=None, data=None) -> np.ndarray:
         """All whitened residuals (data of the valid instances, then priors) at scaled x."""
-        return np.asarray(self._res_all(np.asarray(x, float)[self._perm], self._p(p_fixed, data))).ravel()[self._keep]
+        p = self._p(p_fixed, data)
+        A = self._assembly
+        xn = self._x(x)
+        r = A.local(xn, p, "res")
+        return np.concatenate([a.ravel() for a in r] + [A.prior_residual(A._inputs(xn, p)[0])])[self._keep]
 
     def jacobians(self, x, p_fixed=None, data=None) -> tuple[sp.csr_matrix, sp.csr_matrix]:
         """Sparse Jacobians w.r.t. scaled x of the whitened residuals (data, then priors) and of the
         constraints (in the order of ``Layout.unit_norm_rows``)."""
-        lay = self.problem.layout
         p = self._p(p_fixed, data)
-        n = self.n_x
-        scale = lay.x_scale
-        w = np.concatenate([np.asarray(x, float) * scale, p[: lay.n_p]])
+        n, scale = self.n_x, self.problem.layout.x_scale
         rows, cols, vals = [], [], []
         row0 = 0
-        local = self._jac.call([np.asarray(x, float)[self._perm], p])
-        for b, Jb in zip(self.blocks, local):
+        for b, Jb in zip(self.blocks, self._assembly.local(self._x(x), p, "jac")):
             N, f = b.block.n, b.f
-            na = len(f.act)
-            Jl = np.asarray(Jb).reshape(f.m, na, N, order="F")  # instances side by side
+            Jl = Jb.reshape(N, len(f.act), f.m)
             t, a = np.nonzero(b.w_idx[:, f.act] < n)  # a indexes the active components
             gi = b.w_idx[t, f.act[a]]
             for i in range(f.m):
                 rows.append(row0 + t * f.m + i)
                 cols.append(gi)
-                vals.append(Jl[i, a, t] * scale[gi])
+                vals.append(Jl[t, a, i] * scale[gi])
             row0 += N * f.m
         pi, _, ps = self._prior
         rows.append(row0 + np.arange(len(pi))), cols.append(pi), vals.append(scale[pi] / ps)
         J = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                           shape=(len(self._keep), n))[np.flatnonzero(self._keep)]
+        return J, self._constraint_jacobian(x, p)
+
+    def _constraint_jacobian(self, x, p) -> sp.csr_matrix:
+        lay, n = self.problem.layout, self.n_x
+        scale = lay.x_scale
+        w = np.concatenate([np.asarray(x, float) * scale, p[: lay.n_p]])
         gr, gc, gv = [], [], []
         for j, row in enumerate(self._unit):
             f = row[(row >= 0) & (row < n)]
             gr.append(np.full(len(f), j)), gc.append(f), gv.append(2 * w[f] * scale[f])
-        G = sp.csr_matrix((np.concatenate(gv), (np.concatenate(gr), np.concatenate(gc))), shape=(self.n_constraints, n)) \
-            if gr else sp.csr_matrix((0, n))
-        return J, G
+        return sp.csr_matrix((np.concatenate(gv), (np.concatenate(gr), np.concatenate(gc))),
+                             shape=(self.n_constraints, n)) if gr else sp.csr_matrix((0, n))
+
+    def symbolic_nlp(self) -> dict:
+        """The same NLP as one CasADi expression graph, in the layout's order: {"x", "p", "f", "g"}
+        with g in the order of ``Layout.unit_norm_rows``. A reference for tests and for CasADi's own
+        solvers; unlike the solve path, it grows with the data."""
+        lay = self.problem.layout
+        x, p = ca.MX.sym("x", self.n_x), ca.MX.sym("p", self.n_p)
+        w = ca.vertcat(x * lay.x_scale, p[: lay.n_p])
+        rs = []
+        for b in self.blocks:
+            N, fn = b.block.n, b.block.residual
+            W = np.empty_like(b.w_idx)
+            W[:, b.order] = b.w_idx  # the factor function's own input order
+            Z = ca.reshape(w[W.ravel().tolist()], W.shape[1], N)
+            rs.append(ca.vec(fn.map(N)(Z, ca.reshape(p[b.data_offset: b.data_offset + b.f.nd * N], b.f.nd, N))))
+        pi, pm, ps = self._prior
+        r = ca.vertcat(*rs, (w[pi.tolist()] - pm) / ps)
+        g = [ca.sumsqr(w[row[row >= 0].tolist()]) - 1 for row in self._unit]
+        return {"x": x, "p": p, "f": 0.5 * ca.sumsqr(r), "g": ca.vertcat(*g) if g else ca.MX(0, 1)}
+
+    def information(self, x, p_fixed=None, data=None) -> sp.csc_matrix:
+        """The Fisher information J^T J of the whitened residuals (priors included) at scaled x, in
+        the layout's order and scaled units, assembled like the Hessian from the local Jacobians."""
+        p = self._p(p_fixed, data)
+        A = self._assembly
+        U = A.csc(A.assemble(self._x(x), p, information=True))
+        F = (U + U.T - sp.diags(U.diagonal())).tocsc()
+        ipos = A.ipos
+        return F[ipos][:, ipos] if self._stages else F
 
     def _eliminate(self, x, p_fixed=None, data=None, g: np.ndarray | None = None):
         """Eliminate the nuisance block from the Gauss-Newton KKT system at x.
@@ -722,11 +914,10 @@ class Solver:
         gradient g_t - B N^-1 g_n and g_n^T N^-1 g_n. Unit-norm constraints act on either block,
         never both.
         """
-        J, G = self.jacobians(x, p_fixed, data)
-        F = (J.T @ J).tocsc()
+        F = self.information(x, p_fixed, data)
+        G = self._constraint_jacobian(x, self._p(p_fixed, data)).tocsc()
         t = self.theta
         nu = np.setdiff1d(np.arange(self.n_x), t)
-        G = G.tocsc()
         on_theta = np.asarray(abs(G[:, t]).sum(axis=1)).ravel() > 0
         G_t, G_n = G[on_theta][:, t], G[~on_theta][:, nu]
         S = F[t][:, t].toarray()
@@ -837,7 +1028,7 @@ class Solver:
             cost=cost,
             chi2=2.0 * cost,
             dof=int(self.n_residuals - (x.size - self.n_constraints)),
-            residual=np.asarray(self._res(x[perm], p)).ravel()[self._keep[: len(self._keep) - len(self._prior[0])]],
+            residual=self.residuals(x, pf, data)[: self.n_data_residuals],
             covariance=cov,
             lam_g=lam,
         )
@@ -846,11 +1037,11 @@ class Solver:
         """g^T H^-1 g of the Lagrangian gradient with the Gauss-Newton Hessian on the constraints'
         tangent space: twice the χ² decrease a full Newton step would still achieve. The nuisance
         block is eliminated first (:meth:`_eliminate`), so this costs what the covariance costs."""
-        J, G = self.jacobians(x, p_fixed, data)
-        r = self.residuals(x, p_fixed, data)
+        p = self._p(p_fixed, data)
+        G = self._constraint_jacobian(x, p)
         lam = np.zeros(self.n_constraints)
         lam[self._c_perm] = lam_g  # CasADi's multipliers follow its constraint order (grouped by width)
-        g = J.T @ r + G.T @ lam
+        g = self._assembly.derivatives(self._x(x), p)[1][self._assembly.ipos] + G.T @ lam
         try:
             S, G_t, g_t, g_nn = self._eliminate(x, p_fixed, data, g)
         except np.linalg.LinAlgError:
@@ -870,20 +1061,3 @@ def _factor(K: sp.spmatrix):
     triangular solves fast: with SuperLU's default COLAMD, solving for 100 right-hand sides on a
     block-diagonal motion block of 18 000 rows took 31 s instead of 0.17 s."""
     return splu(sp.csc_matrix(K), permc_spec="MMD_AT_PLUS_A")
-
-
-def _tile(M: ca.MX, n: int) -> ca.MX:
-    """[M M ... M] (n copies) as one sparse product: no node per copy (CasADi's repmat makes one)."""
-    return ca.mtimes(M, ca.DM(ca.repmat(ca.Sparsity.diag(M.shape[1]), 1, n), 1.0))
-
-
-def _spread(M: ca.MX, n: int) -> ca.MX:
-    """Every column of M repeated n times in place, as one sparse product."""
-    return ca.mtimes(M, ca.DM(ca.kron(ca.Sparsity.diag(M.shape[1]), ca.Sparsity.dense(1, n)), 1.0))
-
-
-def _dm(M: sp.spmatrix) -> ca.DM:
-    """A scipy sparse matrix as a CasADi DM with the same sparsity."""
-    M = sp.csc_matrix(M)
-    M.sort_indices()
-    return ca.DM(ca.Sparsity(M.shape[0], M.shape[1], M.indptr.tolist(), M.indices.tolist()), M.data.tolist())

@@ -1,10 +1,11 @@
 """The solver's assembled derivatives against CasADi's own automatic differentiation.
 
-``Solver`` assembles IPOPT's gradient and exact Hessian of the Lagrangian from local functions
-(unstaged blocks through a sparse matrix, staged blocks stage by stage, see ``castimate.solve``).
-Here they must equal ``ca.gradient`` and ``ca.hessian`` of the NLP's own objective and constraints,
-at a random point and for random multipliers, on small static and dynamic problems with priors,
-unit-norm constraints, masked samples, a process model and free intrinsics.
+``Solver`` assembles IPOPT's objective, gradient and exact Hessian of the Lagrangian in numpy from
+compiled local functions (unstaged blocks through a sparse matrix, staged blocks stage by stage, see
+``castimate.solve``). Here they must equal ``ca.gradient`` and ``ca.hessian`` of the same problem
+written as one symbolic graph (``Solver.symbolic_nlp``), at a random point and for random
+multipliers, on small static and dynamic problems with priors, unit-norm constraints, masked
+samples, a process model and free intrinsics.
 """
 
 from dataclasses import replace
@@ -60,14 +61,23 @@ def static_case():
 
 
 def reference_derivatives(solver: Solver):
-    """CasADi's gradient and Hessian of the NLP's Lagrangian (NLP order), as functions."""
-    nlp = solver.nlp.oracle()
-    x, p = ca.MX.sym("x", solver.n_x), ca.MX.sym("p", nlp.size1_in(1))
+    """CasADi's gradient and Hessian of the Lagrangian of the solver's symbolic NLP (layout order,
+    constraints in the order of ``Layout.unit_norm_rows``), as functions."""
+    nlp = solver.symbolic_nlp()
+    x, p = nlp["x"], nlp["p"]
     lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", solver.n_constraints)
-    f, g = nlp(x, p)
-    lag = lam_f * f + ca.dot(lam_g, g)
-    return (ca.Function("reference_gradient", [x, p], [ca.gradient(f, x)]),
-            ca.Function("reference_hessian", [x, p, lam_f, lam_g], [ca.triu(ca.hessian(lag, x)[0])]))
+    lag = lam_f * nlp["f"] + ca.dot(lam_g, nlp["g"])
+    return (ca.Function("reference_objective", [x, p], [nlp["f"]]),
+            ca.Function("reference_gradient", [x, p], [ca.gradient(nlp["f"], x)]),
+            ca.Function("reference_hessian", [x, p, lam_f, lam_g], [ca.hessian(lag, x)[0]]))
+
+
+def assembled(solver: Solver, x, p, lam_f, lam_g):
+    """The solver's objective, gradient (NLP order) and upper-triangular Hessian of the Lagrangian
+    as IPOPT gets them."""
+    f_val, grad = solver.nlp.get_function("nlp_grad_f")(x, p)
+    H = solver.nlp.get_function("nlp_hess_l")(x, p, lam_f, lam_g)
+    return float(f_val), np.asarray(grad).ravel(), H
 
 
 @pytest.mark.parametrize("kind", ["dynamic", "dynamic_no_process_model", "static"])
@@ -78,30 +88,57 @@ def test_assembled_derivatives_equal_casadi_ad(kind, hessian):
     assert (solver._stages is None) == (kind == "static")  # the dynamic problems are assembled by stage
     rng = np.random.default_rng(0)
     lay = prob.lsq.layout
-    x = (lay.x0() * (1 + 0.05 * rng.standard_normal(lay.n_x)))[solver._perm]  # NLP order
+    x = lay.x0() * (1 + 0.05 * rng.standard_normal(lay.n_x))  # layout order
+    xn, perm = x[solver._perm], solver._perm  # NLP order
     p = solver._p(None, None)
-    lam_f, lam_g = 0.7, rng.standard_normal(solver.n_constraints)
-    grad_ref, hess_ref = reference_derivatives(solver)
+    lam_f, lam_g = 0.7, rng.standard_normal(solver.n_constraints)  # CasADi's constraint order
+    lam = np.zeros(solver.n_constraints)
+    lam[solver._c_perm] = lam_g  # the reference's order
+    f_ref, grad_ref, hess_ref = reference_derivatives(solver)
 
-    f_val, grad = solver.nlp.get_function("nlp_grad_f")(x, p)
-    g_ref = np.asarray(grad_ref(x, p)).ravel()
-    np.testing.assert_allclose(np.asarray(grad).ravel(), g_ref, rtol=1e-10, atol=1e-10 * np.abs(g_ref).max())
+    f_val, grad, H = assembled(solver, xn, p, lam_f, lam_g)
+    assert f_val == pytest.approx(float(f_ref(x, p)), rel=1e-12)
+    assert float(solver.nlp.get_function("nlp_f")(xn, p)[0]) == pytest.approx(f_val, rel=1e-12)
+    g_ref = np.asarray(grad_ref(x, p)).ravel()[perm]
+    np.testing.assert_allclose(grad, g_ref, rtol=1e-10, atol=1e-10 * np.abs(g_ref).max())
 
-    H = solver.nlp.get_function("nlp_hess_l")(x, p, lam_f, lam_g)
     assert H.sparsity().is_triu()
-    H, R = np.asarray(ca.densify(H)), np.asarray(ca.densify(hess_ref(x, p, lam_f, lam_g)))
+    H = np.asarray(ca.densify(H))
     if hessian == "exact":
+        R = np.triu(np.asarray(ca.densify(hess_ref(x, p, lam_f, lam)))[np.ix_(perm, perm)])
         np.testing.assert_allclose(H, R, rtol=1e-9, atol=1e-9 * np.abs(R).max())
     else:  # Gauss-Newton: J^T J (priors included) plus the constraints' curvature
-        J, _ = solver.jacobians(x[np.argsort(solver._perm)])
-        lam = np.zeros(solver.n_constraints)
-        lam[solver._c_perm] = lam_g
+        J, _ = solver.jacobians(x)
         curv = np.zeros(lay.n_x)
         for j, row in enumerate(solver._unit):
             f = row[(row >= 0) & (row < lay.n_x)]
             curv[f] += 2 * lam[j] * lay.x_scale[f] ** 2
-        expect = np.triu((lam_f * (J.T @ J).toarray() + np.diag(curv))[np.ix_(solver._perm, solver._perm)])
+        expect = np.triu((lam_f * (J.T @ J).toarray() + np.diag(curv))[np.ix_(perm, perm)])
         np.testing.assert_allclose(H, expect, rtol=1e-9, atol=1e-9 * np.abs(expect).max())
+
+
+@pytest.mark.parametrize("kind", ["dynamic", "static"])
+def test_information_is_jacobian_gram(kind):
+    """The Fisher information assembled from local Jacobians equals J^T J of the full Jacobian."""
+    prob = static_case() if kind == "static" else dynamic_case()
+    solver = Solver(prob.lsq, SolverOptions(jit=False))
+    x = prob.lsq.layout.x0() * (1 + 0.05 * np.random.default_rng(1).standard_normal(prob.lsq.layout.n_x))
+    J, _ = solver.jacobians(x)
+    expect = (J.T @ J).toarray()
+    np.testing.assert_allclose(solver.information(x).toarray(), expect, rtol=1e-10, atol=1e-10 * np.abs(expect).max())
+
+
+def test_jacobian_matches_finite_differences_of_residuals():
+    prob = dynamic_case()
+    solver = Solver(prob.lsq, SolverOptions(jit=False))
+    x = prob.lsq.layout.x0()
+    J = solver.jacobians(x)[0].toarray()
+    rng = np.random.default_rng(2)
+    for j in rng.choice(x.size, 12, replace=False):
+        e = np.zeros(x.size)
+        e[j] = 1e-6
+        fd = (solver.residuals(x + e) - solver.residuals(x - e)) / 2e-6
+        np.testing.assert_allclose(J[:, j], fd, rtol=1e-5, atol=1e-6 * max(1.0, np.abs(fd).max()))
 
 
 def test_compiled_and_virtual_machine_assembly_agree():
@@ -112,6 +149,23 @@ def test_compiled_and_virtual_machine_assembly_agree():
     lam_g = np.linspace(-1, 1, a.n_constraints)
     ha, hb = (np.asarray(s.nlp.get_function("nlp_hess_l")(x, p, 1.0, lam_g).nonzeros()) for s in (a, b))
     np.testing.assert_allclose(ha, hb, rtol=1e-13, atol=0)
+
+
+def test_chunked_evaluation_equals_one_chunk(monkeypatch):
+    """Splitting the instances into chunks (whole stage groups) changes nothing."""
+    import castimate.solve as solve
+
+    prob = dynamic_case()
+    x = prob.lsq.layout.x0()
+    one = Solver(prob.lsq, SolverOptions(jit=False))
+    monkeypatch.setattr(solve, "CHUNK", 7)  # several chunks per block, not a multiple of the triads
+    many = Solver(prob.lsq, SolverOptions(jit=False))
+    p = one._p(None, None)
+    fa, ga, ha = one._assembly.assemble(x[one._perm], p)
+    fb, gb, hb = many._assembly.assemble(x[many._perm], p)
+    assert fa == pytest.approx(fb, rel=1e-13)
+    np.testing.assert_allclose(ga, gb, rtol=1e-12, atol=1e-12 * np.abs(ga).max())
+    np.testing.assert_allclose(ha, hb, rtol=1e-12, atol=1e-12 * np.abs(ha).max())
 
 
 def test_masked_samples_are_not_residuals():
