@@ -80,6 +80,10 @@ class SolverOptions:
             "ipopt.print_level": self.print_level,
             "ipopt.sb": "yes",
             "ipopt.mumps_pivot_order": 5,  # METIS ordering
+            # no MUMPS scaling: x is scaled already, and on a 32 x 20 000 problem computing the
+            # scalings took a quarter of the factorisation time
+            "ipopt.mumps_scaling": 0,
+            "ipopt.mumps_permuting_scaling": 0,
             "print_time": False,
             "record_time": True,
             "calc_lam_p": False,
@@ -171,7 +175,8 @@ class _Compiled:
     Each takes (z_cal, z_stage, d): the factor's inputs split into the components that are not
     stage variables and those that are (:class:`_Stages`; none for an unstaged block), and its data.
     ``res`` gives the residual, ``jac`` its Jacobian, ``rgh`` the residual, the local gradient J^T r
-    and the local Hessian entries ``pairs`` (exact, or J^T J for Gauss-Newton). Derivatives are
+    and the local Hessian entries ``pairs`` (exact, or J^T J for Gauss-Newton), ``gn`` the entries
+    of J^T J (the information). Derivatives are
     taken only with respect to the components that are free in some instance (``active``): fixed
     intrinsics feed the residual but are never differentiated, which cut the exact local Hessian of
     a Schopp accelerometer factor from about 6500 to about 2400 instructions.
@@ -194,14 +199,18 @@ class _Compiled:
                                if sp_H.has_nz(a, b)], int).reshape(-1, 2)
         loc = np.full(nz, -1)
         loc[act] = np.arange(len(act))
-        self.pair_loc = loc[self.pairs]  # the pairs as indices into the active components
-        h = ca.vertcat(*[H[int(a), int(b)] for a, b in self.pair_loc]) if len(self.pairs) else ca.SX(0, 1)
+
+        def entries(M):  # M's values at the pairs
+            return ca.densify(ca.vertcat(*[M[int(a), int(b)] for a, b in loc[self.pairs]]) if len(self.pairs)
+                              else ca.SX(0, 1))
+
         args = [zc, zs, d]
         name = fn.name()
         local = [ca.Function(f"{name}_res", args, [r]),
                  ca.Function(f"{name}_jac", args, [ca.densify(J)]),
-                 ca.Function(f"{name}_rgh", args, [r, ca.densify(ca.mtimes(J.T, r)), ca.densify(h)])]
-        self.res, self.jac, self.rgh = (compile_functions(local) if jit else None) or local
+                 ca.Function(f"{name}_rgh", args, [r, ca.densify(ca.mtimes(J.T, r)), entries(H)]),
+                 ca.Function(f"{name}_gn", args, [entries(JtJ)])]
+        self.res, self.jac, self.rgh, self.gn = (compile_functions(local) if jit else None) or local
         self.nz, self.nd, self.m, self.n_cal = nz, nd, fn.size1_out(0), n_cal
         self._buffers: dict = {}
 
@@ -231,7 +240,8 @@ class _Block:
         for g, rows in block.inputs:
             W = layout.w_index(g) if isinstance(g, str) else np.vstack([layout.w_index(n) for n in g])
             cols.append(np.broadcast_to(W[0], (block.n, W.shape[1])) if rows is None else W[np.asarray(rows)])
-        self.w_idx = np.ascontiguousarray(np.hstack(cols), dtype=int)  # C order: gathers by rows stay C order
+        # C order: gathers by rows stay C order; 32 bits: half the memory of the largest index array
+        self.w_idx = np.ascontiguousarray(np.hstack(cols), dtype=np.int32 if layout.n_x + layout.n_p < 2**31 else int)
         nz = block.residual.size1_in(0)
         if self.w_idx.shape[1] != nz:
             raise ValueError(f"factor block {block.name}: inputs give {self.w_idx.shape[1]} values, "
@@ -265,25 +275,30 @@ class _StagedBlock:
         n = len(st.stage_of)
         W = b.w_idx
         free = W < n
-        stg = np.where(free, st.stage_of[np.where(free, W, 0)], -1)
+        stage_of = np.append(st.stage_of, -1)  # w indices of fixed values map to -1
+        stg = stage_of[np.where(free, W, n)]
         is_st = (stg >= 0).any(axis=0)
         if not is_st.any():
             raise LookupError
-        if not (stg[:, is_st] >= 0).all():
+        S = stg[:, is_st]
+        if not (S >= 0).all():
             raise _NotStaged
         N = W.shape[0]
-        base = stg[:, is_st].min(axis=1)
+        base = S.min(axis=1)
         K = int(np.count_nonzero(base == base[0]))
+        J = N // K
         if N % K or not np.array_equal(base, base[0] + np.arange(N) // K):
             raise _NotStaged
-        rel = np.where(is_st, stg - base[:, None], -1)
-        q = np.where(is_st, st.within[np.where(free, W, 0)], W)  # stage position, or w index
-        J = N // K
-        if not ((rel.reshape(J, K, -1) == rel[:K]).all() and (q.reshape(J, K, -1) == q[:K]).all()) \
-                or rel.max() > 1 or not np.where(is_st, q[:K] == q[0], True).all():
+        rel = np.where(is_st, stg[:K] - base[:K, None], -1)
+        q = np.where(is_st, st.within[np.where(free[:K], W[:K], 0)], W[:K])  # stage position, or w index
+        # every stage group sees the same stage positions and offsets and the same calibration inputs
+        Wc = W[:, ~is_st].reshape(J, K, -1)
+        if not ((S - base[:, None]).reshape(J, K, -1) == rel[:, is_st]).all() or not (Wc == Wc[0]).all() \
+                or not (st.within[W[:, is_st]].reshape(J, K, -1) == q[:, is_st]).all() \
+                or rel.max() > 1 or not np.where(is_st, q == q[0], True).all():
             raise _NotStaged
         self.K, self.J, self.base = K, J, int(base[0])
-        self.rel, self.q, self.is_st = rel[:K], q[:K], is_st
+        self.rel, self.q, self.is_st = rel, q, is_st
         self.n_cal = int((~is_st).sum())
         # calibration components first, then the stage components by offset and position
         self.order = np.lexsort((q[0], rel[0], is_st))
@@ -355,7 +370,9 @@ class _Stages:
                     b2.reorder(np.argsort(b2.order))
                 return None, {}
             b.reorder(sb.order)
-            staged[i] = _StagedBlock(b, st)
+            sb.rel, sb.q = (np.ascontiguousarray(M[:, sb.order]) for M in (sb.rel, sb.q))
+            sb.is_st = sb.is_st[sb.order]
+            staged[i] = sb
         return st, staged
 
 
@@ -383,7 +400,7 @@ class _Assembly:
         self.prior = layout.priors()
         self._gradient_plan()
         self._hessian_plan(unit_rows, n_constraints)
-        self._cache = None
+        self._cache, self._stage_buffer = None, None
 
     # -- plans -----------------------------------------------------------------------------------
     def _gradient_plan(self):
@@ -484,10 +501,11 @@ class _Assembly:
                                  shape=(pattern.nnz, n_constraints))
         self.n_cal_nz = pattern.nnz
         self._cal_pattern = pattern
-        self.sparsity = ca.Sparsity(c, c, pattern.indptr.tolist(), pattern.indices.tolist())
         if st:
             self._stage_columns(entries)
-        self.nnz = self.sparsity.nnz()
+        indices, indptr = self.pattern()
+        self.sparsity = ca.Sparsity(n, n, indptr.tolist(), indices.tolist())
+        self.nnz = len(indices)
 
     def _stage_entries(self, i, sb: _StagedBlock, a_idx, b_idx, sx) -> dict:
         """The stage-column entries of one staged block's local Hessian pairs, for one stage group:
@@ -520,10 +538,10 @@ class _Assembly:
                 "src": src, "val": v}
 
     def _stage_columns(self, entries: list[dict]):
-        """The pattern B of one stage's columns (rows: calibration, previous stage, own stage), the
-        matrices from local entries to its nonzeros, and the full sparsity."""
+        """The pattern B of one stage's columns (rows: calibration, previous stage, own stage) and
+        the matrices from local entries to its nonzeros."""
         st = self.st
-        c, m, R = st.c, st.m, st.R
+        c, m = st.c, st.m
         vrow = np.concatenate([np.where(e["kind"] == 0, e["row"], c + (e["kind"] - 1) * m + e["row"]) for e in entries])
         vcol = np.concatenate([e["col"] for e in entries])
         B = sp.coo_matrix((np.ones(len(vrow)), (vrow, vcol)), shape=(c + 2 * m, m)).tocsc()
@@ -542,34 +560,51 @@ class _Assembly:
         self.first = np.flatnonzero((B.indices < c) | (B.indices >= c + m))  # the first stage has no previous one
         self._B = B
 
-        def part(lo, hi):
-            M = B[lo:hi].tocsc()
-            M.sort_indices()
-            return ca.Sparsity(hi - lo, m, M.indptr.tolist(), M.indices.tolist())
-
-        cal = ca.kron(ca.Sparsity.dense(1, R), part(0, c))
-        own = ca.kron(ca.Sparsity.diag(R), part(c + m, c + 2 * m)) \
-            .unite(ca.kron(ca.Sparsity.band(R, -1), part(c, c + m)))  # own stage; previous stage
-        self.sparsity = ca.vertcat(ca.horzcat(self.sparsity, cal), ca.horzcat(ca.Sparsity(R * m, c), own))
+    def pattern(self) -> tuple[np.ndarray, np.ndarray]:
+        """The upper-triangular Hessian's pattern in NLP order as CSC (indices, indptr): the
+        calibration columns, then stage s's columns with B's rows, shifted by (s - 1) m where
+        they are stage rows (stage 0 without the previous stage's)."""
+        P = self._cal_pattern
+        indices, indptr = [P.indices], [P.indptr]
+        if self.st:
+            B, c, m, R = self._B, self.st.c, self.st.m, self.st.R
+            Bi, counts = B.indices.astype(np.int32), np.diff(B.indptr)
+            shift = np.where(Bi >= c, m, 0).astype(np.int32)
+            counts0 = np.bincount(np.repeat(np.arange(m), counts)[self.first], minlength=m)
+            rest = np.multiply(np.arange(R - 1, dtype=np.int32)[:, None], shift[None, :])  # 32 bits: half the traffic
+            rest += Bi[None, :]
+            indices += [(Bi - shift)[self.first], rest.ravel()]
+            indptr.append(P.nnz + np.cumsum(np.concatenate([counts0, np.tile(counts, R - 1)])))
+        return np.concatenate(indices), np.concatenate(indptr)
 
     def csc(self, values: np.ndarray) -> sp.csc_matrix:
         """The upper-triangular Hessian nonzeros ``values`` as a scipy matrix (NLP order)."""
-        if not hasattr(self, "_csc_pattern"):
-            P = self._cal_pattern
-            if self.st:
-                st, B = self.st, self._B
-                c, m, R = st.c, st.m, st.R
-                ones = lambda M: sp.csc_matrix((np.ones(M.nnz), M.indices, M.indptr), shape=M.shape)  # noqa: E731
-                cal_cols = sp.kron(sp.csr_matrix(np.ones((1, R))), ones(B[:c]))
-                own = sp.kron(sp.eye(R), ones(B[c + m:])) + sp.kron(sp.eye(R, k=1), ones(B[c: c + m]))
-                P = sp.bmat([[P, cal_cols], [None, own]], format="csc")
-                P.eliminate_zeros()  # scipy's kron stores blocks that are more than half full densely
-                P.sort_indices()
-            if P.nnz != self.nnz:
-                raise AssertionError("Hessian pattern mismatch")
-            self._csc_pattern = (P.indices, P.indptr)
-        n = self.n
-        return sp.csc_matrix((values, *self._csc_pattern), shape=(n, n))
+        return sp.csc_matrix((values, *self.pattern()), shape=(self.n, self.n))
+
+    def information_blocks(self, parts) -> tuple[sp.csc_matrix, np.ndarray | None, sp.csc_matrix | None]:
+        """The symmetric matrix of assembled Hessian parts in three blocks (NLP order):
+        calibration x calibration (sparse), calibration x stages (dense, (c, R m); the motion of
+        every sample couples to every position) and stages x stages (sparse, block tridiagonal)."""
+        H_cal, VT = parts
+        c = self.c
+        P = self._cal_pattern
+        U = sp.csc_matrix((H_cal, P.indices, P.indptr), shape=(c, c))
+        F_cc = (U + U.T - sp.diags(U.diagonal())).tocsc()
+        if VT is None:
+            return F_cc, None, None
+        m, R, B = self.st.m, self.st.R, self._B
+        Bi, col = B.indices, np.repeat(np.arange(m), np.diff(B.indptr))
+        stages = np.arange(R)[:, None]
+        cal = Bi < c
+        F_cs = np.zeros((c, R * m))
+        F_cs[Bi[cal][None, :], stages * m + col[cal][None, :]] = VT[:, cal]
+        own, prev = Bi >= c + m, (Bi >= c) & (Bi < c + m)
+        rows = [(stages * m + (Bi[own] - c - m)).ravel(), (stages[1:] - 1) * m + (Bi[prev] - c)]
+        cols = [(stages * m + col[own]).ravel(), stages[1:] * m + col[prev]]
+        U = sp.coo_matrix((np.concatenate([VT[:, own].ravel(), VT[1:, prev].ravel()]),
+                           (np.concatenate([rows[0], rows[1].ravel()]), np.concatenate([cols[0], cols[1].ravel()]))),
+                          shape=(R * m, R * m)).tocsc()
+        return F_cc, F_cs, (U + U.T - sp.diags(U.diagonal())).tocsc()
 
     # -- evaluation ------------------------------------------------------------------------------
     def _chunks(self, i: int, w: np.ndarray, Xs, D: np.ndarray):
@@ -590,25 +625,27 @@ class _Assembly:
             yield j0 * K, j1 * K, j0, j1, [np.tile(Zc, (j1 - j0, 1)), np.repeat(sb.stage_inputs(Xs, j0, j1), K, axis=0),
                                            D[j0 * K: j1 * K]]
 
-    def _inputs(self, x: np.ndarray, p: np.ndarray):
+    def _inputs(self, x: np.ndarray, pf: np.ndarray):
         """w (layout order, physical units, then the fixed values) and the stage values (R, m)."""
-        lay = self.layout
-        w = np.concatenate([x[self.ipos] * self.scale, p[: lay.n_p]])
+        w = np.concatenate([x[self.ipos] * self.scale, pf])
         Xs = (x[self.c:].reshape(self.st.R, self.st.m) * self.st.scale) if self.st else None
         return w, Xs
 
-    def _data(self, i: int, p: np.ndarray) -> np.ndarray:
+    def _data(self, i: int, data: np.ndarray | None) -> np.ndarray:
+        """Block i's (N, nd) data: from the data vector, or (None) the block's own array."""
         b = self.blocks[i]
-        return p[b.data_offset: b.data_offset + b.block.n * b.f.nd].reshape(b.block.n, b.f.nd)
+        if data is None:
+            return b.data
+        return data[b.data_offset: b.data_offset + b.block.n * b.f.nd].reshape(b.block.n, b.f.nd)
 
-    def local(self, x, p, which: str) -> list[np.ndarray]:
+    def local(self, x, pf, data, which: str) -> list[np.ndarray]:
         """One local function (``res`` or ``jac``) of every block over all instances: (N, size)."""
-        w, Xs = self._inputs(x, p)
+        w, Xs = self._inputs(x, pf)
         out = []
         for i, b in enumerate(self.blocks):
             fn = getattr(b.f, which)
             R = np.empty((b.block.n, fn.size1_out(0) * fn.size2_out(0)))
-            for t0, t1, _, _, args in self._chunks(i, w, Xs, self._data(i, p)):
+            for t0, t1, _, _, args in self._chunks(i, w, Xs, self._data(i, data)):
                 b.f(fn, args, [R[t0:t1]])
             out.append(R)
         return out
@@ -617,28 +654,35 @@ class _Assembly:
         pi, pm, ps = self.prior
         return (w[pi] - pm) / ps
 
-    def assemble(self, x, p, information: bool = False):
-        """(f, gradient, Hessian nonzeros) of 1/2 |r|^2 at x; with ``information`` only the
-        Hessian, of J^T J (the Fisher information), from the local Jacobians."""
+    def assemble(self, x, pf, data, information: bool = False):
+        """(f, gradient, Hessian) of 1/2 |r|^2 at x; with ``information`` only the Hessian, of
+        J^T J (the Fisher information), from the local Jacobians. The Hessian comes in parts
+        (calibration nonzeros, stage columns (R, n_stage_nz)) for :meth:`hessian_values`; the
+        stage columns are one buffer that the next call overwrites (reusing it saves touching
+        fresh pages, a sixth of the time at 32 x 20 000, and its size in memory)."""
         st = self.st
-        w, Xs = self._inputs(x, p)
+        w, Xs = self._inputs(x, pf)
         s_g, s_h = np.zeros(self.A_g.shape[1]), np.zeros(self.A_h.shape[1])
         GS = np.zeros((st.R, st.m)) if st else None
-        VT = np.zeros((st.R, self.n_stage_nz)) if st else None
+        VT = None
+        if st:
+            if self._stage_buffer is None:
+                self._stage_buffer = np.empty((st.R, self.n_stage_nz))
+            VT = self._stage_buffer
+            VT.fill(0.0)
+            self._cache = None  # its Hessian is in this buffer
         f_val = 0.0
         for i, b in enumerate(self.blocks):
             f, gp, hp = b.f, self.g_plan[i], self.h_plan[i]
             na, P, m = len(f.act), len(f.pairs), f.m
             sb = self.staged.get(i)
-            for t0, t1, j0, j1, args in self._chunks(i, w, Xs, self._data(i, p)):
+            for t0, t1, j0, j1, args in self._chunks(i, w, Xs, self._data(i, data)):
                 nI = t1 - t0
+                h = np.empty((nI, P))
                 if information:
-                    Jl = np.empty((nI, na * m))
-                    f(f.jac, args, [Jl])
-                    Jl = Jl.reshape(nI, na, m)
-                    h = np.einsum("tpi,tpi->tp", Jl[:, f.pair_loc[:, 0]], Jl[:, f.pair_loc[:, 1]])
+                    f(f.gn, args, [h])
                 else:
-                    r, g, h = np.empty((nI, m)), np.empty((nI, na)), np.empty((nI, P))
+                    r, g = np.empty((nI, m)), np.empty((nI, na))
                     f(f.rgh, args, [r, g, h])
                     f_val += 0.5 * float(np.einsum("ij,ij->", r, r))
                     _scatter(gp, sb, g, t0, t1, j0, j1, s_g, GS)
@@ -647,32 +691,41 @@ class _Assembly:
         f_val += 0.5 * float(pr @ pr)
         s_g[self.g_prior_col:] = pr
         s_h[self.h_prior_col:] = 1.0
-        H = np.empty(self.nnz)
-        H[: self.n_cal_nz] = self.A_h @ s_h
-        if st:
-            n0 = self.n_cal_nz + len(self.first)
-            H[self.n_cal_nz: n0] = VT[0, self.first]
-            H[n0:] = VT[1:].ravel()
+        H = (self.A_h @ s_h, VT)
         if information:
             return H
         grad = self.A_g @ s_g
         return f_val, (np.concatenate([grad, GS.ravel()]) if st else grad), H
 
-    def objective(self, x, p) -> float:
+    def hessian_values(self, parts, factor: float = 1.0, out: np.ndarray | None = None) -> np.ndarray:
+        """The Hessian nonzeros in the sparsity's order, times ``factor``, from assembled parts."""
+        H_cal, VT = parts
+        out = np.empty(self.nnz) if out is None else out
+        np.multiply(H_cal, factor, out=out[: self.n_cal_nz])
+        if VT is not None:
+            n0 = self.n_cal_nz + len(self.first)
+            np.multiply(VT[0, self.first], factor, out=out[self.n_cal_nz: n0])
+            np.multiply(VT[1:].reshape(-1), factor, out=out[n0:])
+        return out
+
+    def objective(self, x, pf, data) -> float:
         c = self._cache
-        if c is not None and _same(c, x, p):
+        if c is not None and c["key"] == (x.tobytes(), pf.tobytes(), id(data)):
             return c["f"]
-        r = self.local(x, p, "res")
-        pr = self.prior_residual(self._inputs(x, p)[0])
+        r = self.local(x, pf, data, "res")
+        pr = self.prior_residual(self._inputs(x, pf)[0])
         return 0.5 * (sum(float(np.einsum("ij,ij->", a, a)) for a in r) + float(pr @ pr))
 
-    def derivatives(self, x, p):
+    def derivatives(self, x, pf, data):
         """(f, gradient, Hessian nonzeros of the objective) at x, cached for the Hessian call
-        that follows the gradient's at the same point."""
+        that follows the gradient's at the same point (data are compared by identity: the
+        solver never changes an array it was given)."""
+        key = (x.tobytes(), pf.tobytes(), id(data))
         c = self._cache
-        if c is None or not _same(c, x, p):
-            f, g, H = self.assemble(x, p)
-            self._cache = c = {"x": x.copy(), "p_key": _p_key(p), "f": f, "g": g, "H": H}
+        if c is None or c["key"] != key:
+            self._cache = None
+            f, g, H = self.assemble(x, pf, data)
+            self._cache = c = {"key": key, "data": data, "f": f, "g": g, "H": H}  # data kept: ids stay unique
         return c["f"], c["g"], c["H"]
 
 
@@ -691,15 +744,6 @@ def _scatter(plan: dict, sb, v: np.ndarray, t0, t1, j0, j1, sources: np.ndarray,
     sources[col: col + len(sel)] += V[:, sel].sum(axis=0)
     for d, S in plan["stage"]:
         stage[d + j0: d + j1] += (S @ V.T).T
-
-
-def _p_key(p: np.ndarray):
-    return float(p.sum()), p[::997].copy()
-
-
-def _same(cache: dict, x: np.ndarray, p: np.ndarray) -> bool:
-    s, sample = cache["p_key"]
-    return np.array_equal(cache["x"], x) and float(p.sum()) == s and np.array_equal(p[::997], sample)
 
 
 class _Callback(ca.Callback):
@@ -757,12 +801,12 @@ class Solver:
         self.blocks = [_Block(b, lay) for b in problem.blocks if b.n]
         self._stages, self._staged = st, staged = _Stages.find(lay, self.blocks)
         cache: dict = {}
-        off = lay.n_p
+        off = 0
         for i, b in enumerate(self.blocks):
             b.compile(cache, staged[i].n_cal if i in staged else b.w_idx.shape[1], options.hessian, options.jit)
-            b.data_offset = off
+            b.data_offset = off  # into the data vector
+            b.data = np.ascontiguousarray(b.block.data, float)  # the default data, not copied
             off += b.block.n * b.f.nd
-        self.n_p = off
         self._perm = st.perm if st else np.arange(n)  # NLP order -> layout index
         keep = [np.repeat(np.ones(b.block.n, bool) if b.block.valid is None else b.block.valid, b.f.m)
                 for b in self.blocks]
@@ -776,8 +820,8 @@ class Solver:
         self._unit = U = lay.unit_norm_rows()
         self.n_constraints = U.shape[0]
         x = ca.MX.sym("x", n)  # in NLP order
-        p = ca.MX.sym("p", self.n_p)
-        w = ca.vertcat((x[np.argsort(self._perm).tolist()] if st else x) * lay.x_scale, p[: lay.n_p])
+        p = ca.MX.sym("p", lay.n_p)  # the fixed values; the data stay in numpy (_Assembly.data)
+        w = ca.vertcat((x[np.argsort(self._perm).tolist()] if st else x) * lay.x_scale, p)
         c_parts, self._unit_order = [], []
         for width in sorted({int((row >= 0).sum()) for row in U}):
             sel = np.flatnonzero((U >= 0).sum(axis=1) == width)
@@ -789,19 +833,20 @@ class Solver:
 
         # objective, gradient and Hessian of the Lagrangian: numpy assembly of the local functions
         A = self._assembly = _Assembly(self.blocks, lay, st, staged, self._perm, U[self._c_perm], self.n_constraints)
+        A.data = None  # the data vector the NLP's functions see (None: the blocks'); solve() sets it
         dense = ca.Sparsity.dense
-        io = [dense(n), dense(self.n_p)]
+        io = [dense(n), dense(lay.n_p)]
 
         def objective(a, o):
-            o[0][0] = A.objective(a[0], a[1])
+            o[0][0] = A.objective(a[0], a[1], A.data)
 
         def gradient(a, o):
-            f, g, _ = A.derivatives(a[0], a[1])
+            f, g, _ = A.derivatives(a[0], a[1], A.data)
             o[0][0], o[1][:] = f, g
 
         def hessian(a, o):
-            _, _, H = A.derivatives(a[0], a[1])
-            np.multiply(H, a[2][0], out=o[0])
+            _, _, H = A.derivatives(a[0], a[1], A.data)
+            A.hessian_values(H, a[2][0], out=o[0])
             o[0][: A.n_cal_nz] += A.C_h @ a[3]
 
         grad_cb = _Callback("gradient", io, [dense(1), dense(n)], gradient)
@@ -824,11 +869,11 @@ class Solver:
         self.build_s = time.perf_counter() - t0
 
     # -- numeric ---------------------------------------------------------------------------------
-    def _p(self, p_fixed, data):
-        lay = self.problem.layout
-        p_fixed = lay.p0() if p_fixed is None else p_fixed
-        data = self.problem.data if data is None else data
-        return np.concatenate([np.asarray(p_fixed, float), np.asarray(data, float).ravel()])
+    def _p(self, p_fixed, data) -> tuple[np.ndarray, np.ndarray | None]:
+        """The fixed values and the data vector (defaults: the layout's values and, as None, the
+        factor blocks' own data)."""
+        p_fixed = self.problem.layout.p0() if p_fixed is None else p_fixed
+        return np.asarray(p_fixed, float), None if data is None else np.asarray(data, float).ravel()
 
     def _x(self, x) -> np.ndarray:
         """Layout order -> NLP order."""
@@ -836,20 +881,20 @@ class Solver:
 
     def residuals(self, x, p_fixed=None, data=None) -> np.ndarray:
         """All whitened residuals (data of the valid instances, then priors) at scaled x."""
-        p = self._p(p_fixed, data)
+        pf, data = self._p(p_fixed, data)
         A = self._assembly
         xn = self._x(x)
-        r = A.local(xn, p, "res")
-        return np.concatenate([a.ravel() for a in r] + [A.prior_residual(A._inputs(xn, p)[0])])[self._keep]
+        r = A.local(xn, pf, data, "res")
+        return np.concatenate([a.ravel() for a in r] + [A.prior_residual(A._inputs(xn, pf)[0])])[self._keep]
 
     def jacobians(self, x, p_fixed=None, data=None) -> tuple[sp.csr_matrix, sp.csr_matrix]:
         """Sparse Jacobians w.r.t. scaled x of the whitened residuals (data, then priors) and of the
         constraints (in the order of ``Layout.unit_norm_rows``)."""
-        p = self._p(p_fixed, data)
+        pf, data = self._p(p_fixed, data)
         n, scale = self.n_x, self.problem.layout.x_scale
         rows, cols, vals = [], [], []
         row0 = 0
-        for b, Jb in zip(self.blocks, self._assembly.local(self._x(x), p, "jac")):
+        for b, Jb in zip(self.blocks, self._assembly.local(self._x(x), pf, data, "jac")):
             N, f = b.block.n, b.f
             Jl = Jb.reshape(N, len(f.act), f.m)
             t, a = np.nonzero(b.w_idx[:, f.act] < n)  # a indexes the active components
@@ -863,12 +908,12 @@ class Solver:
         rows.append(row0 + np.arange(len(pi))), cols.append(pi), vals.append(scale[pi] / ps)
         J = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                           shape=(len(self._keep), n))[np.flatnonzero(self._keep)]
-        return J, self._constraint_jacobian(x, p)
+        return J, self._constraint_jacobian(x, pf)
 
-    def _constraint_jacobian(self, x, p) -> sp.csr_matrix:
+    def _constraint_jacobian(self, x, pf) -> sp.csr_matrix:
         lay, n = self.problem.layout, self.n_x
         scale = lay.x_scale
-        w = np.concatenate([np.asarray(x, float) * scale, p[: lay.n_p]])
+        w = np.concatenate([np.asarray(x, float) * scale, pf])
         gr, gc, gv = [], [], []
         for j, row in enumerate(self._unit):
             f = row[(row >= 0) & (row < n)]
@@ -879,9 +924,9 @@ class Solver:
     def symbolic_nlp(self) -> dict:
         """The same NLP as one CasADi expression graph, in the layout's order: {"x", "p", "f", "g"}
         with g in the order of ``Layout.unit_norm_rows``. A reference for tests and for CasADi's own
-        solvers; unlike the solve path, it grows with the data."""
+        solvers; unlike the solve path, it grows with the data. p = [fixed values; data]."""
         lay = self.problem.layout
-        x, p = ca.MX.sym("x", self.n_x), ca.MX.sym("p", self.n_p)
+        x, p = ca.MX.sym("x", self.n_x), ca.MX.sym("p", lay.n_p + self.problem.data.size)
         w = ca.vertcat(x * lay.x_scale, p[: lay.n_p])
         rs = []
         for b in self.blocks:
@@ -889,7 +934,8 @@ class Solver:
             W = np.empty_like(b.w_idx)
             W[:, b.order] = b.w_idx  # the factor function's own input order
             Z = ca.reshape(w[W.ravel().tolist()], W.shape[1], N)
-            rs.append(ca.vec(fn.map(N)(Z, ca.reshape(p[b.data_offset: b.data_offset + b.f.nd * N], b.f.nd, N))))
+            d0 = lay.n_p + b.data_offset
+            rs.append(ca.vec(fn.map(N)(Z, ca.reshape(p[d0: d0 + b.f.nd * N], b.f.nd, N))))
         pi, pm, ps = self._prior
         r = ca.vertcat(*rs, (w[pi.tolist()] - pm) / ps)
         g = [ca.sumsqr(w[row[row >= 0].tolist()]) - 1 for row in self._unit]
@@ -898,12 +944,10 @@ class Solver:
     def information(self, x, p_fixed=None, data=None) -> sp.csc_matrix:
         """The Fisher information J^T J of the whitened residuals (priors included) at scaled x, in
         the layout's order and scaled units, assembled like the Hessian from the local Jacobians."""
-        p = self._p(p_fixed, data)
         A = self._assembly
-        U = A.csc(A.assemble(self._x(x), p, information=True))
-        F = (U + U.T - sp.diags(U.diagonal())).tocsc()
-        ipos = A.ipos
-        return F[ipos][:, ipos] if self._stages else F
+        U = A.csc(A.hessian_values(A.assemble(self._x(x), *self._p(p_fixed, data), information=True)))
+        F = (U + U.T - sp.diags(U.diagonal())).tocsr()
+        return F[A.ipos][:, A.ipos].tocsc()
 
     def _eliminate(self, x, p_fixed=None, data=None, g: np.ndarray | None = None):
         """Eliminate the nuisance block from the Gauss-Newton KKT system at x.
@@ -914,26 +958,45 @@ class Solver:
         gradient g_t - B N^-1 g_n and g_n^T N^-1 g_n. Unit-norm constraints act on either block,
         never both.
         """
-        F = self.information(x, p_fixed, data)
-        G = self._constraint_jacobian(x, self._p(p_fixed, data)).tocsc()
-        t = self.theta
-        nu = np.setdiff1d(np.arange(self.n_x), t)
+        # in NLP order: the reported parameters are calibration variables, never stage variables
+        A = self._assembly
+        pf, d = self._p(p_fixed, data)
+        F_cc, F_cs, F_ss = A.information_blocks(A.assemble(self._x(x), pf, d, information=True))
+        G = self._constraint_jacobian(x, pf)[:, self._perm].tocsc()
+        g = None if g is None else np.asarray(g, float)[self._perm]
+        t = A.ipos[self.theta]
+        nc = np.setdiff1d(np.arange(A.c), t)
+        nu = np.concatenate([nc, np.arange(A.c, self.n_x)])
         on_theta = np.asarray(abs(G[:, t]).sum(axis=1)).ravel() > 0
         G_t, G_n = G[on_theta][:, t], G[~on_theta][:, nu]
-        S = F[t][:, t].toarray()
+        S = F_cc[t][:, t].toarray()
         g_t, g_nn = (None, 0.0) if g is None else (g[t].copy(), 0.0)
         if len(nu):
-            K = sp.bmat([[F[nu][:, nu], G_n.T], [G_n, None]], format="csc")
-            # C order: SuperLU's solve is orders of magnitude slower on a Fortran-ordered right-hand side
-            Bt = np.ascontiguousarray(sp.vstack([F[nu][:, t], sp.csc_matrix((G_n.shape[0], len(t)))]).toarray())
+            F_nn = F_cc[nc][:, nc]
+            if F_ss is not None:
+                coupling = sp.csc_matrix(F_cs[nc])
+                F_nn = sp.bmat([[F_nn, coupling], [coupling.T, F_ss]], format="csc")
+            K = sp.bmat([[F_nn, G_n.T], [G_n, None]], format="csc") if G_n.shape[0] else F_nn.tocsc()
+            F_ct = F_cc[nc][:, t].toarray()
+            F_st = F_cs[t].T if F_ss is not None else np.zeros((0, len(t)))  # a view: (R m, n_t)
+
+            def B_T(Y):  # B^T Y with B = [F_nc,t; F_s,t; 0] (nuisance rows, constraint rows)
+                return F_ct.T @ Y[: len(nc)] + F_st.T @ Y[len(nc): len(nu)]
+
             try:
                 lu = _factor(K)
             except RuntimeError:  # exactly singular: some nuisance direction is undetermined
                 raise np.linalg.LinAlgError("the nuisance variables are not determined by the data") from None
-            S = S - Bt.T @ lu.solve(Bt)
+            # a few columns of B at a time: B itself is as large as the coupling F_cs
+            for k0 in range(0, len(t), 16):
+                k = slice(k0, min(len(t), k0 + 16))
+                # C order: SuperLU's solve is orders of magnitude slower on a Fortran-ordered right-hand side
+                rhs = np.zeros((K.shape[0], k.stop - k.start))
+                rhs[: len(nc)], rhs[len(nc): len(nu)] = F_ct[:, k], F_st[:, k]
+                S[:, k] -= B_T(lu.solve(rhs))
             if g is not None:
                 y = lu.solve(np.concatenate([g[nu], np.zeros(G_n.shape[0])]))
-                g_t -= Bt.T @ y
+                g_t -= B_T(y)
                 g_nn = float(g[nu] @ y[: len(nu)])
         return S, G_t.toarray(), g_t, g_nn
 
@@ -988,16 +1051,16 @@ class Solver:
         lay = self.problem.layout
         x0 = lay.x0() if x0 is None else np.asarray(x0, float)
         lbx, ubx = lay.bounds()
-        p = self._p(p_fixed, data)
+        pf, data = self._p(p_fixed, data)
         perm = self._perm
         t0 = time.perf_counter()
-        sol = self.nlp(x0=x0[perm], p=p, lbx=lbx[perm], ubx=ubx[perm], lbg=0, ubg=0,
+        self._assembly.data, self._assembly._cache = data, None
+        sol = self.nlp(x0=x0[perm], p=pf, lbx=lbx[perm], ubx=ubx[perm], lbg=0, ubg=0,
                        lam_g0=0 if lam_g0 is None else lam_g0)
         wall = time.perf_counter() - t0
         st = self.nlp.stats()
         x = np.empty(self.n_x)
         x[perm] = np.asarray(sol["x"]).ravel()
-        pf, data = p[: lay.n_p], p[lay.n_p:]
         values = lay.unpack(x, pf)
         cov = self.covariance(x, pf, data)
         sd = np.full(self.n_x, np.nan)
@@ -1037,11 +1100,11 @@ class Solver:
         """g^T H^-1 g of the Lagrangian gradient with the Gauss-Newton Hessian on the constraints'
         tangent space: twice the χ² decrease a full Newton step would still achieve. The nuisance
         block is eliminated first (:meth:`_eliminate`), so this costs what the covariance costs."""
-        p = self._p(p_fixed, data)
-        G = self._constraint_jacobian(x, p)
+        pf, d = self._p(p_fixed, data)
+        G = self._constraint_jacobian(x, pf)
         lam = np.zeros(self.n_constraints)
         lam[self._c_perm] = lam_g  # CasADi's multipliers follow its constraint order (grouped by width)
-        g = self._assembly.derivatives(self._x(x), p)[1][self._assembly.ipos] + G.T @ lam
+        g = self._assembly.derivatives(self._x(x), pf, d)[1][self._assembly.ipos] + G.T @ lam
         try:
             S, G_t, g_t, g_nn = self._eliminate(x, p_fixed, data, g)
         except np.linalg.LinAlgError:

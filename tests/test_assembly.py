@@ -90,15 +90,16 @@ def test_assembled_derivatives_equal_casadi_ad(kind, hessian):
     lay = prob.lsq.layout
     x = lay.x0() * (1 + 0.05 * rng.standard_normal(lay.n_x))  # layout order
     xn, perm = x[solver._perm], solver._perm  # NLP order
-    p = solver._p(None, None)
+    pf = solver._p(None, None)[0]
+    p = np.concatenate([pf, prob.lsq.data])  # the reference's parameters; the NLP's are the fixed values only
     lam_f, lam_g = 0.7, rng.standard_normal(solver.n_constraints)  # CasADi's constraint order
     lam = np.zeros(solver.n_constraints)
     lam[solver._c_perm] = lam_g  # the reference's order
     f_ref, grad_ref, hess_ref = reference_derivatives(solver)
 
-    f_val, grad, H = assembled(solver, xn, p, lam_f, lam_g)
+    f_val, grad, H = assembled(solver, xn, pf, lam_f, lam_g)
     assert f_val == pytest.approx(float(f_ref(x, p)), rel=1e-12)
-    assert float(solver.nlp.get_function("nlp_f")(xn, p)[0]) == pytest.approx(f_val, rel=1e-12)
+    assert float(solver.nlp.get_function("nlp_f")(xn, pf)[0]) == pytest.approx(f_val, rel=1e-12)
     g_ref = np.asarray(grad_ref(x, p)).ravel()[perm]
     np.testing.assert_allclose(grad, g_ref, rtol=1e-10, atol=1e-10 * np.abs(g_ref).max())
 
@@ -128,6 +129,23 @@ def test_information_is_jacobian_gram(kind):
     np.testing.assert_allclose(solver.information(x).toarray(), expect, rtol=1e-10, atol=1e-10 * np.abs(expect).max())
 
 
+@pytest.mark.parametrize("process_model", [True, False])
+def test_marginal_information_is_schur_complement(process_model):
+    """The stage-blocked elimination of the motion equals the dense Schur complement of J^T J."""
+    prob = dynamic_case(process_model=process_model)
+    solver = Solver(prob.lsq, SolverOptions(jit=False))
+    x = prob.lsq.layout.x0() * (1 + 0.05 * np.random.default_rng(4).standard_normal(prob.lsq.layout.n_x))
+    J, G = solver.jacobians(x)
+    F = (J.T @ J).toarray()
+    t = solver.theta
+    nu = np.setdiff1d(np.arange(x.size), t)
+    assert not abs(G[:, nu]).sum()  # the unit-norm rows (quaternions) are reported parameters here
+    expect = F[np.ix_(t, t)] - F[np.ix_(t, nu)] @ np.linalg.solve(F[np.ix_(nu, nu)], F[np.ix_(nu, t)])
+    S, G_t = solver.marginal_information(x)
+    np.testing.assert_allclose(S, expect, rtol=1e-8, atol=1e-8 * np.abs(expect).max())
+    np.testing.assert_allclose(G_t, G[:, t].toarray())
+
+
 def test_jacobian_matches_finite_differences_of_residuals():
     prob = dynamic_case()
     solver = Solver(prob.lsq, SolverOptions(jit=False))
@@ -145,7 +163,7 @@ def test_compiled_and_virtual_machine_assembly_agree():
     prob = dynamic_case()
     a, b = Solver(prob.lsq, SolverOptions(jit=True)), Solver(prob.lsq, SolverOptions(jit=False))
     x = prob.lsq.layout.x0()[a._perm]
-    p = a._p(None, None)
+    p = a._p(None, None)[0]
     lam_g = np.linspace(-1, 1, a.n_constraints)
     ha, hb = (np.asarray(s.nlp.get_function("nlp_hess_l")(x, p, 1.0, lam_g).nonzeros()) for s in (a, b))
     np.testing.assert_allclose(ha, hb, rtol=1e-13, atol=0)
@@ -160,9 +178,10 @@ def test_chunked_evaluation_equals_one_chunk(monkeypatch):
     one = Solver(prob.lsq, SolverOptions(jit=False))
     monkeypatch.setattr(solve, "CHUNK", 7)  # several chunks per block, not a multiple of the triads
     many = Solver(prob.lsq, SolverOptions(jit=False))
-    p = one._p(None, None)
-    fa, ga, ha = one._assembly.assemble(x[one._perm], p)
-    fb, gb, hb = many._assembly.assemble(x[many._perm], p)
+    pf, data = one._p(None, None)
+    fa, ga, ha = one._assembly.assemble(x[one._perm], pf, data)
+    fb, gb, hb = many._assembly.assemble(x[many._perm], pf, data)
+    ha, hb = one._assembly.hessian_values(ha), many._assembly.hessian_values(hb)
     assert fa == pytest.approx(fb, rel=1e-13)
     np.testing.assert_allclose(ga, gb, rtol=1e-12, atol=1e-12 * np.abs(ga).max())
     np.testing.assert_allclose(ha, hb, rtol=1e-12, atol=1e-12 * np.abs(ha).max())
