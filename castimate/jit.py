@@ -7,10 +7,6 @@ costs about 1-2 s of gcc per library, so each library is cached under its source
 ``$CASTIMATE_CACHE_DIR`` (default ``$XDG_CACHE_HOME/castimate/jit`` or ``~/.cache/castimate/jit``):
 only the first build of a problem structure pays it. Without a C compiler, or if compiling fails,
 the functions stay on the virtual machine (same results, slower).
-
-Functions that take part in CasADi's automatic differentiation (the residual, whose reverse mode
-gives IPOPT the gradient of the objective) are emitted together with their reverse derivative
-under the name ``adj1_<name>``, which is where ``casadi.external`` looks for it.
 """
 
 from __future__ import annotations
@@ -40,17 +36,13 @@ def compiler() -> str | None:
     return shutil.which(os.environ.get("CC", "")) or shutil.which("gcc") or shutil.which("cc")
 
 
-def compile_functions(functions: list[ca.Function], differentiable: list[ca.Function] = ()) -> list[ca.Function] | None:
-    """Compiled equivalents of ``differentiable + functions`` (in that order), or None when no
-    compiler is available or compilation fails. Names must be unique among them."""
+def compile_functions(functions: list[ca.Function]) -> list[ca.Function] | None:
+    """Compiled equivalents of ``functions``, or None when no compiler is available or compilation
+    fails. Names must be unique among them."""
     cc = compiler()
     if cc is None:
         return None
     gen = ca.CodeGenerator("castimate_local.c", {"with_header": False})
-    for f in differentiable:
-        gen.add(f)
-        rev = f.reverse(1)
-        gen.add(ca.Function(f"adj1_{f.name()}", rev.sx_in(), rev.call(rev.sx_in()), rev.name_in(), rev.name_out()))
     for f in functions:
         gen.add(f)
     source = gen.dump()
@@ -66,4 +58,4 @@ def compile_functions(functions: list[ca.Function], differentiable: list[ca.Func
                 os.replace(out, lib)  # atomic: concurrent builds of the same structure are harmless
         except (OSError, subprocess.CalledProcessError):
             return None
-    return [ca.external(f.name(), str(lib)) for f in [*differentiable, *functions]]
+    return [ca.external(f.name(), str(lib)) for f in functions]
