@@ -28,6 +28,11 @@ eliminated stage-blocked.
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
+import functools
+import platform
+import sys
 import time
 from dataclasses import dataclass, field
 
@@ -1055,6 +1060,10 @@ class Solver:
     def solve(self, x0=None, p_fixed=None, data=None, lam_g0=None) -> Solution:
         """Solve from x0 (default: the groups' initial values); ``lam_g0`` warm-starts the constraint
         multipliers, e.g. from a Gauss-Newton solution polished with the exact Hessian."""
+        with _heap_allocation():
+            return self._solve(x0, p_fixed, data, lam_g0)
+
+    def _solve(self, x0, p_fixed, data, lam_g0) -> Solution:
         lay = self.problem.layout
         x0 = lay.x0() if x0 is None else np.asarray(x0, float)
         lbx, ubx = lay.bounds()
@@ -1124,6 +1133,41 @@ class Solver:
         except np.linalg.LinAlgError:
             return float("inf")
         return g_nn + float(g_t @ step)
+
+
+@contextlib.contextmanager
+def _heap_allocation():
+    """Serve large allocations from the heap and keep freed memory, for the duration of a solve
+    (glibc only; elsewhere nothing changes). MUMPS allocates and frees its factor storage at every
+    factorisation; by glibc's default every block above 32 MB is a fresh mmap whose pages the
+    kernel zeroes on first touch. On the joint MIMU4444 problem that was 10 s of system time in 24 s
+    of IPOPT search directions (31 s -> 19 s per solve), and 32 x 20 000 went from 16.9 s to 14.3 s
+    with the same peak memory. Afterwards glibc's defaults are restored and the heap is trimmed."""
+    libc = _glibc()
+    if libc is None:
+        yield
+        return
+    libc.mallopt(_M_MMAP_MAX, 0)
+    libc.mallopt(_M_TRIM_THRESHOLD, 2**31 - 1)
+    try:
+        yield
+    finally:
+        libc.mallopt(_M_MMAP_MAX, 65536)
+        libc.mallopt(_M_TRIM_THRESHOLD, 128 * 1024)
+        libc.malloc_trim(0)
+
+
+_M_TRIM_THRESHOLD, _M_MMAP_MAX = -1, -4  # glibc's mallopt parameters
+
+
+@functools.lru_cache(maxsize=1)
+def _glibc():
+    if sys.platform != "linux" or platform.libc_ver()[0] != "glibc":
+        return None
+    try:
+        return ctypes.CDLL("libc.so.6")
+    except OSError:
+        return None
 
 
 def _factor(K: sp.spmatrix):
