@@ -411,6 +411,7 @@ class _Assembly:
         self._gradient_plan()
         self._hessian_plan(unit_rows, n_constraints)
         self._cache, self._stage_buffer = None, None
+        self.data = None  # the data vector the NLP's functions see (None: the blocks' own)
 
     # -- plans -----------------------------------------------------------------------------------
     def _gradient_plan(self):
@@ -666,6 +667,11 @@ class _Assembly:
         pi, pm, ps = self.prior
         return (w[pi] - pm) / ps
 
+    def residuals(self, x, pf, data) -> np.ndarray:
+        """Every whitened residual at x: each block's, instance by instance, then the priors'."""
+        r = self.local(x, pf, data, "res")
+        return np.concatenate([a.ravel() for a in r] + [self.prior_residual(self._inputs(x, pf)[0])])
+
     def assemble(self, x, pf, data, information: bool = False):
         """(f, gradient, Hessian) of 1/2 |r|^2 at x; with ``information`` only the Hessian, of
         J^T J (the Fisher information), from the local Jacobians. The Hessian comes in parts
@@ -724,9 +730,8 @@ class _Assembly:
         c = self._cache
         if c is not None and c["key"] == (x.tobytes(), pf.tobytes(), id(data)):
             return c["f"]
-        r = self.local(x, pf, data, "res")
-        pr = self.prior_residual(self._inputs(x, pf)[0])
-        return 0.5 * (sum(float(np.einsum("ij,ij->", a, a)) for a in r) + float(pr @ pr))
+        r = self.residuals(x, pf, data)
+        return 0.5 * float(r @ r)
 
     def derivatives(self, x, pf, data):
         """(f, gradient, Hessian nonzeros of the objective) at x, cached for the Hessian call
@@ -845,7 +850,6 @@ class Solver:
 
         # objective, gradient and Hessian of the Lagrangian: numpy assembly of the local functions
         A = self._assembly = _Assembly(self.blocks, lay, st, staged, self._perm, U[self._c_perm], self.n_constraints)
-        A.data = None  # the data vector the NLP's functions see (None: the blocks'); solve() sets it
         dense = ca.Sparsity.dense
         io = [dense(n), dense(lay.n_p)]
 
@@ -893,11 +897,7 @@ class Solver:
 
     def residuals(self, x, p_fixed=None, data=None) -> np.ndarray:
         """All whitened residuals (data of the valid instances, then priors) at scaled x."""
-        pf, data = self._p(p_fixed, data)
-        A = self._assembly
-        xn = self._x(x)
-        r = A.local(xn, pf, data, "res")
-        return np.concatenate([a.ravel() for a in r] + [A.prior_residual(A._inputs(xn, pf)[0])])[self._keep]
+        return self._assembly.residuals(self._x(x), *self._p(p_fixed, data))[self._keep]
 
     def jacobians(self, x, p_fixed=None, data=None) -> tuple[sp.csr_matrix, sp.csr_matrix]:
         """Sparse Jacobians w.r.t. scaled x of the whitened residuals (data, then priors) and of the
