@@ -20,6 +20,7 @@ from .errors import InputError
 from .io.readers import read_recording, write_csv, write_npz
 from .io.recording import Recording
 from .io.results import read_results
+from .models.effects import polynomial
 
 EXTENSIONS = {".csv": "csv", ".npz": "npz", ".bin": "mimu"}
 
@@ -52,8 +53,8 @@ def apply_calibration(results_path, data_path, out_path, fmt: str | None = None)
         def coef(key, n):
             return np.asarray(params[key]["value"], float) if key in params else np.zeros(n)
 
-        def poly(c, x):
-            return np.outer(x, c[:3]) + np.outer(x ** 2, c[3:6])
+        def poly(c, x):  # the model's bias polynomial at single samples (moments x, x²)
+            return polynomial(c, x[:, None], x[:, None] ** 2)
 
         temp = any(k in params for k in ("temperature_bias", "temperature_gain", "gyroscope.temperature_bias"))
         if temp and name not in rec.temp:

@@ -26,8 +26,8 @@ from .solve import Solution, Solver
 Log = Callable[[str], None]
 
 
-def _quiet(msg: str) -> None:
-    pass
+def quiet(msg: str) -> None:
+    """A Log that says nothing."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -100,6 +100,7 @@ def static_config(spec: ProblemSpec, avg: PoseAverages) -> tuple[StaticConfig, d
     ref = next(t for t in spec.array.triads if t.name == spec.array.reference)
     R_ref = np.eye(3) if isinstance(ref.rotation, str) else ref.rotation
     notes, triads = {}, []
+    m = spec.model
     for t in spec.array.triads:
         if isinstance(t.rotation, np.ndarray):
             R = t.rotation
@@ -111,8 +112,7 @@ def static_config(spec: ProblemSpec, avg: PoseAverages) -> tuple[StaticConfig, d
             notes[t.name] = (f"nominal rotation recovered from the static poses: {np.round(R).astype(int).tolist()} "
                              f"(exact fit {resid:.1f} deg from it)")
         has_gyro = t.name in avg.gyro_mean if t.gyroscope is None else t.gyroscope
-        s = spec.model.settings
-        m = spec.model
+        s = m.settings
         triads.append(TriadConfig(
             t.name, R,
             {**{g: s[t.name, "accelerometer", g] for g in ("gain", "bias", "nonorthogonality", "misalignment")},
@@ -121,7 +121,6 @@ def static_config(spec: ProblemSpec, avg: PoseAverages) -> tuple[StaticConfig, d
              **m.effect_settings(t.name, "gyroscope")} if has_gyro else None,
             t.position))
     check_temperature(spec, set(avg.temp_mean))
-    m = spec.model
     return StaticConfig(tuple(triads), spec.array.reference, m.gravity, m.gravity_direction, m.misalignment,
                         m.effects), notes
 
@@ -234,7 +233,7 @@ class StaticData:
     detection: Detection | None
 
 
-def load_static(spec: ProblemSpec, log: Log = _quiet) -> StaticData:
+def load_static(spec: ProblemSpec, log: Log = quiet) -> StaticData:
     """Read the recording and average its static poses."""
     log(f"reading {spec.data.path.name} ({spec.data.format})")
     rec = load_recording(spec)
@@ -246,7 +245,7 @@ def load_static(spec: ProblemSpec, log: Log = _quiet) -> StaticData:
     return StaticData(rec, avg, det)
 
 
-def calibrate_static(spec: ProblemSpec, log: Log = _quiet, data: StaticData | None = None,
+def calibrate_static(spec: ProblemSpec, log: Log = quiet, data: StaticData | None = None,
                      consistency: bool = True) -> StaticOutcome:
     """Run a static array calibration end to end. Raises InputError or NotConvergedError.
 

@@ -10,11 +10,10 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, replace
-from typing import Callable
 
 import numpy as np
 
-from .calibrate import check_temperature, load_recording
+from .calibrate import Log, check_temperature, load_recording, quiet
 from .errors import InputError, NotConvergedError
 from .io.readers import read_recording
 from .io.recording import Recording
@@ -27,13 +26,8 @@ from .problem.static import TriadConfig, recover_nominal_rotation
 from .segments import average_poses, detect_static
 from .solve import Solution, Solver
 
-Log = Callable[[str], None]
 ACC_GROUPS = ("gain", "bias", "nonorthogonality", "misalignment")
 GYRO_GROUPS = ("gain", "bias", "misalignment")
-
-
-def _quiet(msg: str) -> None:
-    pass
 
 
 def saturation_mask(y: np.ndarray, level) -> np.ndarray:
@@ -266,7 +260,7 @@ class DynamicInputs:
     static_problem: object = None  # StaticProblem of data.static (joint problems), else None
 
 
-def load_dynamic(spec: ProblemSpec, log: Log = _quiet) -> DynamicInput:
+def load_dynamic(spec: ProblemSpec, log: Log = quiet) -> DynamicInput:
     """Read the recording, estimate the noise from its static segments and mask saturated samples."""
     log(f"reading {spec.data.path.name} ({spec.data.format})")
     full = read_full(spec)
@@ -291,7 +285,7 @@ def load_dynamic(spec: ProblemSpec, log: Log = _quiet) -> DynamicInput:
     return DynamicInput(full, data, sat, Regressors.from_times(data.t, data.temp))
 
 
-def dynamic_inputs(spec: ProblemSpec, log: Log = _quiet, loaded: DynamicInput | None = None) -> DynamicInputs:
+def dynamic_inputs(spec: ProblemSpec, log: Log = quiet, loaded: DynamicInput | None = None) -> DynamicInputs:
     """Configure the triads (and the static phase of a joint problem) for a session read with
     :func:`load_dynamic` (read here if not given)."""
     loaded = loaded or load_dynamic(spec, log)
@@ -306,7 +300,7 @@ def dynamic_inputs(spec: ProblemSpec, log: Log = _quiet, loaded: DynamicInput | 
     return DynamicInputs(config, data, sat, nominal, static_problem)
 
 
-def calibrate_dynamic(spec: ProblemSpec, log: Log = _quiet, max_restarts: int = 2,
+def calibrate_dynamic(spec: ProblemSpec, log: Log = quiet, max_restarts: int = 2,
                       loaded: DynamicInput | None = None) -> DynamicOutcome:
     """Run a dynamic array calibration end to end. Raises InputError or NotConvergedError.
 
@@ -466,7 +460,7 @@ def measurement_residuals(problem, data: DynamicData, sol: Solution) -> tuple[di
                                   ("gyro", problem.gyro_triads, data.gyro_sigma, out_g)):
         if not names:
             continue
-        ok = np.stack([np.isin(np.arange(data.n), problem.rows[kind][n]) for n in names], axis=1)  # (N, K)
+        ok = problem.valid(kind, names)  # (N, K)
         full = np.full((data.n, len(names), 3), np.nan)
         full[ok] = r[off: off + 3 * int(ok.sum())].reshape(-1, 3)
         off += 3 * int(ok.sum())

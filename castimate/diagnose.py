@@ -29,12 +29,11 @@ orchestration live here; :mod:`castimate.report.diagnose` writes the report.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Callable
 
 import numpy as np
 from scipy import stats
 
-from .calibrate import StaticOutcome, calibrate_static, load_static, static_config
+from .calibrate import Log, StaticOutcome, calibrate_static, load_static, quiet, static_config
 from .calibrate_dynamic import DynamicOutcome, calibrate_dynamic, dynamic_config, load_dynamic, measurement_residuals
 from .errors import CastimateError, InputError, NotConvergedError
 from .problem.dynamic import build_dynamic
@@ -43,7 +42,6 @@ from .problem.spec import ProblemSpec
 from .problem.static import GroupSetting, Regressors, build_static, fixed_config, group_name
 from .solve import Solver
 
-Log = Callable[[str], None]
 
 #: Family-wise false-alarm level of one round of score tests (Bonferroni over the candidates).
 ALPHA = 0.01
@@ -52,9 +50,6 @@ FOLDS = 5
 #: Candidates confirmed by a refit per round, most significant first.
 CONFIRM = 2
 
-
-def _quiet(msg: str) -> None:
-    pass
 
 
 # ---------------------------------------------------------------------------------------------
@@ -121,7 +116,7 @@ def _cv(white: list, acc: list, gyro: list, folds: int) -> CrossValidation:
 class StaticSession:
     """A static session read once, fitted with any set of effects (Nilsson 2014 model)."""
 
-    def __init__(self, spec: ProblemSpec, log: Log = _quiet):
+    def __init__(self, spec: ProblemSpec, log: Log = quiet):
         self.spec, self.data = spec, load_static(spec, log)
 
     def fit(self, effects=()) -> Model:
@@ -177,7 +172,7 @@ class StaticSession:
 class DynamicSession:
     """A dynamic session read once, fitted with any set of effects (Carlsson 2017, Schopp 2016)."""
 
-    def __init__(self, spec: ProblemSpec, log: Log = _quiet):
+    def __init__(self, spec: ProblemSpec, log: Log = quiet):
         if spec.data.static_range is not None:
             raise InputError(spec.path, "data.static", "diagnose runs on a static or a dynamic problem, not a joint one")
         self.spec, self.loaded = spec, load_dynamic(spec, log)
@@ -188,7 +183,7 @@ class DynamicSession:
 
     def augmented(self, model: Model, effects) -> Solver:
         s = with_effects(self.spec, effects)
-        config = replace(dynamic_config(s, self.loaded.full, _quiet), regressors=self.loaded.regressors)
+        config = replace(dynamic_config(s, self.loaded.full, quiet), regressors=self.loaded.regressors)
         return Solver(build_dynamic(config, self.loaded.data).lsq, replace(s.solver, hessian="gauss_newton"))
 
     def has_temperature(self) -> bool:
@@ -226,7 +221,7 @@ class DynamicSession:
 Session = StaticSession | DynamicSession
 
 
-def open_session(spec: ProblemSpec, log: Log = _quiet) -> Session:
+def open_session(spec: ProblemSpec, log: Log = quiet) -> Session:
     """Read a problem's data once, for fitting any of its model variants."""
     return DynamicSession(spec, log) if spec.kind == "dynamic_array" else StaticSession(spec, log)
 
@@ -409,7 +404,7 @@ class Diagnosis:
         return [f.effect for r in self.rounds for f in r.refits if f.accepted]
 
 
-def diagnose(spec: ProblemSpec, log: Log = _quiet, alpha: float = ALPHA, session: Session | None = None,
+def diagnose(spec: ProblemSpec, log: Log = quiet, alpha: float = ALPHA, session: Session | None = None,
              max_rounds: int = len(EFFECTS)) -> Diagnosis:
     """Fit, test, confirm and add effects until nothing significant is left (module docstring)."""
     session = session or open_session(spec, log)

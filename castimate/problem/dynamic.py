@@ -202,6 +202,10 @@ class DynamicProblem:
     gyro_triads: list[str]
     rows: dict  # "acc" | "gyro" -> triad name -> indices of the valid samples
 
+    def valid(self, kind: str, names) -> np.ndarray:
+        """(N, K): which (sample, triad) instances of a sensor block are valid readings."""
+        return _valid(self.rows[kind], names, self.n_samples)
+
     def block_data(self, data: DynamicData) -> list[np.ndarray]:
         """Data of every block in problem order (accelerometers, gyroscopes, process model). Sensor
         blocks are sample-major over every triad; a masked sample gets y = 0 and σ = inf, so its
@@ -213,7 +217,7 @@ class DynamicProblem:
         inv_span = 1.0 / (data.t[nxt] - data.t[prev]) if data.n > 1 else np.zeros(data.n)
 
         def stack(names, kind, y, sigma):
-            ok = np.stack([np.isin(np.arange(self.n_samples), self.rows[kind][n]) for n in names], axis=1)  # (N, K)
+            ok = self.valid(kind, names)
             Y = np.where(ok[..., None], np.stack([y[n] for n in names], axis=1), 0.0)
             S = np.where(ok[..., None], np.stack([np.broadcast_to(sigma[n], (self.n_samples, 3)) for n in names], axis=1),
                          np.inf)
@@ -283,6 +287,11 @@ def initial_motion(config: DynamicConfig, data: DynamicData, gyro_triads: list[s
     return {OMEGA: omega, OMEGA_DOT: omega_dot, S: s}
 
 
+def _valid(rows: dict, names, N: int) -> np.ndarray:
+    """(N, K) from the valid sample indices of each triad."""
+    return np.stack([np.isin(np.arange(N), rows[n]) for n in names], axis=1)
+
+
 def _neighbours(N: int) -> tuple[np.ndarray, np.ndarray]:
     """Indices of the samples before and after each sample, clamped at the ends (one-sided there)."""
     i = np.arange(N)
@@ -310,7 +319,7 @@ def build_dynamic(config: DynamicConfig, data: DynamicData, start: dict | None =
 
     def instances(kind, names):  # (triad index, sample index) of every instance, sample-major; which are valid
         k, n = np.tile(np.arange(len(names)), N), np.repeat(np.arange(N), len(names))
-        return k, n, np.stack([np.isin(np.arange(N), rows[kind][t]) for t in names], axis=1).ravel()
+        return k, n, _valid(rows[kind], names, N).ravel()
 
     if config.regressors is None:
         config = replace(config, regressors=Regressors.from_times(data.t, data.temp))
