@@ -48,9 +48,9 @@ from pathlib import Path  # noqa: E402
 import casadi as ca  # noqa: E402
 import numpy as np  # noqa: E402
 
-from castimate.codegen.solvers import generate_solver_files, reference_for  # noqa: E402
-from castimate.errors import NotConvergedError  # noqa: E402
-from castimate.scenario import simulate_scenario  # noqa: E402
+from castimate.codegen.solvers import generate_solver_files, reference_for
+from castimate.errors import NotConvergedError
+from castimate.simulate.scenarios import simulate_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"

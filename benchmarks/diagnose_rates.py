@@ -23,8 +23,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from castimate.montecarlo import diagnose_trials  # noqa: E402
-from castimate.simulate import REALISTIC_DYNAMIC_EFFECTS, REALISTIC_EFFECTS  # noqa: E402
+from castimate.simulate.montecarlo import diagnose_trials
+from castimate.simulate.static import REALISTIC_DYNAMIC_EFFECTS, REALISTIC_EFFECTS
 
 ROOT = Path(__file__).resolve().parents[1]
 dynamic_only = sys.argv[1:2] == ["--dynamic-only"]

@@ -90,8 +90,7 @@ AGREE_UM = 0.05  # µm: methods agree if every position is within this of castim
 def simulate(kind: str, n: int, seed: int = SEED) -> dict:
     """One simulated session as plain arrays. The geometry depends on the seed only, the motion and
     noise on (seed, n)."""
-    from castimate.simulate_dynamic import (carlsson_geometry, dynamic_measurements, euler_consistent,
-                                            schopp_geometry, smooth_random_motion)
+    from castimate.simulate.dynamic import carlsson_geometry, dynamic_measurements, euler_consistent, schopp_geometry, smooth_random_motion
     g_rng, m_rng, n_rng = (np.random.default_rng([seed, i, n if i else 0]) for i in range(3))
     if kind == "carlsson":
         c = CARLSSON
@@ -144,7 +143,7 @@ def make_config(d: dict):
     """Intrinsics fixed at their true (nominal) values, positions free; Schopp: orientations free
     as unit quaternions and the process model on; Carlsson: gyroscopes, process model off."""
     from castimate.problem.dynamic import DynamicConfig, DynamicData
-    from castimate.problem.static import GroupSetting, TriadConfig
+    from castimate.problem.triads import GroupSetting, TriadConfig
     schopp = d["kind"] == "schopp"
     fixed = GroupSetting(free=(False,) * 3)
     gyro = d["gyro"].shape[0] > 0
@@ -368,7 +367,8 @@ def worker_castimate(d: dict, progress: Progress, hessian: str = "exact", cold: 
     ``polish``: Gauss-Newton first, then the exact Hessian from its solution (both solvers built,
     both solves timed), which is what ``castimate solve`` does for arrays without gyroscopes."""
     from castimate.problem.dynamic import DynamicData, build_dynamic
-    from castimate.solve import Solver, SolverOptions
+    from castimate.solve.ipopt import Solver
+    from castimate.problem.graph import SolverOptions
     config, data = make_config(d)
     if cold:
         os.environ["CASTIMATE_CACHE_DIR"] = tempfile.mkdtemp(prefix="castimate_cold_cache_")
@@ -460,7 +460,7 @@ def worker_scipy(d: dict, progress: Progress) -> dict:
 
 
 def worker_bcd(d: dict, progress: Progress) -> dict:
-    from castimate.bcd import bcd_positions
+    from castimate.solve.bcd import bcd_positions
     progress("setup")
     t0 = time.perf_counter()
     Rn = d["R_nominal"]  # calibrated body-frame readings: intrinsics are the nominal ones (T = Rbar, b = 0)

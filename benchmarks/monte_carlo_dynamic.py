@@ -51,13 +51,12 @@ import casadi as ca  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy  # noqa: E402
 
-from castimate.models.rotation import rotation_to_quaternion  # noqa: E402
-from castimate.problem.dynamic import (OMEGA, OMEGA_DOT, S, DynamicConfig, DynamicData, MotionSigmas,  # noqa: E402
-                                       build_dynamic, initial_motion)
-from castimate.problem.static import GroupSetting, TriadConfig  # noqa: E402
-from castimate.simulate_dynamic import (carlsson_geometry, dynamic_measurements, euler_consistent,  # noqa: E402
-                                        schopp_geometry, smooth_random_motion)
-from castimate.solve import Solver, SolverOptions  # noqa: E402
+from castimate.models.rotation import rotation_to_quaternion
+from castimate.problem.dynamic import OMEGA, OMEGA_DOT, S, DynamicConfig, DynamicData, MotionSigmas, build_dynamic, initial_motion
+from castimate.problem.triads import GroupSetting, TriadConfig
+from castimate.simulate.dynamic import carlsson_geometry, dynamic_measurements, euler_consistent, schopp_geometry, smooth_random_motion
+from castimate.solve.ipopt import Solver
+from castimate.problem.graph import SolverOptions
 
 SEED = 2016
 GEOMETRIES = {

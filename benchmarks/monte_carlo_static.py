@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from castimate.montecarlo import monte_carlo_static
+from castimate.simulate.montecarlo import monte_carlo_static
 
 runs = int(sys.argv[1]) if len(sys.argv) > 1 else 1000
 t0 = time.perf_counter()

@@ -46,13 +46,11 @@ import scipy  # noqa: E402
 import scipy.sparse as sp  # noqa: E402
 from scipy.optimize import least_squares  # noqa: E402
 
-from castimate.problem.static import (  # noqa: E402
-    ACCELEROMETER_GROUPS, GroupSetting, StaticConfig, TriadConfig, build_static,
-    initial_directions,
-)
-from castimate.segments import pose_averages_from_means  # noqa: E402
-from castimate.simulate import pose_directions, random_static_truth, static_pose_means  # noqa: E402
-from castimate.solve import Solver  # noqa: E402
+from castimate.problem.triads import ACCELEROMETER_GROUPS, GroupSetting, TriadConfig
+from castimate.problem.static import StaticConfig, build_static, initial_directions
+from castimate.prepare.poses import pose_averages_from_means
+from castimate.simulate.static import pose_directions, random_static_truth, static_pose_means
+from castimate.solve.ipopt import Solver
 
 SIZES = [(14, 20), (32, 60)]  # (triads, poses)
 LM_MAX_TRIADS = 14  # dense "lm" only for the small size

@@ -1,8 +1,17 @@
 """castimate: maximum-likelihood calibration of inertial sensor arrays.
 
-The math lives in :mod:`castimate.models` (symbolic physics) and :mod:`castimate.problem`
-(problem assembly); :mod:`castimate.solve` is the one solve path shared by every kind.
-IO, the CLI and reporting are kept apart from both.
+The public Python surface is :mod:`castimate.api`, available as ``castimate.load``,
+``castimate.solve``, ``castimate.diagnose`` (loaded on first use, so that ``import castimate`` stays
+light and the CLI can set up numpy's threads first).
 """
 
 __version__ = "0.1.0"
+__all__ = ["InputError", "NotConvergedError", "ProblemSpec", "diagnose", "load", "solve"]
+
+
+def __getattr__(name: str):
+    if name in __all__:
+        from . import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'castimate' has no attribute {name!r}")

@@ -21,23 +21,24 @@ def _log(msg: str) -> None:
 
 
 def cmd_solve(args) -> int:
-    from .io.results import dynamic_results, static_results, write_json
-    from .problem.spec import load_problem
-    from .report.data import write_details, write_dynamic_details
-    from .summary import dynamic_summary, static_summary
+    from .output.results import dynamic_results, static_results
+    from .io.results import write_json
+    from .spec import load_problem
+    from .output.details import write_details, write_dynamic_details
+    from .output.summary import dynamic_summary, static_summary
 
     spec = load_problem(args.problem)
     log = _log if not args.quiet else (lambda m: None)
     out = Path(args.output)
     if spec.kind == "dynamic_array":
-        from .calibrate_dynamic import calibrate_dynamic
+        from .kinds.dynamic import calibrate_dynamic
 
         outcome = calibrate_dynamic(spec, log=log)
         write_dynamic_details(out / "details.npz", outcome)
         write_json(out / "results.json", dynamic_results(outcome))
         print(dynamic_summary(outcome))
     else:
-        from .calibrate import calibrate_static
+        from .kinds.static import calibrate_static
 
         outcome = calibrate_static(spec, log=log)
         write_details(out / "details.npz", outcome)
@@ -48,7 +49,7 @@ def cmd_solve(args) -> int:
 
 
 def cmd_simulate(args) -> int:
-    from .scenario import simulate_scenario
+    from .simulate.scenarios import simulate_scenario
 
     files = simulate_scenario(args.scenario, args.output)
     for k, v in files.items():
@@ -57,7 +58,7 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_apply(args) -> int:
-    from .apply import apply_calibration
+    from .calibration import apply_calibration
 
     n = apply_calibration(args.results, args.data, args.output, fmt=args.format)
     print(f"wrote {args.output}: {n} samples calibrated")
@@ -65,7 +66,7 @@ def cmd_apply(args) -> int:
 
 
 def cmd_report(args) -> int:
-    from .report.html import write_report
+    from .report import write_report
 
     path = write_report(Path(args.directory))
     print(f"wrote {path}")
@@ -73,11 +74,11 @@ def cmd_report(args) -> int:
 
 
 def cmd_diagnose(args) -> int:
-    from .diagnose import diagnose
+    from .kinds.diagnose import diagnose
     from .io.atomic import write_atomic
-    from .io.diagnosis import diagnosis_document, final_results, refined_problem
+    from .output.diagnosis import diagnosis_document, final_results, refined_problem
     from .io.results import write_json
-    from .problem.spec import load_problem
+    from .spec import load_problem
     from .report.diagnose import render_diagnosis
 
     spec = load_problem(args.problem)

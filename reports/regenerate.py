@@ -19,8 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from castimate.cli import main
-from castimate.report.tables import (counts_comparison, dynamic_summary_table, gravity_norm_rms, position_spread,
-                                    session_spread, session_summary)
+from castimate.report.tables import counts_comparison, dynamic_summary_table, gravity_norm_rms, position_spread, session_spread, session_summary
 
 ROOT = Path(__file__).resolve().parents[1]
 PROBLEMS, REPORTS = ROOT / "problems", ROOT / "reports"
@@ -78,7 +77,7 @@ def diagnose_table(names: list[str]) -> str:
 
 
 def diagnose_all() -> None:
-    from castimate.simulate import REALISTIC_DYNAMIC_EFFECTS, REALISTIC_EFFECTS
+    from castimate.simulate.static import REALISTIC_DYNAMIC_EFFECTS, REALISTIC_EFFECTS
 
     real = [f"mimu4444_exp{i}_static" for i in range(1, 6)] + ["xsens_imutk"]
     for name in real:

@@ -15,9 +15,11 @@ import numpy as np
 import pytest
 
 from castimate.problem.dynamic import DynamicConfig, DynamicData, build_dynamic
-from castimate.problem.static import GroupSetting, TriadConfig, build_static
-from castimate.simulate_dynamic import dynamic_measurements, euler_consistent, smooth_random_motion
-from castimate.solve import Solver, SolverOptions
+from castimate.problem.triads import GroupSetting, TriadConfig
+from castimate.problem.static import build_static
+from castimate.simulate.dynamic import dynamic_measurements, euler_consistent, smooth_random_motion
+from castimate.solve.ipopt import Solver
+from castimate.problem.graph import SolverOptions
 
 from test_static import make_case
 
@@ -85,16 +87,16 @@ def assembled(solver: Solver, x, p, lam_f, lam_g):
 def test_assembled_derivatives_equal_casadi_ad(kind, hessian):
     prob = static_case() if kind == "static" else dynamic_case(process_model=kind == "dynamic")
     solver = Solver(prob.lsq, SolverOptions(hessian=hessian, jit=False))
-    assert (solver._stages is None) == (kind == "static")  # the dynamic problems are assembled by stage
+    assert (solver.stages is None) == (kind == "static")  # the dynamic problems are assembled by stage
     rng = np.random.default_rng(0)
     lay = prob.lsq.layout
     x = lay.x0() * (1 + 0.05 * rng.standard_normal(lay.n_x))  # layout order
-    xn, perm = x[solver._perm], solver._perm  # NLP order
-    pf = solver._p(None, None)[0]
+    xn, perm = x[solver.perm], solver.perm  # NLP order
+    pf = solver.fixed_and_data(None, None)[0]
     p = np.concatenate([pf, prob.lsq.data])  # the reference's parameters; the NLP's are the fixed values only
     lam_f, lam_g = 0.7, rng.standard_normal(solver.n_constraints)  # CasADi's constraint order
     lam = np.zeros(solver.n_constraints)
-    lam[solver._c_perm] = lam_g  # the reference's order
+    lam[solver.constraint_order] = lam_g  # the reference's order
     f_ref, grad_ref, hess_ref = reference_derivatives(solver)
 
     f_val, grad, H = assembled(solver, xn, pf, lam_f, lam_g)
@@ -111,7 +113,7 @@ def test_assembled_derivatives_equal_casadi_ad(kind, hessian):
     else:  # Gauss-Newton: J^T J (priors included) plus the constraints' curvature
         J, _ = solver.jacobians(x)
         curv = np.zeros(lay.n_x)
-        for j, row in enumerate(solver._unit):
+        for j, row in enumerate(solver.unit_rows):
             f = row[(row >= 0) & (row < lay.n_x)]
             curv[f] += 2 * lam[j] * lay.x_scale[f] ** 2
         expect = np.triu((lam_f * (J.T @ J).toarray() + np.diag(curv))[np.ix_(perm, perm)])
@@ -162,8 +164,8 @@ def test_jacobian_matches_finite_differences_of_residuals():
 def test_compiled_and_virtual_machine_assembly_agree():
     prob = dynamic_case()
     a, b = Solver(prob.lsq, SolverOptions(jit=True)), Solver(prob.lsq, SolverOptions(jit=False))
-    x = prob.lsq.layout.x0()[a._perm]
-    p = a._p(None, None)[0]
+    x = prob.lsq.layout.x0()[a.perm]
+    p = a.fixed_and_data(None, None)[0]
     lam_g = np.linspace(-1, 1, a.n_constraints)
     ha, hb = (np.asarray(s.nlp.get_function("nlp_hess_l")(x, p, 1.0, lam_g).nonzeros()) for s in (a, b))
     np.testing.assert_allclose(ha, hb, rtol=1e-13, atol=0)
@@ -171,17 +173,17 @@ def test_compiled_and_virtual_machine_assembly_agree():
 
 def test_chunked_evaluation_equals_one_chunk(monkeypatch):
     """Splitting the instances into chunks (whole stage groups) changes nothing."""
-    import castimate.solve as solve
+    import castimate.solve.assembly as solve
 
     prob = dynamic_case()
     x = prob.lsq.layout.x0()
     one = Solver(prob.lsq, SolverOptions(jit=False))
     monkeypatch.setattr(solve, "CHUNK", 7)  # several chunks per block, not a multiple of the triads
     many = Solver(prob.lsq, SolverOptions(jit=False))
-    pf, data = one._p(None, None)
-    fa, ga, ha = one._assembly.assemble(x[one._perm], pf, data)
-    fb, gb, hb = many._assembly.assemble(x[many._perm], pf, data)
-    ha, hb = one._assembly.hessian_values(ha), many._assembly.hessian_values(hb)
+    pf, data = one.fixed_and_data(None, None)
+    fa, ga, ha = one.assembly.assemble(x[one.perm], pf, data)
+    fb, gb, hb = many.assembly.assemble(x[many.perm], pf, data)
+    ha, hb = one.assembly.hessian_values(ha), many.assembly.hessian_values(hb)
     assert fa == pytest.approx(fb, rel=1e-13)
     np.testing.assert_allclose(ga, gb, rtol=1e-12, atol=1e-12 * np.abs(ga).max())
     np.testing.assert_allclose(ha, hb, rtol=1e-12, atol=1e-12 * np.abs(ha).max())

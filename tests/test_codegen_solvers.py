@@ -15,7 +15,7 @@ from castimate.codegen import generate_c
 from castimate.codegen.gn_structure import arithmetic_runs, expand_runs
 from castimate.codegen.solvers import FILES, TOLERANCE
 from castimate.errors import InputError
-from castimate.scenario import simulate_scenario
+from castimate.simulate.scenarios import simulate_scenario
 
 from test_codegen import make_check
 
@@ -168,10 +168,10 @@ def test_motion_estimator_matches_ipopt(simulated, tmp_path):
 
 def test_sigma_masking_has_the_optimum_of_leaving_readings_out(shared_data):
     """The C solver's fixed structure: saturated readings weighted out by σ instead of left out."""
-    from castimate.calibrate_dynamic import dynamic_inputs
+    from castimate.kinds.dynamic import dynamic_inputs
     from castimate.problem.dynamic import build_dynamic, build_dynamic_sigma_masked
-    from castimate.problem.spec import load_problem
-    from castimate.solve import Solver
+    from castimate.spec import load_problem
+    from castimate.solve.ipopt import Solver
 
     inputs = dynamic_inputs(load_problem(PROBLEMS / "mimu4444_exp1_dynamic.yaml"))
     data = inputs.data.window(1000, 60)

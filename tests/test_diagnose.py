@@ -9,12 +9,12 @@ import pytest
 import yaml
 
 from castimate.cli import main
-from castimate.diagnose import StaticSession, candidates, score_test
-from castimate.montecarlo import diagnose_trials
+from castimate.kinds.diagnose import StaticSession, candidates, score_test
+from castimate.simulate.montecarlo import diagnose_trials
 from castimate.problem.effects import BY_KEY
-from castimate.problem.spec import load_problem
-from castimate.scenario import simulate_scenario
-from castimate.simulate import REALISTIC_EFFECTS
+from castimate.spec import load_problem
+from castimate.simulate.scenarios import simulate_scenario
+from castimate.simulate.static import REALISTIC_EFFECTS
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIO = ROOT / "problems" / "sim_effects_8x24.yaml"
@@ -101,7 +101,7 @@ def test_dynamic_session_finds_an_accelerometer_time_offset(tmp_path):
     raw.update(seed=5, imus=4, samples=300)
     (tmp_path / "s.yaml").write_text(yaml.safe_dump(raw))
     spec = load_problem(simulate_scenario(tmp_path / "s.yaml", tmp_path)["problem"])
-    from castimate.diagnose import diagnose
+    from castimate.kinds.diagnose import diagnose
     d = diagnose(spec)
     assert d.added and d.added[0] == "accelerometer.time_offset", d.added
     assert d.after.cv.rms < d.before.cv.rms

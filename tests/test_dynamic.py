@@ -10,16 +10,16 @@ import numpy as np
 import pytest
 import yaml
 
-from castimate.calibrate_dynamic import minimum_checks, saturation_mask, sign_flips
+from castimate.kinds.dynamic import minimum_checks, sign_flips
+from castimate.prepare.masks import saturation_mask
 from castimate.cli import main
 from castimate.errors import InputError
 from castimate.models import motion as mot
 from castimate.problem.dynamic import DynamicConfig, DynamicData, build_dynamic
-from castimate.problem.spec import load_problem
-from castimate.problem.static import GroupSetting, TriadConfig
-from castimate.simulate_dynamic import (carlsson_geometry, dynamic_measurements, euler_consistent,
-                                        smooth_random_motion)
-from castimate.solve import Solver
+from castimate.spec import load_problem
+from castimate.problem.triads import GroupSetting, TriadConfig
+from castimate.simulate.dynamic import carlsson_geometry, dynamic_measurements, euler_consistent, smooth_random_motion
+from castimate.solve.ipopt import Solver
 
 FIXED = GroupSetting(free=(False,) * 3)
 
@@ -196,7 +196,7 @@ def test_undetermined_rate_scale_is_refused(tmp_path):
     """Free gyro gains without a process model: ω -> aω, ω̇ -> a²ω̇, r -> r/a² leaves the data unchanged."""
     path = dynamic_problem(tmp_path, model__gyroscope={"gain": "free", "bias": "fixed"})
     with pytest.raises(InputError, match="cannot determine") as e:
-        from castimate.calibrate_dynamic import calibrate_dynamic
+        from castimate.kinds.dynamic import calibrate_dynamic
         calibrate_dynamic(load_problem(path))
     assert e.value.where == "model" and ".position[" in str(e.value)  # the scale gauge: all positions together
 

@@ -24,12 +24,11 @@ import numpy as np
 import pytest
 
 from castimate.models.rotation import rotation_to_quaternion
-from castimate.problem.dynamic import (OMEGA, OMEGA_DOT, S, DynamicConfig, DynamicData, MotionSigmas, build_dynamic,
-                                       initial_motion)
-from castimate.problem.static import GroupSetting, TriadConfig
-from castimate.simulate_dynamic import (carlsson_geometry, dynamic_measurements, euler_consistent, schopp_geometry,
-                                        smooth_random_motion)
-from castimate.solve import Solver, SolverOptions
+from castimate.problem.dynamic import OMEGA, OMEGA_DOT, S, DynamicConfig, DynamicData, MotionSigmas, build_dynamic, initial_motion
+from castimate.problem.triads import GroupSetting, TriadConfig
+from castimate.simulate.dynamic import carlsson_geometry, dynamic_measurements, euler_consistent, schopp_geometry, smooth_random_motion
+from castimate.solve.ipopt import Solver
+from castimate.problem.graph import SolverOptions
 
 RUNS = 20
 N_SE = 3.5

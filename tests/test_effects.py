@@ -7,10 +7,11 @@ import numpy as np
 
 from castimate.models import effects as fx
 from castimate.problem.effects import EFFECTS, STATIC, effects_for
-from castimate.problem.static import (GroupSetting, Regressors, StaticConfig, TriadConfig, build_static, group_name)
-from castimate.segments import pose_averages_from_means
-from castimate.simulate import REALISTIC_EFFECTS, pose_directions, random_effects, random_static_truth, static_pose_means
-from castimate.solve import Solver
+from castimate.problem.triads import GroupSetting, Regressors, TriadConfig, group_name
+from castimate.problem.static import StaticConfig, build_static
+from castimate.prepare.poses import pose_averages_from_means
+from castimate.simulate.static import REALISTIC_EFFECTS, pose_directions, random_effects, random_static_truth, static_pose_means
+from castimate.solve.ipopt import Solver
 
 
 def ev(expr):
@@ -151,7 +152,7 @@ def dynamic_effect_case(seed=4, n=600, effects=None):
     """8 IMUs of the Carlsson board with gyroscopes, positions free, with size-effect offsets and
     time offsets in the data (simulated exactly) and in the model."""
     from castimate.problem.dynamic import DynamicConfig, DynamicData
-    from castimate.simulate_dynamic import carlsson_geometry, dynamic_measurements, euler_consistent, smooth_random_motion
+    from castimate.simulate.dynamic import carlsson_geometry, dynamic_measurements, euler_consistent, smooth_random_motion
 
     rng = np.random.default_rng(seed)
     names, nominal, true, R = carlsson_geometry(rng, 1e-3, reference="imu1")
@@ -225,11 +226,11 @@ def test_apply_inverts_the_effect_model(tmp_path):
 
     import yaml
 
-    from castimate.apply import apply_calibration
+    from castimate.calibration import apply_calibration
     from castimate.cli import main
     from castimate.io.readers import read_csv
-    from castimate.scenario import simulate_scenario
-    from castimate.simulate import StaticTruth, effect_terms
+    from castimate.simulate.scenarios import simulate_scenario
+    from castimate.simulate.static import StaticTruth, effect_terms
 
     root = __import__("pathlib").Path(__file__).resolve().parents[1]
     raw = yaml.safe_load((root / "problems" / "sim_effects_8x24.yaml").read_text())

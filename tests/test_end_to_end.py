@@ -47,8 +47,8 @@ def test_simulated_time_series_round_trip(tmp_path):
 def test_mimu4444_exp1_static(shared_data, tmp_path, monkeypatch):
     """The real 8-IMU array: 20 poses, the bottom-side rotation recovered, a consistency gain like the paper's."""
     monkeypatch.chdir(tmp_path)
-    from castimate.calibrate import calibrate_static
-    from castimate.problem.spec import load_problem
+    from castimate.kinds.static import calibrate_static
+    from castimate.spec import load_problem
     from pathlib import Path
 
     problem = Path(__file__).resolve().parents[1] / "problems" / "mimu4444_exp1_static.yaml"

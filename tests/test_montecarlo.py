@@ -7,7 +7,7 @@ the bands below are derived from it (about 4 standard errors), not guessed.
 import numpy as np
 import pytest
 
-from castimate.montecarlo import monte_carlo_static
+from castimate.simulate.montecarlo import monte_carlo_static
 
 RUNS = 400
 SE = 1 / np.sqrt(2 * (RUNS - 1))  # 0.035

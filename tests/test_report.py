@@ -52,7 +52,7 @@ def test_report_content(solved, report):
     # angles are shown in degrees: the first free misalignment component of a non-reference triad
     name = next(n for n in doc["triads"] if n != doc["reference"])
     g = doc["triads"][name]["parameters"]["misalignment"]
-    from castimate.report.html import format_pm
+    from castimate.report.page import format_pm
 
     assert format_pm(np.degrees(g["value"][0]), np.degrees(g["std"][0])) in report
     # the reference triad has no misalignment group: its cells say so instead of a value
@@ -79,7 +79,7 @@ def test_report_missing_details(solved, tmp_path, capsys):
 
 
 def test_report_wrong_format(tmp_path):
-    from castimate.report.html import write_report
+    from castimate.report import write_report
 
     (tmp_path / "results.json").write_text(json.dumps({"format": "something/9"}))
     with pytest.raises(InputError, match=r"results\.json: format: expected"):
@@ -92,7 +92,7 @@ def test_report_missing_directory(tmp_path, capsys):
 
 
 def test_format_pm():
-    from castimate.report.html import format_pm
+    from castimate.report.page import format_pm
 
     assert format_pm(1.0045540261, 4.6467e-05) == "1.004554 ± 0.000046"
     assert format_pm(-0.2767280, 0.00027663) == "-0.27673 ± 0.00028"
@@ -152,7 +152,7 @@ def test_dynamic_report_is_self_contained(dynamic_report):
 
 
 def test_dynamic_report_content(dynamic_solved, dynamic_report):
-    from castimate.report.html import format_pm
+    from castimate.report.page import format_pm
 
     doc = json.loads((dynamic_solved / "results.json").read_text())
     assert doc["kind"] == "dynamic_array" and "dynamic_array" in dynamic_report
@@ -214,7 +214,8 @@ def test_dynamic_report_figure_titles(dynamic_solved, dynamic_report):
 
 def test_dynamic_report_quaternion_orientation(dynamic_solved):
     """An estimated misalignment quaternion (Schopp 2016) is shown as a rotation in degrees."""
-    from castimate.report.html import _orientation_table, _other_parameters, format_pm, parameter_tables
+    from castimate.report.dynamic import _orientation_table, _other_parameters
+    from castimate.report.page import format_pm, parameter_tables
 
     doc = json.loads((dynamic_solved / "results.json").read_text())
     intro, table = _orientation_table(doc, list(doc["triads"]))

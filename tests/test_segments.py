@@ -11,15 +11,9 @@ from scipy.stats import chi2
 
 from castimate.errors import InputError
 from castimate.io.recording import Recording
-from castimate.segments import (
-    Detection,
-    DetectionOptions,
-    PoseAverages,
-    average_poses,
-    detect_static,
-    explicit_segments,
-    pose_averages_from_means,
-)
+from castimate.prepare.detect import Detection, detect_static, explicit_segments
+from castimate.prepare.options import DetectionOptions
+from castimate.prepare.poses import PoseAverages, average_poses, pose_averages_from_means
 
 G = 9.81
 DATA = Path(__file__).parents[2] / "shared" / "data"

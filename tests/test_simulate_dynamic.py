@@ -3,10 +3,7 @@
 import numpy as np
 import pytest
 
-from castimate.simulate_dynamic import (CARLSSON_BOTTOM_ROTATION, carlsson_geometry, dynamic_measurements,
-                                        integrate_attitude, quaternion_multiply, quaternion_to_matrix,
-                                        rigid_body_motion, schopp_geometry, smooth_random_motion,
-                                        specific_force_at)
+from castimate.simulate.dynamic import CARLSSON_BOTTOM_ROTATION, carlsson_geometry, dynamic_measurements, integrate_attitude, quaternion_multiply, quaternion_to_matrix, rigid_body_motion, schopp_geometry, smooth_random_motion, specific_force_at
 
 DEG = np.pi / 180
 W_MAX, WDOT_MAX = 2000 * DEG, 2000 * DEG  # Carlsson 2017, Fig. 4

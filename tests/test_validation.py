@@ -15,16 +15,16 @@ import numpy as np
 import pytest
 import yaml
 
-from castimate.apply import apply_calibration
-from castimate.calibrate import calibrate_static, pose_averages, load_recording, static_config
+from castimate.calibration import apply_calibration
+from castimate.kinds.static import calibrate_static, pose_averages, load_recording, static_config
 from castimate.cli import main
 from castimate.errors import EXIT_INVALID_INPUT, EXIT_NOT_CONVERGED, InputError, NotConvergedError
 from castimate.io.readers import read_csv, write_csv
 from castimate.io.recording import Recording
 from castimate.io.results import read_results
-from castimate.problem.spec import load_problem
+from castimate.spec import load_problem
 from castimate.problem.static import build_static
-from castimate.scenario import simulate_scenario
+from castimate.simulate.scenarios import simulate_scenario
 
 DELETE = object()
 
@@ -729,7 +729,7 @@ def test_cli_apply_invalid_input(solved, sim, tmp_path, capsys):
 
 def test_prior_on_fixed_component_is_an_error(tmp_path):
     """A prior only acts on free components; on a fixed one it would be silently ignored."""
-    from castimate.problem.spec import parse_problem
+    from castimate.spec import parse_problem
     from castimate.errors import InputError
     data = tmp_path / "d.csv"
     data.write_text("t,a.ax,a.ay,a.az\n0,0,0,9.81\n")
@@ -741,7 +741,7 @@ def test_prior_on_fixed_component_is_an_error(tmp_path):
 
 
 def test_negative_truth_scale_in_scenario_is_an_error(tmp_path):
-    from castimate.scenario import simulate_scenario
+    from castimate.simulate.scenarios import simulate_scenario
     from castimate.errors import InputError
     sc = tmp_path / "s.yaml"
     sc.write_text("kind: static_array\ntruth: {bias: -0.1}\n")
@@ -757,7 +757,7 @@ def test_temperature_effect_without_temperature(doc, tmp_path):
 
 
 def test_diagnose_refuses_a_joint_problem(shared_data):
-    from castimate.diagnose import diagnose
+    from castimate.kinds.diagnose import diagnose
     spec = load_problem(Path(__file__).resolve().parents[1] / "problems" / "mimu4444_exp1_joint.yaml")
     expect_error(lambda: diagnose(spec), spec.path, "data.static",
                  "diagnose runs on a static or a dynamic problem, not a joint one")

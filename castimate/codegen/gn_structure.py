@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from ..solve import Solver
+from ..solve.ipopt import Solver
 
 
 class UnsupportedProblem(ValueError):

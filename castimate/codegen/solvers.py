@@ -33,7 +33,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError, NotConvergedError
-from ..solve import Solution, Solver
+from ..problem.graph import Solution
+from ..solve.ipopt import Solver
 from .ctext import c_comment, c_double, casadi_sources
 from .gn_structure import GNStructure, UnsupportedProblem, gn_structure
 
@@ -79,7 +80,7 @@ def _sha(path: Path) -> str:
 
 def static_reference(spec) -> Reference:
     """The static problem of a problem file (averaged poses, Nilsson 2014) solved by IPOPT."""
-    from ..calibrate import check_identifiable, load_recording, pose_averages, static_config
+    from ..kinds.static import check_identifiable, load_recording, pose_averages, static_config
     from ..problem.static import build_static
 
     avg, _ = pose_averages(spec, load_recording(spec))
@@ -101,7 +102,7 @@ def dynamic_reference(spec, window: int, start: int = 0, motion_only: bool = Fal
 
     ``motion_only``: every triad's intrinsics and position fixed at the problem file's values (or
     its ``model.intrinsics``): the array's per-sample ML motion estimator (Carlsson 2017)."""
-    from ..calibrate_dynamic import dynamic_inputs
+    from ..kinds.dynamic import dynamic_inputs
     from ..problem.dynamic import build_dynamic_sigma_masked, geometry_fixed
 
     inputs = dynamic_inputs(spec)
@@ -147,7 +148,7 @@ def _solve(spec, solver: Solver, x0: np.ndarray) -> Solution:
 def reference_for(problem_path: str | Path, window: int | None = None, start: int = 0,
                   motion_only: bool = False) -> Reference:
     """Load a problem file and solve the problem the C solver is emitted for."""
-    from ..problem.spec import load_problem
+    from ..spec import load_problem
 
     spec = load_problem(problem_path)
     if spec.kind == "dynamic_array":

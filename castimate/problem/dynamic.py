@@ -20,12 +20,12 @@ import numpy as np
 
 from ..models import motion as mot
 from ..models import triad as tri
-from ..solve import FactorBlock, LeastSquaresProblem
+from .graph import FactorBlock, LeastSquaresProblem
 from .parameters import Group, Layout
 from . import effects as fxs
-from .static import (N_REGRESSORS, Regressors, effect_context, effect_params)
-from .static import (GYRO_FACTOR_GROUPS, ACC_FACTOR_GROUPS, XYZ, GroupSetting, TriadConfig, accelerometer_matrix,
-                     gyroscope_matrix, group_name, triad_groups)
+from .parameters import XYZ
+from .triads import (ACC_FACTOR_GROUPS, GYRO_FACTOR_GROUPS, N_REGRESSORS, GroupSetting, Regressors, TriadConfig,
+                     accelerometer_matrix, effect_context, effect_params, group_name, gyroscope_matrix, triad_groups)
 
 OMEGA, OMEGA_DOT, S = "motion.omega", "motion.omega_dot", "motion.s"
 

@@ -12,7 +12,7 @@ the body frame. Gyroscopes, where present, give y_g = b_g + v in a static pose (
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import casadi as ca
 import numpy as np
@@ -20,48 +20,9 @@ import numpy as np
 from ..models import rotation as rot
 from ..models import triad as tri
 from . import effects as fxs
-from .parameters import XYZ, Group, GroupDef, Layout
-from ..segments import PoseAverages
-from ..solve import FactorBlock, LeastSquaresProblem
-
-ACCELEROMETER_GROUPS = {
-    "gain": GroupDef(XYZ, (1.0, 1.0, 1.0), 1.0, "-"),
-    "bias": GroupDef(XYZ, (0.0, 0.0, 0.0), 0.1, "m/s^2"),
-    "nonorthogonality": GroupDef(tri.NONORTHOGONALITY_COMPONENTS, (0.0, 0.0, 0.0), 1e-2, "rad"),
-    "misalignment": GroupDef(XYZ, (0.0, 0.0, 0.0), 1e-2, "rad"),
-}
-GYROSCOPE_GROUPS = {
-    "gain": GroupDef(XYZ, (1.0, 1.0, 1.0), 1.0, "-"),
-    "bias": GroupDef(XYZ, (0.0, 0.0, 0.0), 1e-2, "rad/s"),
-    "misalignment": GroupDef(XYZ, (0.0, 0.0, 0.0), 1e-2, "rad"),
-}
-#: Misalignment as a full rotation: a unit quaternion with |q|^2 = 1.
-QUATERNION_MISALIGNMENT = GroupDef(("w", "x", "y", "z"), (1.0, 0.0, 0.0, 0.0), 1.0, "-", True)
-SENSOR_GROUPS = {"accelerometer": ACCELEROMETER_GROUPS, "gyroscope": GYROSCOPE_GROUPS}
-
-
-@dataclass(frozen=True)
-class GroupSetting:
-    """What a problem file says about one parameter group of one triad (physical units)."""
-
-    free: tuple[bool, ...]
-    initial: tuple[float, ...] | None = None
-    lower: tuple[float, ...] | None = None
-    upper: tuple[float, ...] | None = None
-    prior_mean: tuple[float, ...] | None = None
-    prior_std: tuple[float, ...] | None = None
-
-
-@dataclass(frozen=True)
-class TriadConfig:
-    """One triad: its name, nominal mounting rotation (body -> triad) and group settings."""
-
-    name: str
-    R_nominal: np.ndarray
-    accelerometer: dict[str, GroupSetting]
-    gyroscope: dict[str, GroupSetting] | None = None
-    position: np.ndarray | None = None  # nominal, body frame [m]
-    position_setting: GroupSetting | None = None  # dynamic problems: free or fixed position
+from .parameters import XYZ, Group, Layout
+from .graph import FactorBlock, LeastSquaresProblem
+from .triads import Poses, ACC_FACTOR_GROUPS, GYRO_FACTOR_GROUPS, N_REGRESSORS, Regressors, TriadConfig, accelerometer_matrix, effect_context, effect_params, group_name, gyroscope_matrix, triad_groups
 
 
 @dataclass(frozen=True)
@@ -79,71 +40,6 @@ class StaticConfig:
     @property
     def names(self) -> list[str]:
         return [t.name for t in self.triads]
-
-
-@dataclass(frozen=True)
-class Regressors:
-    """How the effects' regressors are formed from time and temperature.
-
-    τ = (t - t_mid) / t_half is the normalised session time (τ = ±1 at the first and last pose);
-    the temperature regressor is the triad's temperature minus ``temp_mean`` [K].
-    """
-
-    t_mid: float = 0.0
-    t_half: float = 1.0
-    temp_mean: dict = field(default_factory=dict)  # triad -> K
-
-    def to_dict(self) -> dict:
-        return {"time": {"t_mid_s": self.t_mid, "t_half_s": self.t_half,
-                         "tau": "(t - t_mid_s) / t_half_s"},
-                "temperature_mean_K": dict(self.temp_mean)}
-
-    def pose_moments(self, poses: PoseAverages, triad: str) -> np.ndarray:
-        """(P, 4): mean τ and mean τ² over each pose interval, then the temperature deviation and its
-        square (zeros where no temperature is logged)."""
-        a = (poses.t_start - self.t_mid) / self.t_half
-        b = (poses.t_end - self.t_mid) / self.t_half
-        temp = poses.temp_mean.get(triad)
-        dT = np.zeros(poses.n_poses) if temp is None else temp - self.temp_mean.get(triad, 0.0)
-        return np.column_stack([(a + b) / 2, (a * a + a * b + b * b) / 3, dT, dT ** 2])
-
-    def sample_moments(self, t: np.ndarray, temp: np.ndarray | None, triad: str) -> np.ndarray:
-        """(N, 4) the same columns for single samples at times t: τ, τ², ΔT, ΔT²."""
-        tau = (np.asarray(t, float) - self.t_mid) / self.t_half
-        dT = np.zeros(len(tau)) if temp is None else temp - self.temp_mean.get(triad, 0.0)
-        return np.column_stack([tau, tau ** 2, dT, dT ** 2])
-
-    @staticmethod
-    def from_times(t: np.ndarray, temp: dict[str, np.ndarray]) -> "Regressors":
-        """For samples at times t (dynamic problems), with per-triad temperatures."""
-        t0, t1 = float(np.min(t)), float(np.max(t))
-        return Regressors((t0 + t1) / 2, max((t1 - t0) / 2, 1e-9), {n: float(np.mean(v)) for n, v in temp.items()})
-
-    @staticmethod
-    def from_poses(poses: PoseAverages) -> "Regressors":
-        t = np.concatenate([poses.t_start, poses.t_end])
-        t = t[np.isfinite(t)]
-        t0, t1 = (float(t.min()), float(t.max())) if len(t) and t.max() > t.min() else (-1.0, 1.0)
-        return Regressors((t0 + t1) / 2, (t1 - t0) / 2,
-                          {n: float(np.mean(v)) for n, v in poses.temp_mean.items()})
-
-
-def group_name(triad: str, sensor: str, group: str) -> str:
-    return f"{triad}.{sensor}.{group}"
-
-
-def _group(name: str, gd: GroupDef, s: GroupSetting) -> Group:
-    inf = np.inf
-    return Group.make(
-        name, gd.components,
-        gd.neutral if s.initial is None else s.initial,
-        free=s.free,
-        lower=-inf if s.lower is None else s.lower,
-        upper=inf if s.upper is None else s.upper,
-        prior_mean=np.nan if s.prior_mean is None else s.prior_mean,
-        prior_std=np.nan if s.prior_std is None else s.prior_std,
-        scale=gd.scale, unit=gd.unit, unit_norm=gd.unit_norm,
-    )
 
 
 def tilt_quaternion(u: np.ndarray) -> np.ndarray:
@@ -182,72 +78,6 @@ def direction_expression(kind: str, v):
     if kind == "quaternion":
         return rot.tilt_quaternion_direction(v)
     return rot.pitch_roll_direction(v[0], v[1])
-
-
-def misalignment_rotation(kind: str, v):
-    """M = I + [xi]x (Nilsson 2014, eq. 2) or R(q) for large mounting errors."""
-    return rot.small_angle_rotation(v) if kind == "small_angle" else rot.quaternion_to_rotation(v)
-
-
-def triad_groups(config: StaticConfig, t: TriadConfig, with_gyro: bool) -> list[Group]:
-    """The parameter groups of one triad. The reference triad's misalignment is fixed at identity:
-    it defines the body frame."""
-    out = []
-    for gname, gd in ACCELEROMETER_GROUPS.items():
-        setting = t.accelerometer[gname]
-        if gname == "misalignment":
-            gd = QUATERNION_MISALIGNMENT if config.misalignment == "rotation" else gd
-            if t.name == config.reference:
-                setting = GroupSetting(free=(False,) * len(gd.components))
-        out.append(_group(group_name(t.name, "accelerometer", gname), gd, setting))
-    reference = t.name == config.reference
-    for e in fxs.included(config.effects, "accelerometer"):
-        out.append(_effect_group(t.name, e, t.accelerometer, reference))
-    if with_gyro:
-        for gname, gd in GYROSCOPE_GROUPS.items():
-            out.append(_group(group_name(t.name, "gyroscope", gname), gd, t.gyroscope[gname]))
-        for e in fxs.included(config.effects, "gyroscope"):
-            out.append(_effect_group(t.name, e, t.gyroscope, reference))
-    return out
-
-
-def _effect_group(triad: str, e: fxs.Effect, settings: dict[str, GroupSetting], reference: bool) -> Group:
-    """An included effect's group; triads the problem file does not include it for keep it fixed at
-    its neutral value (no effect), and so does the reference triad for an effect defined relative
-    to it."""
-    s = settings.get(e.name)
-    if s is None or (reference and e.relative):
-        s = GroupSetting(free=(False,) * len(e.group.components))
-    return _group(group_name(triad, e.sensor, e.name), e.group, s)
-
-
-def accelerometer_matrix(misalignment: str) -> ca.Function:
-    """T = K L M Rbar of an accelerometer triad (Nilsson 2014, eq. 3), as a function of
-    (k, l, misalignment, Rbar)."""
-    n_mis = len(QUATERNION_MISALIGNMENT.components) if misalignment == "rotation" else 3
-    k, l, m = ca.SX.sym("k", 3), ca.SX.sym("l", 3), ca.SX.sym("m", n_mis)
-    R = ca.SX.sym("Rbar", 3, 3)
-    T = ca.mtimes([tri.gain_matrix(k), tri.nonorthogonality_matrix(l), misalignment_rotation(misalignment, m), R])
-    return ca.Function("accelerometer_T", [k, l, m, R], [T], ["k", "l", "misalignment", "Rbar"], ["T"])
-
-
-def gyroscope_matrix() -> ca.Function:
-    """T_g = K_g M_g Rbar of a gyroscope triad (DESIGN.md), as a function of (k, misalignment, Rbar)."""
-    k, m, R = ca.SX.sym("k", 3), ca.SX.sym("m", 3), ca.SX.sym("Rbar", 3, 3)
-    T = ca.mtimes([tri.gain_matrix(k), rot.small_angle_rotation(m), R])
-    return ca.Function("gyroscope_T", [k, m, R], [T], ["k", "misalignment", "Rbar"], ["T"])
-
-
-#: Data columns of the effect regressors in every pose factor: mean τ, mean τ², ΔT, ΔT².
-N_REGRESSORS = 4
-
-
-def effect_context(reg, **kw) -> fxs.Context:
-    return fxs.Context(tau=(reg[0], reg[1]), temp=(reg[2], reg[3]), **kw)
-
-
-def effect_params(effects: list[fxs.Effect]) -> list:
-    return [ca.SX.sym(e.name, len(e.group.components)) for e in effects]
 
 
 def accelerometer_pose_factor(config: StaticConfig) -> ca.Function:
@@ -292,10 +122,6 @@ def gyroscope_pose_factor(config: StaticConfig) -> ca.Function:
     return ca.Function("gyroscope_pose", [ca.vertcat(k, m, b, v, *c), ca.vertcat(y, sigma, R, g, reg)], [r])
 
 
-ACC_FACTOR_GROUPS = ("gain", "nonorthogonality", "misalignment", "bias")
-GYRO_FACTOR_GROUPS = ("gain", "misalignment", "bias")
-
-
 @dataclass
 class StaticProblem:
     """A composed static problem plus what is needed to interpret its solution."""
@@ -305,7 +131,7 @@ class StaticProblem:
     gyro_triads: list[str]
     n_poses: int
 
-    def block_data(self, poses: PoseAverages) -> list[np.ndarray]:
+    def block_data(self, poses: Poses) -> list[np.ndarray]:
         """Per-block data, triad-major: accelerometers (M*P, 20), then gyroscopes (Mg*P, 20) if any."""
         P, g = self.n_poses, self.config.gravity
         reg = self.config.regressors or Regressors.from_poses(poses)
@@ -320,10 +146,10 @@ class StaticProblem:
             out.append(np.vstack([rows(n, poses.gyro_mean[n], poses.gyro_sigma[n]) for n in self.gyro_triads]))
         return out
 
-    def data_vector(self, poses: PoseAverages) -> np.ndarray:
+    def data_vector(self, poses: Poses) -> np.ndarray:
         return self.lsq.pack(self.block_data(poses))
 
-    def x0(self, poses: PoseAverages, values: dict[str, np.ndarray] | None = None) -> np.ndarray:
+    def x0(self, poses: Poses, values: dict[str, np.ndarray] | None = None) -> np.ndarray:
         """Start for new data of the same structure: directions from the reference triad's readings.
 
         ``values`` overrides any group's start (physical units), e.g. the truth in a CRB computation.
@@ -350,14 +176,14 @@ class StaticProblem:
                 for n in self.gyro_triads}
 
 
-def initial_directions(config: StaticConfig, poses: PoseAverages) -> np.ndarray:
+def initial_directions(config: StaticConfig, poses: Poses) -> np.ndarray:
     """Initial pose directions (P, 3) from the reference triad's readings, in the body frame."""
     ref = next(t for t in config.triads if t.name == config.reference)
     y = poses.acc_mean[config.reference] @ ref.R_nominal  # Rbar^T y, row-wise
     return y / np.linalg.norm(y, axis=1, keepdims=True)
 
 
-def build_static(config: StaticConfig, poses: PoseAverages) -> StaticProblem:
+def build_static(config: StaticConfig, poses: Poses) -> StaticProblem:
     """Compose the static array problem from two factor blocks; the data enter as NLP parameters."""
     P = poses.n_poses
     gyro_triads = [t.name for t in config.triads if t.gyroscope is not None and t.name in poses.gyro_mean]
@@ -399,28 +225,6 @@ def recover_nominal_rotation(ref_mean: np.ndarray, triad_mean: np.ndarray) -> tu
     R = rot.wahba_rotation(a, b)
     A = rot.nearest_axis_rotation(R)
     return A, rot.rotation_angle_deg(A.T @ R)
-
-
-def fixed_config(config, values: dict[str, np.ndarray]):
-    """The same structure (static or dynamic) with every calibration group and position fixed at
-    ``values`` (physical units): only the nuisance variables (pose directions, motion) remain free,
-    e.g. to predict held-out poses or samples with a fitted calibration."""
-    def fix(t: TriadConfig, sensor: str, settings: dict | None):
-        if settings is None:
-            return None
-        out = {}
-        for g in settings:
-            v = np.atleast_1d(values[group_name(t.name, sensor, g)])
-            out[g] = GroupSetting(free=(False,) * len(v), initial=tuple(float(x) for x in v))
-        return out
-
-    def position(t: TriadConfig):
-        v = values.get(f"{t.name}.position")
-        return t.position_setting if v is None else GroupSetting(free=(False,) * 3, initial=tuple(float(x) for x in v))
-
-    return replace(config, triads=tuple(replace(t, accelerometer=fix(t, "accelerometer", t.accelerometer),
-                                                gyroscope=fix(t, "gyroscope", t.gyroscope),
-                                                position_setting=position(t)) for t in config.triads))
 
 
 def single_triad_config(config: StaticConfig, name: str) -> StaticConfig:

@@ -1,1 +1,24 @@
-"""Reports: HTML with matplotlib figures, built from a solved output directory."""
+"""Reports: self-contained HTML pages from a solved directory (results.json and details.npz)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import InputError
+from ..io.atomic import write_atomic
+from .dynamic import REQUIRED_DYNAMIC_DETAILS, render_dynamic_report
+from .page import load_details, load_results
+from .static import REQUIRED_DETAILS, render_report
+
+
+def write_report(directory: Path) -> Path:
+    """Write ``DIR/report.html`` for a solved directory; return its path. Raises InputError."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise InputError(directory, "", "no such directory; expected the output directory of `castimate solve`")
+    results = load_results(directory)
+    dynamic = results.get("kind") == "dynamic_array"
+    details = load_details(directory, REQUIRED_DYNAMIC_DETAILS if dynamic else REQUIRED_DETAILS)
+    path = directory / "report.html"
+    write_atomic(path, (render_dynamic_report if dynamic else render_report)(results, details))
+    return path

@@ -10,11 +10,11 @@ from html import escape
 
 import numpy as np
 
-from ..diagnose import Diagnosis
-from ..io.diagnosis import parameter_changes
+from ..kinds.diagnose import Diagnosis
+from ..output.diagnosis import parameter_changes
 from ..problem.effects import BY_KEY
 from . import figures
-from .html import _fig_html, _kv, _page_head, format_pm
+from .page import fig_html, kv, page_head, format_pm
 
 
 def _g(x: float, digits: int = 3) -> str:
@@ -38,7 +38,7 @@ def render_diagnosis(d: Diagnosis) -> str:
     spec = d.spec
     b, a = d.before, d.after
     head = {"problem": str(spec.path), "problem_sha256": spec.sha256}
-    out = _page_head(head, spec.path.name, "diagnose")
+    out = page_head(head, spec.path.name, "diagnose")
     add = out.append
     added = ", ".join(f"<b>{escape(k)}</b> ({escape(BY_KEY[k].title)})" for k in d.added) or "nothing"
     add(f"<p>Effects added: {added}. Each round score-tests every library effect the model lacks at the current "
@@ -61,14 +61,14 @@ def render_diagnosis(d: Diagnosis) -> str:
     add(_table(["", "declared model", "refined model"], [list(r) for r in rows]))
     t, wb = _whitened(d, b.outcome)
     fig = figures.diagnose_residuals(t, wb, _whitened(d, a.outcome)[1])
-    add(_fig_html(fig, "residuals before and after",
+    add(fig_html(fig, "residuals before and after",
                   "Whitened residuals of every triad and axis over the session, declared model (left) and refined "
                   "model (right). A drift shows as a trend over time; an effect that depends on the pose or the "
                   "motion as scatter larger than 1 that does not follow time."))
 
     add("<h2>Residual structure of the declared model</h2>")
     ra = d.residuals_before
-    add(_kv([(f"common mode ({s}): mean correlation of the triads' residuals", _g(v, 2))
+    add(kv([(f"common mode ({s}): mean correlation of the triads' residuals", _g(v, 2))
              for s, v in ra.common_mode.items()]))
     add(_table(["triad", "sensor", "axis", "RMS", "χ²", "expected", "χ²/expected", "lag-1 corr. (time order)", "z"],
                [[escape(r.triad), r.sensor, r.axis, _g(r.rms), _g(r.chi2, 4), _g(r.expected, 3),

@@ -293,7 +293,7 @@ def _nice_factor(x: float) -> float:
     return float(cands[np.argmin(np.abs(np.log(cands / x)))])
 
 
-def _format_factor(f: float) -> str:
+def format_factor(f: float) -> str:
     return f"{f:.0f}" if f >= 1 else f"{f:.3g}"
 
 
@@ -435,7 +435,7 @@ def positions_on_board(names: Sequence[str], nominal: np.ndarray, estimated: np.
     ax_side.set_ylabel("z [mm]")
     ax_side.set_title("Side view (x–z)", fontsize=10)
 
-    fs_ = _format_factor(f)
+    fs_ = format_factor(f)
     handles = [Line2D([], [], ls="", marker="o", mfc="white", mec="k", ms=6.5, mew=1.2),
                Line2D([], [], ls="-", marker="o", color="k", ms=4, lw=1.0),
                Line2D([], [], ls="--", color="k", lw=0.9)]

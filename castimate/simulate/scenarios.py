@@ -8,21 +8,21 @@ from typing import Any
 import numpy as np
 import yaml
 
-from .errors import InputError
-from .io.readers import write_csv
-from .io.recording import Recording
-from .io.results import write_atomic, write_json
-from .problem.spec import _Check
-from .problem.effects import BY_KEY
-from .simulate import (REALISTIC_DYNAMIC_EFFECTS, REALISTIC_EFFECTS, StaticTruthScale, pose_directions, random_effects, random_static_truth,
-                       static_pose_means, static_time_series)
+from ..errors import InputError
+from ..io.readers import write_csv
+from ..io.recording import Recording
+from ..io.atomic import write_atomic
+from ..io.results import write_json
+from ..validation import Check
+from ..problem.effects import BY_KEY
+from .static import REALISTIC_DYNAMIC_EFFECTS, REALISTIC_EFFECTS, StaticTruthScale, pose_directions, random_effects, random_static_truth, static_pose_means, static_time_series
 
 SCENARIO_KEYS = ("kind", "seed", "gravity", "triads", "reference", "poses", "noise", "samples_per_pose",
                  "truth", "gyroscope", "time_series", "rate", "pose_duration", "transition", "effects", "temperature",
                  "pose_interval")
 
 
-def _flag(c: _Check, s: dict, key: str) -> bool:
+def _flag(c: Check, s: dict, key: str) -> bool:
     v = s.get(key, False)
     if not isinstance(v, bool):
         c.fail(key, f"expected true or false, found {v!r}")
@@ -38,7 +38,7 @@ def simulate_scenario(path: str | Path, out: str | Path) -> dict[str, Path]:
         raise InputError(path, "", f"cannot read the scenario file ({e.strerror})") from None
     except yaml.YAMLError as e:
         raise InputError(path, "", f"not valid YAML ({e})") from None
-    c = _Check(path)
+    c = Check(path)
     if not isinstance(raw, dict):
         c.fail("", f"expected a mapping, found {type(raw).__name__} {raw!r}")
     if "kind" not in raw:
@@ -49,14 +49,14 @@ def simulate_scenario(path: str | Path, out: str | Path) -> dict[str, Path]:
     return _static_scenario(c, raw, path, out)
 
 
-def _seed(c: _Check, s: dict) -> np.random.Generator:
+def _seed(c: Check, s: dict) -> np.random.Generator:
     seed = c.number(s.get("seed", 0), "seed", integer=True)
     if seed < 0:
         c.fail("seed", f"expected a non-negative integer, found {seed}")
     return np.random.default_rng(seed)
 
 
-def _effects(c: _Check, s: dict, gyro: bool, realistic: dict[str, float] = REALISTIC_EFFECTS) -> dict[str, float]:
+def _effects(c: Check, s: dict, gyro: bool, realistic: dict[str, float] = REALISTIC_EFFECTS) -> dict[str, float]:
     """``effects``: effect key -> σ of its random coefficients, or ``realistic`` (the kind's table
     in castimate.simulate)."""
     e = c.mapping(s.get("effects"), "effects", tuple(realistic))
@@ -70,7 +70,7 @@ def _effects(c: _Check, s: dict, gyro: bool, realistic: dict[str, float] = REALI
     return out
 
 
-def _static_scenario(c: _Check, raw: dict, path: Path, out: Path) -> dict[str, Path]:
+def _static_scenario(c: Check, raw: dict, path: Path, out: Path) -> dict[str, Path]:
     s = c.mapping(raw, "", SCENARIO_KEYS, required=("kind",))
     seed = c.number(s.get("seed", 0), "seed", integer=True)
     if seed < 0:
@@ -163,14 +163,13 @@ DYNAMIC_KEYS = ("kind", "seed", "geometry", "samples", "rate", "max_omega", "max
                 "imus", "effects")
 
 
-def _dynamic_scenario(c: _Check, raw: dict, path: Path, out: Path) -> dict[str, Path]:
+def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path) -> dict[str, Path]:
     """A hand-twisted dynamic session with known geometry (Carlsson 2017 or Schopp 2016 layout).
 
     Angles in the scenario file are in degrees (max_omega in deg/s, max_omega_dot in deg/s^2,
     orientation_error and saturation in deg and deg/s); lengths in metres.
     """
-    from .simulate_dynamic import (carlsson_geometry, dynamic_measurements, euler_consistent,
-                                   schopp_geometry, smooth_random_motion)
+    from .dynamic import carlsson_geometry, dynamic_measurements, euler_consistent, schopp_geometry, smooth_random_motion
 
     s = c.mapping(raw, "", DYNAMIC_KEYS, required=("kind", "geometry"))
     rng = _seed(c, s)

@@ -23,8 +23,8 @@ from typing import Callable
 
 import numpy as np
 
-from .models.rotation import rotation_to_quaternion
-from .simulate import random_rotation
+from ..models.rotation import rotation_to_quaternion
+from .static import random_rotation
 
 GRAVITY = 9.81
 

@@ -13,42 +13,25 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .calibrate import Log, check_temperature, load_recording, quiet
-from .errors import InputError, NotConvergedError
-from .io.readers import read_recording
-from .io.recording import Recording
-from .problem.static import Regressors
-from .models.rotation import rotation_to_quaternion
-from .problem.dynamic import (OMEGA, OMEGA_DOT, DynamicConfig, DynamicData, MotionSigmas, build_dynamic,
-                              build_joint)
-from .problem.spec import ProblemSpec
-from .problem.static import TriadConfig, recover_nominal_rotation
-from .segments import average_poses, detect_static
-from .solve import Solution, Solver
+from . import Log, quiet
+from .static import check_temperature, load_recording
+from ..errors import InputError, NotConvergedError
+from ..io.readers import read_recording
+from ..io.recording import Recording
+from ..problem.triads import Regressors
+from ..models.rotation import rotation_to_quaternion
+from ..problem.dynamic import OMEGA, OMEGA_DOT, DynamicConfig, DynamicData, MotionSigmas, build_dynamic, build_joint
+from ..spec import ProblemSpec
+from ..problem.triads import TriadConfig
+from ..problem.static import recover_nominal_rotation
+from ..prepare.poses import average_poses
+from ..prepare.detect import detect_static
+from ..problem.graph import Solution
+from ..solve.ipopt import Solver
+from ..prepare.masks import saturation_mask
 
 ACC_GROUPS = ("gain", "bias", "nonorthogonality", "misalignment")
 GYRO_GROUPS = ("gain", "bias", "misalignment")
-
-
-def saturation_mask(y: np.ndarray, level) -> np.ndarray:
-    """Samples (N,) with any axis at the clipping level.
-
-    ``auto``: an axis is clipped where it sits at its largest magnitude in the recording and that
-    value repeats (a plateau of at least 3 samples, but not every sample, which would be a constant
-    channel): an ADC's rail. ``none``: no masking. A number: |y| >= level.
-    """
-    if level == "none":
-        return np.zeros(len(y), bool)
-    if level != "auto":
-        return (np.abs(y) >= level).any(axis=1)
-    out = np.zeros(len(y), bool)
-    for i in range(3):
-        a = np.abs(y[:, i])
-        top = a.max()
-        at_top = a >= top * (1 - 1e-9)
-        if top > 0 and 3 <= at_top.sum() < len(a):
-            out |= at_top
-    return out
 
 
 def read_full(spec: ProblemSpec) -> Recording:
@@ -383,8 +366,8 @@ def _static_phase(spec: ProblemSpec, full: Recording, config: DynamicConfig, log
 
     Returns the static problem and the dynamic config with the mounting rotations recovered from
     those poses, so both phases share one set of triads."""
-    from .calibrate import static_config
-    from .problem.static import build_static
+    from .static import static_config
+    from ..problem.static import build_static
 
     t0, t1 = spec.data.static_range
     part = full.select((full.t >= t0) & (full.t <= t1))
@@ -404,7 +387,7 @@ def _static_phase(spec: ProblemSpec, full: Recording, config: DynamicConfig, log
 def _solve_bcd(spec: ProblemSpec, config: DynamicConfig, data: DynamicData, log: Log):
     """Carlsson 2017, Algorithm 1, on the same problem: calibrated readings, then alternate the
     per-sample ML motion and the closed-form positions (eq. 9). σ's from the same Fisher information."""
-    from .bcd import bcd_positions
+    from ..solve.bcd import bcd_positions
 
     problem = build_dynamic(config, data)
     lay = problem.lsq.layout

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io.results import write_atomic
+from ..io.atomic import write_atomic
 
 
 def write_details(path: Path, outcome) -> None:

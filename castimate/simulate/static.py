@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .io.recording import Recording
+from ..io.recording import Recording
 
 
 def icosahedron_face_normals() -> np.ndarray:

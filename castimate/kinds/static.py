@@ -8,26 +8,22 @@ files or plot.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Callable
 
 import numpy as np
 
-from .errors import InputError, NotConvergedError
-from .io.readers import read_recording
-from .io.recording import Recording
-from .problem.effects import BY_KEY
-from .problem.spec import ProblemSpec
-from .problem.static import (StaticConfig, StaticProblem, TriadConfig, build_static, initial_directions,
-                             recover_nominal_rotation, single_triad_config)
-from .segments import (Detection, PoseAverages, average_poses, detect_static, explicit_segments,
-                       pose_averages_from_means)
-from .solve import Solution, Solver
+from . import Log, quiet
+from ..errors import InputError, NotConvergedError
+from ..io.readers import read_recording
+from ..io.recording import Recording
+from ..problem.effects import BY_KEY
+from ..spec import ProblemSpec
+from ..problem.static import StaticConfig, StaticProblem, build_static, initial_directions, recover_nominal_rotation, single_triad_config
+from ..problem.triads import TriadConfig
+from ..prepare.detect import Detection, detect_static, explicit_segments
+from ..prepare.poses import PoseAverages, average_poses, pose_averages_from_means
+from ..problem.graph import Solution
+from ..solve.ipopt import Solver
 
-Log = Callable[[str], None]
-
-
-def quiet(msg: str) -> None:
-    """A Log that says nothing."""
 
 
 # ---------------------------------------------------------------------------------------------

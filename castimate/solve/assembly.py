@@ -1,179 +1,17 @@
-"""The one solve path shared by every kind.
-
-A problem is a weighted nonlinear least-squares problem with equality constraints::
-
-    minimise   1/2 |r(x, p)|^2      r: whitened residuals (factor blocks and priors)
-    subject to c(x, p) = 0          unit-norm constraints of quaternions and unit vectors
-               lbx <= x <= ubx
-
-The residual is a factor graph: each :class:`FactorBlock` is one small CasADi function of a few
-parameter groups and a few data, repeated over its instances. Its local residual, Jacobian,
-gradient and Hessian are CasADi functions compiled to C (:mod:`castimate.jit`) and evaluated over
-chunks of instances in place on numpy arrays (``Function.map`` through a ``FunctionBuffer``).
-IPOPT's objective, gradient and exact sparse Hessian of the Lagrangian are assembled from them in
-numpy (:class:`_Assembly`) and handed to ``nlpsol`` as CasADi callbacks that write into CasADi's
-own buffers: for blocks of calibration parameters through a constant sparse matrix; for blocks
-that touch per-sample motion states stage by stage (:class:`_Stages`). No expression graph grows
-with the data, and the data themselves stay in numpy: build time, time per iteration and memory
-grow linearly with the number of instances. (Differentiating one monolithic expression graph,
-CasADi's default, colours a Hessian with a dense border and grows about quadratically; mapping the
-local functions inside one MX graph grew CasADi's work arrays past 6 GB at 32 IMUs x 20 000
-samples.) ``Solver.symbolic_nlp`` gives the same problem as one graph, as a reference.
-
-Uncertainty comes from the Fisher information J^T J at the solution, assembled the same way from
-the local Jacobians and restricted to the tangent space of the constraints; its inverse's blocks
-for the calibration parameters are the marginals with the nuisance variables (the motion)
-eliminated stage-blocked.
+"""Numpy assembly of the objective, gradient and exact Hessian of the Lagrangian from compiled local
+functions (see castimate.solve for the overview).
 """
 
 from __future__ import annotations
 
-import contextlib
-import ctypes
-import functools
-import platform
-import sys
-import time
-from dataclasses import dataclass, field
 
 import casadi as ca
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.linalg import splu
 
-from .jit import compile_functions
-from .problem.parameters import Layout
-
-
-@dataclass(frozen=True)
-class SolverOptions:
-    """IPOPT settings with documented defaults.
-
-    Attributes
-    ----------
-    max_iter
-        Iteration limit; hitting it is a failure to converge.
-    tol
-        IPOPT's overall tolerance (on the scaled KKT error).
-    linear_solver
-        ``mumps`` (default, fastest in the wheel) or ``spral``.
-    print_level
-        IPOPT verbosity, 0-12.
-    hessian
-        ``exact`` (default): the exact Hessian of the Lagrangian. ``gauss_newton``: J^T J plus the
-        constraint curvature, more robust far from the solution.
-    identifiability_tol
-        Relative eigenvalue of the Fisher information below which a direction counts as not
-        determined by the data.
-    method
-        ``ipopt`` (default) or ``bcd``: Carlsson 2017's block coordinate descent (Algorithm 1), a
-        baseline for dynamic problems with gyroscopes where only positions are free.
-    jit
-        Compile the factors' local functions to C (:mod:`castimate.jit`, cached on disk); the
-        results are the same as on CasADi's virtual machine, about ten times faster.
-    """
-
-    method: str = "ipopt"
-    max_iter: int = 200
-    tol: float = 1e-8
-    linear_solver: str = "mumps"
-    print_level: int = 0
-    hessian: str = "exact"
-    identifiability_tol: float = 1e-10
-    jit: bool = True
-
-    def ipopt(self) -> dict:
-        return {
-            "ipopt.max_iter": self.max_iter,
-            "ipopt.tol": self.tol,
-            "ipopt.linear_solver": self.linear_solver,
-            "ipopt.print_level": self.print_level,
-            "ipopt.sb": "yes",
-            "ipopt.mumps_pivot_order": 5,  # METIS ordering
-            # no MUMPS scaling: x is scaled already, and on a 32 x 20 000 problem computing the
-            # scalings took a quarter of the factorisation time
-            "ipopt.mumps_scaling": 0,
-            "ipopt.mumps_permuting_scaling": 0,
-            "print_time": False,
-            "record_time": True,
-            "calc_lam_p": False,
-        }
-
-
-@dataclass
-class FactorBlock:
-    """One kind of residual term repeated over instances: a factor of the factor graph.
-
-    Attributes
-    ----------
-    name
-        For messages.
-    residual
-        ``(z, d) -> r``: whitened residual of one instance. ``z`` stacks the values of the
-        instance's inputs (physical units), ``d`` its data.
-    inputs
-        ``(group, rows)`` in the order they stack into ``z``. ``group`` is a group name or a tuple
-        of names whose rows are stacked (one plain group per triad, say); ``rows`` (N,) picks a row
-        per instance, ``None`` feeds the single row to every instance. One block per kind of factor
-        keeps CasADi's graph small: one ``map`` node instead of one per triad.
-    data
-        (N, nd) data of the instances; they enter the NLP as parameters, so one build serves any
-        number of data sets.
-    valid
-        (N,) instances whose residuals count (default all). The data of the others must make
-        their residuals exactly zero (a masked sample with σ = inf): they keep a block's
-        instances on a regular grid, which the solver exploits, and are left out of the reported
-        residuals and degrees of freedom.
-    """
-
-    name: str
-    residual: ca.Function
-    inputs: list[tuple[str | tuple[str, ...], np.ndarray | None]]
-    data: np.ndarray
-    valid: np.ndarray | None = None
-
-    @property
-    def n(self) -> int:
-        return self.data.shape[0]
-
-
-@dataclass
-class LeastSquaresProblem:
-    """A whitened least-squares problem: parameter groups plus factor blocks."""
-
-    layout: Layout
-    blocks: list[FactorBlock]
-
-    @property
-    def data(self) -> np.ndarray:
-        return np.concatenate([b.data.ravel() for b in self.blocks])
-
-    def pack(self, block_data: list[np.ndarray]) -> np.ndarray:
-        """Data vector from per-block (N, nd) arrays."""
-        return np.concatenate([np.asarray(d, float).ravel() for d in block_data])
-
-
-@dataclass
-class Solution:
-    """The outcome of one solve, in physical units."""
-
-    success: bool
-    message: str
-    iterations: int
-    wall_s: float
-    x: np.ndarray
-    values: dict[str, np.ndarray]
-    std: dict[str, np.ndarray]
-    cost: float
-    chi2: float
-    dof: int
-    residual: np.ndarray
-    covariance: np.ndarray = field(repr=False)  # of the free calibration components (Solver.theta), physical units
-    lam_g: np.ndarray = field(default=None, repr=False)  # constraint multipliers, to warm-start another solve  # of the free calibration components (Solver.theta), physical units
-
-    @property
-    def chi2_per_dof(self) -> float:
-        return self.chi2 / self.dof if self.dof > 0 else float("nan")
+from ..jit import compile_functions
+from ..problem.parameters import Layout
+from ..problem.graph import FactorBlock
 
 
 CHUNK = 4096  # instances per call of a local function: bounds the work arrays, not the results
@@ -183,7 +21,7 @@ class _Compiled:
     """Local functions of one factor, each evaluated over many instances at once.
 
     Each takes (z_cal, z_stage, d): the factor's inputs split into the components that are not
-    stage variables and those that are (:class:`_Stages`; none for an unstaged block), and its data.
+    stage variables and those that are (:class:`Stages`; none for an unstaged block), and its data.
     ``res`` gives the residual, ``jac`` its Jacobian, ``rgh`` the residual, the local gradient J^T r
     and the local Hessian entries ``pairs`` (exact, or J^T J for Gauss-Newton), ``gn`` the entries
     of J^T J (the information). Derivatives are
@@ -238,7 +76,7 @@ class _Compiled:
         run()
 
 
-class _Block:
+class Block:
     """A factor block bound to the layout: its index matrix into w and its compiled functions.
 
     ``w_idx`` (N, nz) gives each instance's inputs as positions in w; a staged block's columns
@@ -281,7 +119,7 @@ class _StagedBlock:
     Raises LookupError for a block without stage variables, _NotStaged for one that has them
     without this structure."""
 
-    def __init__(self, b: _Block, st: "_Stages"):
+    def __init__(self, b: Block, st: "Stages"):
         n = len(st.stage_of)
         W = b.w_idx
         free = W < n
@@ -320,7 +158,7 @@ class _StagedBlock:
         return Xs[(self.base + j0 + rel)[None, :] + np.arange(j1 - j0)[:, None], q[None, :]]
 
 
-class _Stages:
+class Stages:
     """The stage structure that makes assembly linear in the number of samples.
 
     Stages are the rows of the nuisance matrix groups with the most free variables (the motion
@@ -332,7 +170,7 @@ class _Stages:
     The upper-triangular Hessian's columns of stage s then have the same pattern for every s: rows
     of calibration variables, of stage s-1 and of stage s (the first stage lacks s-1), and the
     local entries of instance group j land on them through one small constant matrix per block
-    and stage offset (:class:`_Assembly`).
+    and stage offset (:class:`Assembly`).
     """
 
     def __init__(self, lay: Layout, groups):
@@ -352,7 +190,7 @@ class _Stages:
         self.scale = lay.x_scale[self.X[0]]
 
     @staticmethod
-    def find(lay: Layout, blocks: list[_Block]) -> tuple["_Stages | None", dict]:
+    def find(lay: Layout, blocks: list[Block]) -> tuple["Stages | None", dict]:
         """The stage structure and the staged blocks {block index: _StagedBlock} (reordering
         their inputs), or (None, {}) if the problem has none or a block touches stage variables
         otherwise."""
@@ -368,7 +206,7 @@ class _Stages:
             if g.rows < 2 or not (g.free == f).all() or g.unit_norm or np.isfinite(g.prior_std[g.free]).any() \
                     or not (g.scale[:, f] == g.scale[0, f]).all():
                 return None, {}
-        st = _Stages(lay, groups)
+        st = Stages(lay, groups)
         staged = {}
         for i, b in enumerate(blocks):
             try:
@@ -386,20 +224,20 @@ class _Stages:
         return st, staged
 
 
-class _Assembly:
+class Assembly:
     """Objective, gradient and Hessian of 1/2 |r|^2 (NLP order, scaled x) from the local functions
     of every instance, evaluated in numpy a chunk at a time.
 
     Calibration entries: a constant sparse matrix maps the local entries that land on calibration
     variables (every instance of an unstaged block; a staged block's, summed over its stage groups)
     and the priors' to their place, with the chain rule of the x scaling. Stage entries: the
-    columns of every stage have the same pattern (:class:`_Stages`), so the local entries of one
+    columns of every stage have the same pattern (:class:`Stages`), so the local entries of one
     stage group land on them through one small constant matrix per block and stage offset, applied
     to the whole chunk at once. Memory is the result plus one chunk of local values, and time is
     linear in the number of instances; no expression graph grows with the data.
     """
 
-    def __init__(self, blocks: list[_Block], layout: Layout, stages: _Stages | None, staged: dict,
+    def __init__(self, blocks: list[Block], layout: Layout, stages: Stages | None, staged: dict,
                  perm: np.ndarray, unit_rows: np.ndarray, n_constraints: int):
         self.blocks, self.layout, self.st, self.staged = blocks, layout, stages, staged
         self.n = n = layout.n_x
@@ -763,7 +601,7 @@ def _scatter(plan: dict, sb, v: np.ndarray, t0, t1, j0, j1, sources: np.ndarray,
         stage[d + j0: d + j1] += (S @ V.T).T
 
 
-class _Callback(ca.Callback):
+class Callback(ca.Callback):
     """A numpy function as a CasADi function, computed in place on CasADi's own buffers."""
 
     def __init__(self, name: str, sp_in: list[ca.Sparsity], sp_out: list[ca.Sparsity], fn, gradient=None):
@@ -802,376 +640,3 @@ class _Callback(ca.Callback):
         g = self._gradient(x, p)[1]
         return ca.Function(name, [x, p, out, adj], [ca.mtimes(g, adj), ca.MX(self._in[1].size1(), nadj)],
                            inames, onames, opts)
-
-
-class Solver:
-    """IPOPT on a :class:`LeastSquaresProblem`, built once and solved for any data or fixed values.
-
-    Public methods take and return x in the layout's order; inside the NLP the variables may be
-    ordered by stage (:class:`_Stages`)."""
-
-    def __init__(self, problem: LeastSquaresProblem, options: SolverOptions = SolverOptions()):
-        t0 = time.perf_counter()
-        self.problem, self.options = problem, options
-        lay = problem.layout
-        self.n_x = n = lay.n_x
-        self.blocks = [_Block(b, lay) for b in problem.blocks if b.n]
-        self._stages, self._staged = st, staged = _Stages.find(lay, self.blocks)
-        cache: dict = {}
-        off = 0
-        for i, b in enumerate(self.blocks):
-            b.compile(cache, staged[i].n_cal if i in staged else b.w_idx.shape[1], options.hessian, options.jit)
-            b.data_offset = off  # into the data vector
-            b.data = np.ascontiguousarray(b.block.data, float)  # the default data, not copied
-            off += b.block.n * b.f.nd
-        self._perm = st.perm if st else np.arange(n)  # NLP order -> layout index
-        keep = [np.repeat(np.ones(b.block.n, bool) if b.block.valid is None else b.block.valid, b.f.m)
-                for b in self.blocks]
-        self._prior = pi, _, _ = lay.priors()
-        # residuals of instances that are not valid (masked data) are exactly zero and not reported
-        self._keep = np.concatenate(keep + [np.ones(len(pi), bool)])
-        self.n_data_residuals = int(self._keep.sum()) - len(pi)
-        self.n_residuals = int(self._keep.sum())
-
-        # constraints |row|^2 = 1, rows grouped by width for vectorisation
-        self._unit = U = lay.unit_norm_rows()
-        self.n_constraints = U.shape[0]
-        x = ca.MX.sym("x", n)  # in NLP order
-        p = ca.MX.sym("p", lay.n_p)  # the fixed values; the data stay in numpy (_Assembly.data)
-        w = ca.vertcat((x[np.argsort(self._perm).tolist()] if st else x) * lay.x_scale, p)
-        c_parts, self._unit_order = [], []
-        for width in sorted({int((row >= 0).sum()) for row in U}):
-            sel = np.flatnonzero((U >= 0).sum(axis=1) == width)
-            idx = U[sel][:, :width]
-            c_parts.append(ca.sum1(ca.reshape(w[idx.ravel().tolist()], width, len(sel)) ** 2).T - 1)
-            self._unit_order.append(sel)
-        c = ca.vertcat(*c_parts) if c_parts else ca.MX(0, 1)
-        self._c_perm = np.concatenate(self._unit_order) if self._unit_order else np.zeros(0, int)
-
-        # objective, gradient and Hessian of the Lagrangian: numpy assembly of the local functions
-        A = self._assembly = _Assembly(self.blocks, lay, st, staged, self._perm, U[self._c_perm], self.n_constraints)
-        dense = ca.Sparsity.dense
-        io = [dense(n), dense(lay.n_p)]
-
-        def objective(a, o):
-            o[0][0] = A.objective(a[0], a[1], A.data)
-
-        def gradient(a, o):
-            f, g, _ = A.derivatives(a[0], a[1], A.data)
-            o[0][0], o[1][:] = f, g
-
-        def hessian(a, o):
-            _, _, H = A.derivatives(a[0], a[1], A.data)
-            A.hessian_values(H, a[2][0], out=o[0])
-            o[0][: A.n_cal_nz] += A.C_h @ a[3]
-
-        grad_cb = _Callback("gradient", io, [dense(1), dense(n)], gradient)
-        self._callbacks = cbs = [_Callback("objective", io, [dense(1)], objective, grad_cb), grad_cb,
-                                 _Callback("hessian", io + [dense(1), dense(self.n_constraints)], [A.sparsity], hessian)]
-        lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", self.n_constraints)
-        # the derivative functions are given, so that CasADi never differentiates the objective
-        grad_f = ca.Function("nlp_grad_f", [x, p], cbs[1](x, p), ["x", "p"], ["f", "grad"])
-        hess_lag = ca.Function("nlp_hess_l", [x, p, lam_f, lam_g], [cbs[2](x, p, lam_f, lam_g)],
-                               ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
-        jac_g = ca.Function("nlp_jac_g", [x, p], [c, ca.jacobian(c, x)], ["x", "p"], ["g", "jac_g_x"])
-        nlp = {"x": x, "p": p, "f": cbs[0](x, p), "g": c}
-        self.nlp = ca.nlpsol("castimate", "ipopt", nlp, {**options.ipopt(), "hess_lag": hess_lag, "grad_f": grad_f,
-                                                         "jac_g": jac_g})
-        nuisance = np.zeros(n, bool)
-        for g in lay.groups:
-            if g.nuisance:
-                nuisance[lay.x_indices(g.name)] = True
-        self.theta = np.flatnonzero(~nuisance)  # reported parameters: their covariance is computed
-        self.build_s = time.perf_counter() - t0
-
-    # -- numeric ---------------------------------------------------------------------------------
-    def _p(self, p_fixed, data) -> tuple[np.ndarray, np.ndarray | None]:
-        """The fixed values and the data vector (defaults: the layout's values and, as None, the
-        factor blocks' own data)."""
-        p_fixed = self.problem.layout.p0() if p_fixed is None else p_fixed
-        return np.asarray(p_fixed, float), None if data is None else np.asarray(data, float).ravel()
-
-    def _x(self, x) -> np.ndarray:
-        """Layout order -> NLP order."""
-        return np.asarray(x, float)[self._perm]
-
-    def residuals(self, x, p_fixed=None, data=None) -> np.ndarray:
-        """All whitened residuals (data of the valid instances, then priors) at scaled x."""
-        return self._assembly.residuals(self._x(x), *self._p(p_fixed, data))[self._keep]
-
-    def jacobians(self, x, p_fixed=None, data=None) -> tuple[sp.csr_matrix, sp.csr_matrix]:
-        """Sparse Jacobians w.r.t. scaled x of the whitened residuals (data, then priors) and of the
-        constraints (in the order of ``Layout.unit_norm_rows``)."""
-        pf, data = self._p(p_fixed, data)
-        n, scale = self.n_x, self.problem.layout.x_scale
-        rows, cols, vals = [], [], []
-        row0 = 0
-        for b, Jb in zip(self.blocks, self._assembly.local(self._x(x), pf, data, "jac")):
-            N, f = b.block.n, b.f
-            Jl = Jb.reshape(N, len(f.act), f.m)
-            t, a = np.nonzero(b.w_idx[:, f.act] < n)  # a indexes the active components
-            gi = b.w_idx[t, f.act[a]]
-            for i in range(f.m):
-                rows.append(row0 + t * f.m + i)
-                cols.append(gi)
-                vals.append(Jl[t, a, i] * scale[gi])
-            row0 += N * f.m
-        pi, _, ps = self._prior
-        rows.append(row0 + np.arange(len(pi))), cols.append(pi), vals.append(scale[pi] / ps)
-        J = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                          shape=(len(self._keep), n))[np.flatnonzero(self._keep)]
-        return J, self._constraint_jacobian(x, pf)
-
-    def _constraint_jacobian(self, x, pf) -> sp.csr_matrix:
-        lay, n = self.problem.layout, self.n_x
-        scale = lay.x_scale
-        w = np.concatenate([np.asarray(x, float) * scale, pf])
-        gr, gc, gv = [], [], []
-        for j, row in enumerate(self._unit):
-            f = row[(row >= 0) & (row < n)]
-            gr.append(np.full(len(f), j)), gc.append(f), gv.append(2 * w[f] * scale[f])
-        return sp.csr_matrix((np.concatenate(gv), (np.concatenate(gr), np.concatenate(gc))),
-                             shape=(self.n_constraints, n)) if gr else sp.csr_matrix((0, n))
-
-    def symbolic_nlp(self) -> dict:
-        """The same NLP as one CasADi expression graph, in the layout's order: {"x", "p", "f", "g"}
-        with g in the order of ``Layout.unit_norm_rows``. A reference for tests and for CasADi's own
-        solvers; unlike the solve path, it grows with the data. p = [fixed values; data]."""
-        lay = self.problem.layout
-        x, p = ca.MX.sym("x", self.n_x), ca.MX.sym("p", lay.n_p + self.problem.data.size)
-        w = ca.vertcat(x * lay.x_scale, p[: lay.n_p])
-        rs = []
-        for b in self.blocks:
-            N, fn = b.block.n, b.block.residual
-            W = np.empty_like(b.w_idx)
-            W[:, b.order] = b.w_idx  # the factor function's own input order
-            Z = ca.reshape(w[W.ravel().tolist()], W.shape[1], N)
-            d0 = lay.n_p + b.data_offset
-            rs.append(ca.vec(fn.map(N)(Z, ca.reshape(p[d0: d0 + b.f.nd * N], b.f.nd, N))))
-        pi, pm, ps = self._prior
-        r = ca.vertcat(*rs, (w[pi.tolist()] - pm) / ps)
-        g = [ca.sumsqr(w[row[row >= 0].tolist()]) - 1 for row in self._unit]
-        return {"x": x, "p": p, "f": 0.5 * ca.sumsqr(r), "g": ca.vertcat(*g) if g else ca.MX(0, 1)}
-
-    def information(self, x, p_fixed=None, data=None) -> sp.csc_matrix:
-        """The Fisher information J^T J of the whitened residuals (priors included) at scaled x, in
-        the layout's order and scaled units, assembled like the Hessian from the local Jacobians."""
-        A = self._assembly
-        U = A.csc(A.hessian_values(A.assemble(self._x(x), *self._p(p_fixed, data), information=True)))
-        F = (U + U.T - sp.diags(U.diagonal())).tocsr()
-        return F[A.ipos][:, A.ipos].tocsc()
-
-    def _eliminate(self, x, p_fixed=None, data=None, g: np.ndarray | None = None):
-        """Eliminate the nuisance block from the Gauss-Newton KKT system at x.
-
-        With F = J^T J split into reported parameters t and nuisance n, and N = [[F_nn, G_n^T],
-        [G_n, 0]] the sparse KKT matrix of the nuisance block with its own constraints, returns
-        S = F_tt - B N^-1 B^T, the constraints G_t on t, and, for a gradient g, the reduced
-        gradient g_t - B N^-1 g_n and g_n^T N^-1 g_n. Unit-norm constraints act on either block,
-        never both.
-        """
-        # in NLP order: the reported parameters are calibration variables, never stage variables
-        A = self._assembly
-        pf, d = self._p(p_fixed, data)
-        F_cc, F_cs, F_ss = A.information_blocks(A.assemble(self._x(x), pf, d, information=True))
-        G = self._constraint_jacobian(x, pf)[:, self._perm].tocsc()
-        g = None if g is None else np.asarray(g, float)[self._perm]
-        t = A.ipos[self.theta]
-        nc = np.setdiff1d(np.arange(A.c), t)
-        nu = np.concatenate([nc, np.arange(A.c, self.n_x)])
-        on_theta = np.asarray(abs(G[:, t]).sum(axis=1)).ravel() > 0
-        G_t, G_n = G[on_theta][:, t], G[~on_theta][:, nu]
-        S = F_cc[t][:, t].toarray()
-        g_t, g_nn = (None, 0.0) if g is None else (g[t].copy(), 0.0)
-        if len(nu):
-            F_nn = F_cc[nc][:, nc]
-            if F_ss is not None:
-                coupling = sp.csc_matrix(F_cs[nc])
-                F_nn = sp.bmat([[F_nn, coupling], [coupling.T, F_ss]], format="csc")
-            K = sp.bmat([[F_nn, G_n.T], [G_n, None]], format="csc") if G_n.shape[0] else F_nn.tocsc()
-            F_ct = F_cc[nc][:, t].toarray()
-            F_st = F_cs[t].T if F_ss is not None else np.zeros((0, len(t)))  # a view: (R m, n_t)
-
-            def B_T(Y):  # B^T Y with B = [F_nc,t; F_s,t; 0] (nuisance rows, constraint rows)
-                return F_ct.T @ Y[: len(nc)] + F_st.T @ Y[len(nc): len(nu)]
-
-            try:
-                lu = _factor(K)
-            except RuntimeError:  # exactly singular: some nuisance direction is undetermined
-                raise np.linalg.LinAlgError("the nuisance variables are not determined by the data") from None
-            # a few columns of B at a time: B itself is as large as the coupling F_cs
-            for k0 in range(0, len(t), 16):
-                k = slice(k0, min(len(t), k0 + 16))
-                # C order: SuperLU's solve is orders of magnitude slower on a Fortran-ordered right-hand side
-                rhs = np.zeros((K.shape[0], k.stop - k.start))
-                rhs[: len(nc)], rhs[len(nc): len(nu)] = F_ct[:, k], F_st[:, k]
-                S[:, k] -= B_T(lu.solve(rhs))
-            if g is not None:
-                y = lu.solve(np.concatenate([g[nu], np.zeros(G_n.shape[0])]))
-                g_t -= B_T(y)
-                g_nn = float(g[nu] @ y[: len(nu)])
-        return S, G_t.toarray(), g_t, g_nn
-
-    def marginal_information(self, x, p_fixed=None, data=None) -> tuple[np.ndarray, np.ndarray]:
-        """Fisher information of the reported parameters with the nuisance variables marginalised:
-        (S, G_theta), see :meth:`_eliminate`."""
-        S, G_t, _, _ = self._eliminate(x, p_fixed, data)
-        return S, G_t
-
-    def undetermined(self, x, p_fixed=None, data=None, top: int = 4) -> list[str]:
-        """Directions of the reported parameters the data cannot determine at x, each named by its
-        largest components."""
-        try:
-            S, G = self.marginal_information(x, p_fixed, data)
-        except np.linalg.LinAlgError as e:
-            return [str(e)]
-        U = np.linalg.qr(G.T, mode="complete")[0][:, G.shape[0]:] if G.shape[0] else np.eye(len(self.theta))
-        w, V = np.linalg.eigh(U.T @ S @ U)
-        tol = self.options.identifiability_tol * max(w.max(), 1e-300)
-        labels = self.problem.layout.x_labels
-        out = []
-        for k in np.flatnonzero(w <= tol):
-            d = U @ V[:, k]
-            idx = np.argsort(-np.abs(d))[:top]
-            idx = [i for i in idx if abs(d[i]) > 0.2 * abs(d[idx[0]])]
-            out.append(" + ".join(f"{d[i]:+.2f}*{labels[self.theta[i]]}" for i in idx))
-        return out
-
-    def covariance(self, x, p_fixed=None, data=None) -> np.ndarray:
-        """Covariance of the reported parameters ``theta`` (physical units), nuisance marginalised.
-
-        The top-left block of the inverse of [[S, G^T], [G, 0]] with S the marginal information:
-        U (U^T S U)^-1 U^T for a basis U of the constraints' tangent space.
-        """
-        S, G = self.marginal_information(x, p_fixed, data)
-        nt, c = S.shape[0], G.shape[0]
-        K = np.zeros((nt + c, nt + c))
-        K[:nt, :nt], K[nt:, :nt], K[:nt, nt:] = S, G, G.T
-        rhs = np.zeros((nt + c, nt))
-        rhs[:nt] = np.eye(nt)
-        try:
-            C = np.linalg.solve(K, rhs)[:nt]
-        except np.linalg.LinAlgError:
-            U = np.linalg.qr(G.T, mode="complete")[0][:, c:] if c else np.eye(nt)
-            C = U @ np.linalg.pinv(U.T @ S @ U, hermitian=True) @ U.T
-        s = self.problem.layout.x_scale[self.theta]
-        return C * np.outer(s, s)
-
-    def solve(self, x0=None, p_fixed=None, data=None, lam_g0=None) -> Solution:
-        """Solve from x0 (default: the groups' initial values); ``lam_g0`` warm-starts the constraint
-        multipliers, e.g. from a Gauss-Newton solution polished with the exact Hessian."""
-        with _heap_allocation():
-            return self._solve(x0, p_fixed, data, lam_g0)
-
-    def _solve(self, x0, p_fixed, data, lam_g0) -> Solution:
-        lay = self.problem.layout
-        x0 = lay.x0() if x0 is None else np.asarray(x0, float)
-        lbx, ubx = lay.bounds()
-        pf, data = self._p(p_fixed, data)
-        perm = self._perm
-        t0 = time.perf_counter()
-        self._assembly.data, self._assembly._cache = data, None
-        sol = self.nlp(x0=x0[perm], p=pf, lbx=lbx[perm], ubx=ubx[perm], lbg=0, ubg=0,
-                       lam_g0=0 if lam_g0 is None else lam_g0)
-        wall = time.perf_counter() - t0
-        st = self.nlp.stats()
-        x = np.empty(self.n_x)
-        x[perm] = np.asarray(sol["x"]).ravel()
-        values = lay.unpack(x, pf)
-        cov = self.covariance(x, pf, data)
-        sd = np.full(self.n_x, np.nan)
-        sd[self.theta] = np.sqrt(np.clip(np.diag(cov), 0, None))
-        std = {}
-        for g in lay.groups:
-            s = np.zeros(g.free.shape)
-            s[g.free] = sd[lay.x_indices(g.name)]
-            std[g.name] = g.shaped(s)
-        cost = float(sol["f"])
-        lam = np.asarray(sol["lam_g"]).ravel()
-        success, message = bool(st["success"]), str(st["return_status"])
-        if not success and message == "Search_Direction_Becomes_Too_Small":
-            # IPOPT stops here when round-off in stiff residuals (e.g. the process model's tiny σ_int)
-            # keeps the gradient above its tolerance. Converged if a further Newton step could not
-            # change χ² by more than 1e-6 (Newton decrement with the Gauss-Newton Hessian).
-            decrement = self.newton_decrement(x, lam, pf, data)
-            if decrement < 1e-6:
-                success, message = True, f"Converged to machine precision (Newton decrement {decrement:.1e})"
-        return Solution(
-            success=success,
-            message=message,
-            iterations=int(st["iter_count"]),
-            wall_s=wall,
-            x=x,
-            values=values,
-            std=std,
-            cost=cost,
-            chi2=2.0 * cost,
-            dof=int(self.n_residuals - (x.size - self.n_constraints)),
-            residual=self.residuals(x, pf, data)[: self.n_data_residuals],
-            covariance=cov,
-            lam_g=lam,
-        )
-
-    def newton_decrement(self, x, lam_g, p_fixed=None, data=None) -> float:
-        """g^T H^-1 g of the Lagrangian gradient with the Gauss-Newton Hessian on the constraints'
-        tangent space: twice the χ² decrease a full Newton step would still achieve. The nuisance
-        block is eliminated first (:meth:`_eliminate`), so this costs what the covariance costs."""
-        pf, d = self._p(p_fixed, data)
-        G = self._constraint_jacobian(x, pf)
-        lam = np.zeros(self.n_constraints)
-        lam[self._c_perm] = lam_g  # CasADi's multipliers follow its constraint order (grouped by width)
-        g = self._assembly.derivatives(self._x(x), pf, d)[1][self._assembly.ipos] + G.T @ lam
-        try:
-            S, G_t, g_t, g_nn = self._eliminate(x, p_fixed, data, g)
-        except np.linalg.LinAlgError:
-            return float("inf")
-        nt, c = S.shape[0], G_t.shape[0]
-        K = np.zeros((nt + c, nt + c))
-        K[:nt, :nt], K[nt:, :nt], K[:nt, nt:] = S, G_t, G_t.T
-        try:
-            step = np.linalg.solve(K, np.concatenate([g_t, np.zeros(c)]))[:nt]
-        except np.linalg.LinAlgError:
-            return float("inf")
-        return g_nn + float(g_t @ step)
-
-
-@contextlib.contextmanager
-def _heap_allocation():
-    """Serve large allocations from the heap and keep freed memory, for the duration of a solve
-    (glibc only; elsewhere nothing changes). MUMPS allocates and frees its factor storage at every
-    factorisation; by glibc's default every block above 32 MB is a fresh mmap whose pages the
-    kernel zeroes on first touch. On the joint MIMU4444 problem that was 10 s of system time in 24 s
-    of IPOPT search directions (31 s -> 19 s per solve), and 32 x 20 000 went from 16.9 s to 14.3 s
-    with the same peak memory. Afterwards glibc's defaults are restored and the heap is trimmed."""
-    libc = _glibc()
-    if libc is None:
-        yield
-        return
-    libc.mallopt(_M_MMAP_MAX, 0)
-    libc.mallopt(_M_TRIM_THRESHOLD, 2**31 - 1)
-    try:
-        yield
-    finally:
-        libc.mallopt(_M_MMAP_MAX, 65536)
-        libc.mallopt(_M_TRIM_THRESHOLD, 128 * 1024)
-        libc.malloc_trim(0)
-
-
-_M_TRIM_THRESHOLD, _M_MMAP_MAX = -1, -4  # glibc's mallopt parameters
-
-
-@functools.lru_cache(maxsize=1)
-def _glibc():
-    if sys.platform != "linux" or platform.libc_ver()[0] != "glibc":
-        return None
-    try:
-        return ctypes.CDLL("libc.so.6")
-    except OSError:
-        return None
-
-
-def _factor(K: sp.spmatrix):
-    """Sparse LU of a symmetric (KKT) matrix. The minimum-degree ordering on K + K^T keeps the
-    triangular solves fast: with SuperLU's default COLAMD, solving for 100 right-hand sides on a
-    block-diagonal motion block of 18 000 rows took 31 s instead of 0.17 s."""
-    return splu(sp.csc_matrix(K), permc_spec="MMD_AT_PLUS_A")

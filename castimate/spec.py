@@ -30,12 +30,13 @@ from typing import Any
 import numpy as np
 import yaml
 
-from ..errors import InputError
-from ..io.units import UnitConversion, parse_units
-from ..segments import DetectionOptions
-from ..solve import SolverOptions
-from .effects import DYNAMIC, STATIC, effects_for
-from .static import QUATERNION_MISALIGNMENT, SENSOR_GROUPS, GroupSetting
+from .errors import InputError
+from .validation import Check
+from .io.units import UnitConversion, parse_units
+from .prepare.options import DetectionOptions
+from .problem.graph import SolverOptions
+from .problem.effects import DYNAMIC, STATIC, effects_for
+from .problem.triads import QUATERNION_MISALIGNMENT, SENSOR_GROUPS, GroupSetting
 
 KINDS = ("static_array", "dynamic_array")
 FORMATS = ("csv", "npz", "mimu", "imutk")
@@ -138,68 +139,6 @@ class ProblemSpec:
     motion: MotionSpec | None = None
 
 
-class _Check:
-    """Small validators that raise one-line InputErrors naming the file and key path."""
-
-    def __init__(self, source: Path):
-        self.source = source
-
-    def fail(self, where: str, msg: str):
-        raise InputError(self.source, where, msg)
-
-    def mapping(self, v, where, allowed, required=()):
-        if v is None:
-            v = {}
-        if not isinstance(v, dict):
-            self.fail(where, f"expected a mapping, found {type(v).__name__} {v!r}")
-        for k in v:
-            if k not in allowed:
-                self.fail(f"{where}.{k}" if where else str(k),
-                          f"unknown key; expected one of {', '.join(sorted(map(str, allowed)))}")
-        for k in required:
-            if k not in v:
-                self.fail(where or "(top level)", f"missing required key {k!r}")
-        return v
-
-    def number(self, v, where, positive=False, integer=False):
-        ok = isinstance(v, (int, float)) and not isinstance(v, bool)
-        if not ok or not np.isfinite(v) or (positive and v <= 0) or (integer and int(v) != v):
-            kind = "a positive " if positive else "an " if integer else "a "
-            kind += "integer" if integer else "finite number"
-            self.fail(where, f"expected {kind}, found {v!r}")
-        return int(v) if integer else float(v)
-
-    def choice(self, v, where, options):
-        if v not in options:
-            self.fail(where, f"expected one of {', '.join(options)}, found {v!r}")
-        return v
-
-    def vector(self, v, where, n, kind=float):
-        """A scalar (broadcast) or a list of exactly n values."""
-        items = v if isinstance(v, list) else [v] * n
-        if len(items) != n:
-            self.fail(where, f"expected a scalar or a list of {n} values, found a list of {len(items)}")
-        out = []
-        for i, x in enumerate(items):
-            w = f"{where}[{i}]" if isinstance(v, list) else where
-            if kind is bool:
-                if not isinstance(x, bool):
-                    self.fail(w, f"expected true or false, found {x!r}")
-                out.append(x)
-            else:
-                out.append(self.number(x, w))
-        return tuple(out)
-
-    def matrix3(self, v, where):
-        a = np.asarray(v, dtype=object)
-        if a.shape != (3, 3):
-            self.fail(where, f"expected a 3x3 matrix (list of 3 rows), found shape {a.shape}")
-        m = np.array([[self.number(a[i, j], f"{where}[{i}][{j}]") for j in range(3)] for i in range(3)])
-        if not np.allclose(m @ m.T, np.eye(3), atol=1e-6) or np.linalg.det(m) < 0:
-            self.fail(where, "expected a proper rotation matrix (orthonormal, det +1)")
-        return m
-
-
 def load_problem(path: str | Path) -> ProblemSpec:
     """Read and validate a problem file."""
     path = Path(path)
@@ -217,7 +156,7 @@ def load_problem(path: str | Path) -> ProblemSpec:
 
 
 def parse_problem(raw: Any, path: Path, sha256: str = "") -> ProblemSpec:
-    c = _Check(path)
+    c = Check(path)
     top = c.mapping(raw, "", ("kind", "data", "array", "model", "noise", "motion", "solver"),
                     required=("kind", "data", "array"))
     kind = c.choice(top["kind"], "kind", KINDS)
@@ -241,7 +180,7 @@ def parse_problem(raw: Any, path: Path, sha256: str = "") -> ProblemSpec:
     return ProblemSpec(path, sha256, kind, data, array, model, noise, solver, motion)
 
 
-def _data(c: _Check, d, base: Path) -> DataSpec:
+def _data(c: Check, d, base: Path) -> DataSpec:
     d = c.mapping(d, "data", ("path", "format", "units", "gyro_path", "time_range", "segments", "detection",
                               "saturation", "static"), required=("path", "format"))
     fmt = c.choice(d["format"], "data.format", FORMATS)
@@ -302,7 +241,7 @@ def _data(c: _Check, d, base: Path) -> DataSpec:
     return DataSpec(p, fmt, acc_u, gyro_u, gp, tr, seg, det, saturation, static_range)
 
 
-def _array(c: _Check, a) -> ArraySpec:
+def _array(c: Check, a) -> ArraySpec:
     a = c.mapping(a, "array", ("reference", "triads"), required=("reference", "triads"))
     if not isinstance(a["triads"], list) or not a["triads"]:
         c.fail("array.triads", f"expected a non-empty list of triads, found {a['triads']!r}")
@@ -334,7 +273,7 @@ def _array(c: _Check, a) -> ArraySpec:
     return ArraySpec(ref, tuple(triads))
 
 
-def _group_setting(c: _Check, v, where, size, base: dict, neutral: tuple) -> dict:
+def _group_setting(c: Check, v, where, size, base: dict, neutral: tuple) -> dict:
     """Merge a group's YAML value into ``base`` (a dict of GroupSetting fields).
 
     ``neutral`` is the group's default initial value, checked against bounds given here.
@@ -373,7 +312,7 @@ def _group_setting(c: _Check, v, where, size, base: dict, neutral: tuple) -> dic
     return out
 
 
-def _model(c: _Check, m, array: ArraySpec, kind: str = "static_array", base: Path = Path("."),
+def _model(c: Check, m, array: ArraySpec, kind: str = "static_array", base: Path = Path("."),
            joint: bool = False) -> ModelSpec:
     """``joint``: a dynamic problem with a static phase, whose intrinsics default to free as in the static kind."""
     dynamic = kind == "dynamic_array"
@@ -458,7 +397,7 @@ def _model(c: _Check, m, array: ArraySpec, kind: str = "static_array", base: Pat
     return ModelSpec(gravity, direction, mis, settings, intrinsics, keys)
 
 
-def _motion(c: _Check, m) -> MotionSpec:
+def _motion(c: Check, m) -> MotionSpec:
     m = c.mapping(m, "motion", ("sigma_s", "sigma_omega_dot", "sigma_integration", "process_model"))
     kw = {k: c.number(v, f"motion.{k}", positive=True) for k, v in m.items() if k != "process_model"}
     if "process_model" in m:
@@ -468,7 +407,7 @@ def _motion(c: _Check, m) -> MotionSpec:
     return MotionSpec(**kw)
 
 
-def _noise(c: _Check, n, array: ArraySpec) -> NoiseSpec:
+def _noise(c: Check, n, array: ArraySpec) -> NoiseSpec:
     n = c.mapping(n, "noise", ("accelerometer", "gyroscope"))
     out = {}
     for sensor in ("accelerometer", "gyroscope"):
@@ -485,7 +424,7 @@ def _noise(c: _Check, n, array: ArraySpec) -> NoiseSpec:
     return NoiseSpec(**out)
 
 
-def _solver(c: _Check, s) -> SolverOptions:
+def _solver(c: Check, s) -> SolverOptions:
     names = tuple(f.name for f in fields(SolverOptions))
     s = c.mapping(s, "solver", names)
     kw = {}

@@ -33,14 +33,16 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy import stats
 
-from .calibrate import Log, StaticOutcome, calibrate_static, load_static, quiet, static_config
-from .calibrate_dynamic import DynamicOutcome, calibrate_dynamic, dynamic_config, load_dynamic, measurement_residuals
-from .errors import CastimateError, InputError, NotConvergedError
-from .problem.dynamic import build_dynamic
-from .problem.effects import BY_KEY, EFFECTS, Effect
-from .problem.spec import ProblemSpec
-from .problem.static import GroupSetting, Regressors, build_static, fixed_config, group_name
-from .solve import Solver
+from . import Log, quiet
+from .static import StaticOutcome, calibrate_static, load_static, static_config
+from .dynamic import DynamicOutcome, calibrate_dynamic, dynamic_config, load_dynamic, measurement_residuals
+from ..errors import CastimateError, InputError, NotConvergedError
+from ..problem.dynamic import build_dynamic
+from ..problem.effects import BY_KEY, EFFECTS, Effect
+from ..spec import ProblemSpec
+from ..problem.triads import GroupSetting, Regressors, fixed_config, group_name
+from ..problem.static import build_static
+from ..solve.ipopt import Solver
 
 
 #: Family-wise false-alarm level of one round of score tests (Bonferroni over the candidates).

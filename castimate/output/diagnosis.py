@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from ..diagnose import CrossValidation, Diagnosis, Model
+from ..kinds.diagnose import CrossValidation, Diagnosis, Model
 from ..problem.effects import BY_KEY
 from .results import dynamic_results, static_results
 

@@ -10,11 +10,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .problem.static import (ACCELEROMETER_GROUPS, DIRECTIONS, GroupSetting, StaticConfig, TriadConfig,
-                             build_static)
-from .segments import pose_averages_from_means
-from .simulate import pose_directions, random_static_truth, static_pose_means
-from .solve import Solver
+from ..problem.triads import ACCELEROMETER_GROUPS, GroupSetting, TriadConfig
+from ..problem.static import DIRECTIONS, StaticConfig, build_static
+from ..prepare.poses import pose_averages_from_means
+from .static import pose_directions, random_static_truth, static_pose_means
+from ..solve.ipopt import Solver
 
 
 @dataclass
@@ -103,9 +103,9 @@ def diagnose_trials(scenario: str | Path, effect: str | None, seeds, workdir: st
 
     import yaml
 
-    from .diagnose import diagnose
-    from .problem.spec import load_problem
-    from .scenario import simulate_scenario
+    from ..kinds.diagnose import diagnose
+    from ..spec import load_problem
+    from .scenarios import simulate_scenario
 
     raw = yaml.safe_load(Path(scenario).read_text())
     raw.pop("effects", None)

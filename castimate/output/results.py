@@ -1,0 +1,135 @@
+"""The results file (``results.json``, DESIGN.md contract) and atomic output.
+
+``T`` and ``b`` are such that raw ≈ T f + b in SI units with f in the body frame, so any tool can
+apply the calibration from this file alone: f = T^-1 (raw - b).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from ..io.results import FORMAT
+
+
+
+def _parameters(layout, sol, name: str) -> dict:
+    """The estimated or fixed parameter groups of one triad, with σ and units."""
+    params = {}
+    for g in layout.groups:
+        if g.nuisance or not g.name.startswith(name + "."):
+            continue
+        sensor, group = (g.name.split(".")[1:] + [""])[:2]
+        key = sensor if not group else group if sensor == "accelerometer" else f"{sensor}.{group}"
+        params[key] = {"value": sol.values[g.name], "std": sol.std[g.name], "free": g.shaped(g.free),
+                       "unit": g.unit, "components": list(g.components)}
+    return params
+
+
+def static_results(outcome) -> dict:
+    """The results.json document of a static calibration outcome."""
+    sol, cfg, spec = outcome.solution, outcome.config, outcome.spec
+    lay = outcome.problem.lsq.layout
+    triads = {}
+    for t in cfg.triads:
+        T, b = outcome.calibration[t.name]
+        entry: dict[str, Any] = {"accelerometer": {"T": T, "b": b}, "R_nominal": t.R_nominal}
+        if t.name in outcome.gyro_calibration:
+            Tg, bg = outcome.gyro_calibration[t.name]
+            entry["gyroscope"] = {"T": Tg, "b": bg}
+        if t.position is not None:
+            entry["position"] = t.position
+        entry["parameters"] = _parameters(lay, sol, t.name)
+        triads[t.name] = entry
+    rms = {n: np.sqrt((r ** 2).mean(axis=0)) for n, r in outcome.residual_acc.items()}
+    doc = {
+        "format": FORMAT,
+        "kind": spec.kind,
+        "problem": str(spec.path),
+        "problem_sha256": spec.sha256,
+        "status": {"success": sol.success, "message": sol.message, "iterations": sol.iterations,
+                   "wall_s": sol.wall_s, "build_s": outcome.solver.build_s},
+        "gravity": cfg.gravity,
+        "reference": cfg.reference,
+        "units": {"accelerometer": "m/s^2", "gyroscope": "rad/s", "angles": "rad",
+                  "data_accelerometer": spec.data.acc_units.to_dict() if spec.data.acc_units else None,
+                  "data_gyroscope": spec.data.gyro_units.to_dict() if spec.data.gyro_units else None,
+                  "data_format": spec.data.format},
+        "triads": triads,
+        "residuals": {"chi2": sol.chi2, "dof": sol.dof, "chi2_per_dof": sol.chi2_per_dof,
+                      "rms": rms, "rms_unit": "m/s^2",
+                      "gyro_rms": {n: np.sqrt((r ** 2).mean(axis=0)) for n, r in outcome.residual_gyro.items()}},
+        "poses": {"count": outcome.averages.n_poses, "samples": outcome.averages.n,
+                  "t_start": outcome.averages.t_start, "t_end": outcome.averages.t_end},
+    }
+    det = outcome.detection
+    if det is not None:
+        doc["detection"] = {
+            "threshold": det.threshold, "threshold_unit": "m/s^2", "gyro_threshold": det.gyro_threshold,
+            "method": det.threshold_method,
+            "rejected": [{"t_start": a, "t_end": b, "reason": r[2]} for (a, b), r in zip(det.rejected_times, det.rejected)],
+            "notes": [{"pose": i + 1, "note": n} for i, n in det.notes],
+        }
+    doc.update(_effects(outcome.problem.config))
+    doc["recording_notes"] = list(outcome.recording.notes)
+    if outcome.consistency is not None:
+        c = outcome.consistency
+        doc["consistency"] = {"before": float(c.before.mean()), "after": float(c.after.mean()),
+                              "ratio_db": c.ratio_db, "unit": "(m/s^2)^2",
+                              "definition": "mean over poses of the trace of the across-triad covariance "
+                                            "of the compensated specific force (Nilsson 2014, sec. IV)"}
+    return doc
+
+
+def dynamic_results(outcome) -> dict:
+    """The results.json document of a dynamic calibration outcome."""
+    from ..kinds.dynamic import orientation_quaternion
+
+    sol, cfg, spec = outcome.solution, outcome.config, outcome.spec
+    lay = outcome.problem.lsq.layout
+    triads = {}
+    for t in cfg.triads:
+        T, b = outcome.calibration[t.name]
+        r, r_std = outcome.positions[t.name]
+        entry = {"accelerometer": {"T": T, "b": b}, "R_nominal": t.R_nominal, "position": r, "position_std": r_std,
+                 # σ scaled by sqrt(χ²/dof) when the residual exceeds the noise model: the honest
+                 # figure on real data with unmodelled effects
+                 "position_std_scaled": r_std * np.sqrt(max(1.0, sol.chi2_per_dof)),
+                 "nominal_position": outcome.nominal[t.name], "orientation": orientation_quaternion(outcome, t.name)}
+        if t.name in outcome.gyro_calibration:
+            Tg, bg = outcome.gyro_calibration[t.name]
+            entry["gyroscope"] = {"T": Tg, "b": bg}
+        entry["parameters"] = _parameters(lay, sol, t.name)
+        triads[t.name] = entry
+    rms = lambda r: np.sqrt(np.nanmean(r ** 2, axis=0))  # noqa: E731
+    m = spec.motion
+    return {
+        "format": FORMAT,
+        "kind": spec.kind,
+        "problem": str(spec.path),
+        "problem_sha256": spec.sha256,
+        "status": {"success": sol.success, "message": sol.message, "iterations": sol.iterations,
+                   "wall_s": sol.wall_s, "build_s": outcome.solver.build_s, "attempts": outcome.attempts},
+        "reference": cfg.reference,
+        "units": {"accelerometer": "m/s^2", "gyroscope": "rad/s", "position": "m", "angles": "rad",
+                  "data_accelerometer": spec.data.acc_units.to_dict() if spec.data.acc_units else None,
+                  "data_gyroscope": spec.data.gyro_units.to_dict() if spec.data.gyro_units else None,
+                  "data_format": spec.data.format},
+        "samples": outcome.data.n,
+        "saturated_samples_masked": outcome.saturation,
+        "motion_model": {"process_model": m.process_model, "sigma_s": m.sigma_s, "sigma_omega_dot": m.sigma_omega_dot,
+                         "sigma_integration": m.sigma_integration},
+        "noise": {"accelerometer": outcome.data.acc_sigma, "gyroscope": outcome.data.gyro_sigma},
+        "triads": triads,
+        "residuals": {"chi2": sol.chi2, "dof": sol.dof, "chi2_per_dof": sol.chi2_per_dof,
+                      "rms": {n: rms(r) for n, r in outcome.residual_acc.items()}, "rms_unit": "m/s^2",
+                      "gyro_rms": {n: rms(r) for n, r in outcome.residual_gyro.items()}},
+        **_effects(outcome.problem.config),
+    }
+
+
+def _effects(config) -> dict:
+    """The included effects and how their regressors are formed, if any."""
+    return {"effects": {"included": list(config.effects), "regressors": config.regressors.to_dict()}} \
+        if config.effects else {}

@@ -1,0 +1,146 @@
+"""Uncertainty: Fisher information J^T J at the solution, elimination of the nuisance variables
+(pose directions, motion) by a sparse Schur complement, marginal covariance and undetermined
+directions.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.linalg import splu
+
+
+def factor(K: sp.spmatrix):
+    """Sparse LU of a symmetric (KKT) matrix. The minimum-degree ordering on K + K^T keeps the
+    triangular solves fast: with SuperLU's default COLAMD, solving for 100 right-hand sides on a
+    block-diagonal motion block of 18 000 rows took 31 s instead of 0.17 s."""
+    return splu(sp.csc_matrix(K), permc_spec="MMD_AT_PLUS_A")
+
+
+def information(solver, x, p_fixed=None, data=None) -> sp.csc_matrix:
+    """The Fisher information J^T J of the whitened residuals (priors included) at scaled x, in
+    the layout's order and scaled units, assembled like the Hessian from the local Jacobians."""
+    A = solver.assembly
+    U = A.csc(A.hessian_values(A.assemble(solver.nlp_order(x), *solver.fixed_and_data(p_fixed, data), information=True)))
+    F = (U + U.T - sp.diags(U.diagonal())).tocsr()
+    return F[A.ipos][:, A.ipos].tocsc()
+
+def eliminate(solver, x, p_fixed=None, data=None, g: np.ndarray | None = None):
+    """Eliminate the nuisance block from the Gauss-Newton KKT system at x.
+
+    With F = J^T J split into reported parameters t and nuisance n, and N = [[F_nn, G_n^T],
+    [G_n, 0]] the sparse KKT matrix of the nuisance block with its own constraints, returns
+    S = F_tt - B N^-1 B^T, the constraints G_t on t, and, for a gradient g, the reduced
+    gradient g_t - B N^-1 g_n and g_n^T N^-1 g_n. Unit-norm constraints act on either block,
+    never both.
+    """
+    # in NLP order: the reported parameters are calibration variables, never stage variables
+    A = solver.assembly
+    pf, d = solver.fixed_and_data(p_fixed, data)
+    F_cc, F_cs, F_ss = A.information_blocks(A.assemble(solver.nlp_order(x), pf, d, information=True))
+    G = solver.constraint_jacobian(x, pf)[:, solver.perm].tocsc()
+    g = None if g is None else np.asarray(g, float)[solver.perm]
+    t = A.ipos[solver.theta]
+    nc = np.setdiff1d(np.arange(A.c), t)
+    nu = np.concatenate([nc, np.arange(A.c, solver.n_x)])
+    on_theta = np.asarray(abs(G[:, t]).sum(axis=1)).ravel() > 0
+    G_t, G_n = G[on_theta][:, t], G[~on_theta][:, nu]
+    S = F_cc[t][:, t].toarray()
+    g_t, g_nn = (None, 0.0) if g is None else (g[t].copy(), 0.0)
+    if len(nu):
+        F_nn = F_cc[nc][:, nc]
+        if F_ss is not None:
+            coupling = sp.csc_matrix(F_cs[nc])
+            F_nn = sp.bmat([[F_nn, coupling], [coupling.T, F_ss]], format="csc")
+        K = sp.bmat([[F_nn, G_n.T], [G_n, None]], format="csc") if G_n.shape[0] else F_nn.tocsc()
+        F_ct = F_cc[nc][:, t].toarray()
+        F_st = F_cs[t].T if F_ss is not None else np.zeros((0, len(t)))  # a view: (R m, n_t)
+
+        def B_T(Y):  # B^T Y with B = [F_nc,t; F_s,t; 0] (nuisance rows, constraint rows)
+            return F_ct.T @ Y[: len(nc)] + F_st.T @ Y[len(nc): len(nu)]
+
+        try:
+            lu = factor(K)
+        except RuntimeError:  # exactly singular: some nuisance direction is undetermined
+            raise np.linalg.LinAlgError("the nuisance variables are not determined by the data") from None
+        # a few columns of B at a time: B itself is as large as the coupling F_cs
+        for k0 in range(0, len(t), 16):
+            k = slice(k0, min(len(t), k0 + 16))
+            # C order: SuperLU's solve is orders of magnitude slower on a Fortran-ordered right-hand side
+            rhs = np.zeros((K.shape[0], k.stop - k.start))
+            rhs[: len(nc)], rhs[len(nc): len(nu)] = F_ct[:, k], F_st[:, k]
+            S[:, k] -= B_T(lu.solve(rhs))
+        if g is not None:
+            y = lu.solve(np.concatenate([g[nu], np.zeros(G_n.shape[0])]))
+            g_t -= B_T(y)
+            g_nn = float(g[nu] @ y[: len(nu)])
+    return S, G_t.toarray(), g_t, g_nn
+
+def marginal_information(solver, x, p_fixed=None, data=None) -> tuple[np.ndarray, np.ndarray]:
+    """Fisher information of the reported parameters with the nuisance variables marginalised:
+    (S, G_theta), see :func:`eliminate`."""
+    S, G_t, _, _ = eliminate(solver, x, p_fixed, data)
+    return S, G_t
+
+def undetermined(solver, x, p_fixed=None, data=None, top: int = 4) -> list[str]:
+    """Directions of the reported parameters the data cannot determine at x, each named by its
+    largest components."""
+    try:
+        S, G = marginal_information(solver, x, p_fixed, data)
+    except np.linalg.LinAlgError as e:
+        return [str(e)]
+    U = np.linalg.qr(G.T, mode="complete")[0][:, G.shape[0]:] if G.shape[0] else np.eye(len(solver.theta))
+    w, V = np.linalg.eigh(U.T @ S @ U)
+    tol = solver.options.identifiability_tol * max(w.max(), 1e-300)
+    labels = solver.problem.layout.x_labels
+    out = []
+    for k in np.flatnonzero(w <= tol):
+        d = U @ V[:, k]
+        idx = np.argsort(-np.abs(d))[:top]
+        idx = [i for i in idx if abs(d[i]) > 0.2 * abs(d[idx[0]])]
+        out.append(" + ".join(f"{d[i]:+.2f}*{labels[solver.theta[i]]}" for i in idx))
+    return out
+
+def covariance(solver, x, p_fixed=None, data=None) -> np.ndarray:
+    """Covariance of the reported parameters ``theta`` (physical units), nuisance marginalised.
+
+    The top-left block of the inverse of [[S, G^T], [G, 0]] with S the marginal information:
+    U (U^T S U)^-1 U^T for a basis U of the constraints' tangent space.
+    """
+    S, G = marginal_information(solver, x, p_fixed, data)
+    nt, c = S.shape[0], G.shape[0]
+    K = np.zeros((nt + c, nt + c))
+    K[:nt, :nt], K[nt:, :nt], K[:nt, nt:] = S, G, G.T
+    rhs = np.zeros((nt + c, nt))
+    rhs[:nt] = np.eye(nt)
+    try:
+        C = np.linalg.solve(K, rhs)[:nt]
+    except np.linalg.LinAlgError:
+        U = np.linalg.qr(G.T, mode="complete")[0][:, c:] if c else np.eye(nt)
+        C = U @ np.linalg.pinv(U.T @ S @ U, hermitian=True) @ U.T
+    s = solver.problem.layout.x_scale[solver.theta]
+    return C * np.outer(s, s)
+
+def newton_decrement(solver, x, lam_g, p_fixed=None, data=None) -> float:
+    """g^T H^-1 g of the Lagrangian gradient with the Gauss-Newton Hessian on the constraints'
+    tangent space: twice the χ² decrease a full Newton step would still achieve. The nuisance
+    block is eliminated first (:func:`eliminate`), so this costs what the covariance costs."""
+    pf, d = solver.fixed_and_data(p_fixed, data)
+    G = solver.constraint_jacobian(x, pf)
+    lam = np.zeros(solver.n_constraints)
+    lam[solver.constraint_order] = lam_g  # CasADi's multipliers follow its constraint order (grouped by width)
+    g = solver.assembly.derivatives(solver.nlp_order(x), pf, d)[1][solver.assembly.ipos] + G.T @ lam
+    try:
+        S, G_t, g_t, g_nn = eliminate(solver, x, p_fixed, data, g)
+    except np.linalg.LinAlgError:
+        return float("inf")
+    nt, c = S.shape[0], G_t.shape[0]
+    K = np.zeros((nt + c, nt + c))
+    K[:nt, :nt], K[nt:, :nt], K[:nt, nt:] = S, G_t, G_t.T
+    try:
+        step = np.linalg.solve(K, np.concatenate([g_t, np.zeros(c)]))[:nt]
+    except np.linalg.LinAlgError:
+        return float("inf")
+    return g_nn + float(g_t @ step)
+
+
