@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from . import figures
-from .page import DEG, chi2_text, finite, format_pm, kv, matrix, page_head, parameter_tables
+from .page import DEG, fig_html, chi2_text, finite, format_pm, kv, matrix, page_head, parameter_tables
 REQUIRED_DYNAMIC_DETAILS = ("triads", "t", "omega", "omega_dot", "s", "residual_acc", "acc_sigma", "position",
                             "position_std", "nominal_position")
 
