@@ -2,7 +2,7 @@
 
 Static: for ``problems/sim_effects_8x24.yaml`` (8 IMUs with gyroscopes, 24 poses, temperature
 logged), RUNS sessions with no undeclared effect (false alarms: anything added), and RUNS sessions
-per library effect at its realistic magnitude (castimate.simulate.REALISTIC_EFFECTS), where the
+per library effect at its realistic magnitude (castimate.simulate.effects.REALISTIC_EFFECTS), where the
 effect counts as detected when it is added first. Dynamic: the same with DYNAMIC_RUNS sessions of
 ``problems/sim_dynamic_effects_8x600.yaml`` (8 IMUs × 600 samples) per dynamic-only effect
 (REALISTIC_DYNAMIC_EFFECTS) and without. Prints a table and writes
@@ -24,7 +24,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 from castimate.simulate.montecarlo import diagnose_trials
-from castimate.simulate.static import REALISTIC_DYNAMIC_EFFECTS, REALISTIC_EFFECTS
+from castimate.simulate.effects import REALISTIC_DYNAMIC_EFFECTS, REALISTIC_EFFECTS
 
 ROOT = Path(__file__).resolve().parents[1]
 dynamic_only = sys.argv[1:2] == ["--dynamic-only"]

@@ -1,28 +1,191 @@
-"""Apply a calibration from results.json to a recording: f = T^-1 (raw - b) per triad, after
-removing the included effects that act sample by sample (drifts, temperature terms, scale
-nonlinearity, g-sensitivity).
+"""A calibration from results.json, applied to data: the :class:`Calibration` object and the
+``castimate apply`` job.
 
-With effects (``results.json``'s ``effects``, problem.effects) the accelerometer model is
-y = (1 + Δk(ΔT)) ⊙ u + k2 ⊙ u² + b + Δb(τ) + Δb(ΔT) with u = T f, which is inverted per axis (the
-root of the quadratic next to the linear solution); the gyroscope model y = T_g ω + b_g + Δb(τ) +
-Δb(ΔT) + G Rbar f uses the compensated specific force of the same IMU. The geometric effects of
-dynamic problems (sensing-element offsets, time offsets) describe where and when a triad senses;
-they are not compensated sample by sample.
+Both evaluate the one compensation of :mod:`castimate.problem.compensation` (a CasADi function per
+triad built from the effect registry), so every included effect that acts sample by sample is
+undone (drifts, temperature terms, scale nonlinearity, g-sensitivity, gyroscope coupling, and any
+effect added to the registry later); nothing here names an effect. Effects that say where or when
+a triad senses (sensing-element offsets, time offsets) are not undone sample by sample.
+
+Example (a calibration with a temperature-dependent bias, written by hand)::
+
+    >>> import json, tempfile, numpy as np
+    >>> from castimate.calibration import Calibration
+    >>> doc = {"format": "castimate.results/1", "status": {"success": True},
+    ...        "effects": {"included": ["accelerometer.temperature_bias"],
+    ...                    "regressors": {"time": {"t_mid_s": 0.0, "t_half_s": 1.0},
+    ...                                   "temperature_mean_K": {"imu": 300.0}}},
+    ...        "triads": {"imu": {"accelerometer": {"T": np.diag([1.01, 0.99, 1.0]).tolist(), "b": [0.1, 0, 0]},
+    ...                           "R_nominal": np.eye(3).tolist(),
+    ...                           "parameters": {"temperature_bias": {"value": [0.01, 0, 0, 0, 0, 0]}}}}}
+    >>> path = tempfile.mkdtemp() + "/results.json"
+    >>> _ = open(path, "w").write(json.dumps(doc))
+    >>> cal = Calibration.read(path)
+    >>> f, omega = cal.apply(np.array([[1.11 + 0.02, 0.0, 9.81]]), temp=np.array([302.0]))
+    >>> np.round(f, 12).tolist(), omega
+    ([[1.0, 0.0, 9.81]], None)
 """
 
 from __future__ import annotations
 
+import hashlib
+from dataclasses import dataclass
 from pathlib import Path
 
+import casadi as ca
 import numpy as np
 
 from .errors import InputError
-from .io.readers import read_recording, write_csv, write_npz
+from .io.readers import input_units, read_recording, write_csv, write_npz
 from .io.recording import Recording
 from .io.results import read_results
-from .models.effects import polynomial
+from .io.units import UnitConversion, parse_units
+from .jit import compile_functions
+from .problem.compensation import TriadLayout, triad_compensation
+from .problem.effects import BY_KEY, TEMPERATURE, TIME, included
+from .problem.triads import Regressors
 
 EXTENSIONS = {".csv": "csv", ".npz": "npz", ".bin": "mimu"}
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """A calibration read from results.json: per triad, the parameters of its compensation.
+
+    Attributes
+    ----------
+    names
+        The triads, in the results' order.
+    layouts, params
+        Per triad, the :class:`~castimate.problem.compensation.TriadLayout` and its flat parameter
+        vector.
+    effects
+        Keys of the included effects (``accelerometer.bias_drift``, ...).
+    regressors
+        Time and temperature references of the effects.
+    input
+        The conversion to SI the reader applied to the calibration data (counts -> SI), per
+        quantity: what raw values from the device need before :meth:`apply`.
+    """
+
+    source: str
+    sha256: str
+    names: tuple[str, ...]
+    layouts: dict
+    params: dict
+    effects: tuple[str, ...]
+    regressors: Regressors
+    input: dict
+    data_format: str = "csv"
+
+    @staticmethod
+    def read(path: str | Path) -> "Calibration":
+        """Read a results.json (checked: format, successful status, T and b, effect parameters)."""
+        path = Path(path)
+        doc = read_results(path)
+        fx = doc.get("effects") or {}
+        keys = tuple(fx.get("included", ()))
+        for k in keys:
+            if k not in BY_KEY:
+                raise InputError(path, "effects.included", f"expected effects of {', '.join(BY_KEY)}, found {k!r}")
+        reg = fx.get("regressors", {})
+        time = reg.get("time", {})
+        regressors = Regressors(float(time.get("t_mid_s", 0.0)), float(time.get("t_half_s", 1.0)),
+                                dict(reg.get("temperature_mean_K", {})))
+        units = doc.get("units", {})
+        recorded = units.get("input")
+        if recorded is not None:
+            conv = {q: parse_units(recorded[q], path, f"units.input.{q}", q) for q in recorded}
+        else:  # results written before the reader's conversion was recorded: the format's
+            conv = input_units(units.get("data_format") or "csv", units.get("data_accelerometer"),
+                               units.get("data_gyroscope"))
+        layouts, params = {}, {}
+        for name, t in doc["triads"].items():
+            layout = TriadLayout(tuple(included(keys, "accelerometer")),
+                                 tuple(included(keys, "gyroscope")) if "gyroscope" in t else None)
+            layouts[name] = layout
+            params[name] = layout.pack(_values(path, name, t, layout))
+        return Calibration(str(path), hashlib.sha256(path.read_bytes()).hexdigest(), tuple(doc["triads"]), layouts,
+                           params, keys, regressors, conv, units.get("data_format") or "csv")
+
+    def function(self, name: str) -> ca.Function:
+        """The triad's compensation (:func:`castimate.problem.compensation.triad_compensation`)."""
+        return triad_compensation(self.layouts[name])
+
+    def needs(self, what: str) -> bool:
+        """Whether an included effect needs ``what`` (``time``, ``temperature``)."""
+        return any(what in BY_KEY[k].needs for k in self.effects)
+
+    def apply(self, acc, gyro=None, t=None, temp=None):
+        """(f, ω): body-frame specific force [m/s²] and angular rate [rad/s] from raw readings in SI.
+
+        ``acc``, ``gyro``: {triad: (N, 3)} (or one (N, 3) array for a one-triad calibration),
+        m/s² and rad/s, sensor frame; ``t`` (N,) [s], needed by time-dependent effects (drift);
+        ``temp``: {triad: (N,)} or one (N,) array for every triad [K], needed by temperature effects.
+        ω is None without gyroscope data; a triad without a calibrated gyroscope is left out of it.
+        """
+        single = not isinstance(acc, dict)
+        if single:
+            if len(self.names) != 1:
+                raise ValueError(f"expected a dict of readings per triad ({', '.join(self.names)}), found an array")
+            acc = {self.names[0]: acc}
+            gyro = None if gyro is None else {self.names[0]: gyro}
+        f, omega = {}, {}
+        for name, y in acc.items():
+            if name not in self.layouts:
+                raise ValueError(f"unknown triad {name!r}; the calibration has {', '.join(self.names)}")
+            y = np.atleast_2d(np.asarray(y, float))
+            n = len(y)
+            if self.needs(TIME) and t is None:
+                raise ValueError("the calibration has a time-dependent effect (drift): pass t")
+            tau = np.zeros(n) if t is None else (np.asarray(t, float) - self.regressors.t_mid) / self.regressors.t_half
+            T = temp.get(name) if isinstance(temp, dict) else temp
+            if self.needs(TEMPERATURE) and T is None:
+                raise ValueError(f"the calibration has a temperature effect: pass temp for triad {name!r}")
+            dT = np.zeros(n) if T is None else np.asarray(T, float) - self.regressors.temp_mean.get(name, 0.0)
+            g = None if gyro is None else gyro.get(name)
+            has_gyro = g is not None and self.layouts[name].gyroscope
+            g = np.zeros((n, 3)) if not has_gyro else np.atleast_2d(np.asarray(g, float))
+            fi, wi = _evaluate(self.function(name), y, g, tau, dT, self.params[name])
+            f[name] = fi
+            if has_gyro:
+                omega[name] = wi
+        if single:
+            return f[self.names[0]], (omega.get(self.names[0]) if gyro is not None else None)
+        return f, (omega if gyro is not None else None)
+
+
+def _values(path: Path, name: str, t: dict, layout: TriadLayout) -> dict:
+    """{slice name: value} of one triad from its results.json entry."""
+    params = t.get("parameters", {})
+    out = {"accelerometer.T": t["accelerometer"]["T"], "accelerometer.b": t["accelerometer"]["b"],
+           "R_nominal": t.get("R_nominal", np.eye(3).tolist())}
+    if layout.gyroscope:
+        out["gyroscope.T"], out["gyroscope.b"] = t["gyroscope"]["T"], t["gyroscope"]["b"]
+    for e in layout.acc_effects + (layout.gyro_effects or ()):
+        n = len(e.group.components)
+        entry = params.get(e.results_key)
+        v = np.zeros(n) if entry is None else np.asarray(entry.get("value"), float).ravel()
+        if v.shape != (n,) or not np.isfinite(v).all():
+            raise InputError(path, f"triads.{name}.parameters.{e.results_key}.value",
+                             f"expected {n} finite numbers, found {entry.get('value')!r}")
+        out[e.key] = v
+    return out
+
+
+_COMPILED: dict[str, ca.Function] = {}
+
+
+def _evaluate(fn: ca.Function, acc, gyro, tau, dT, p):
+    """The compensation on N samples at once (compiled once per structure when a C compiler exists)."""
+    if len(acc) > 1000:
+        key = fn.serialize()
+        if key not in _COMPILED:
+            compiled = compile_functions([fn])
+            _COMPILED[key] = compiled[0] if compiled else fn
+        fn = _COMPILED[key]
+    f, w = fn(acc.T, gyro.T, tau[None, :], dT[None, :], p)
+    return f.full().T, w.full().T
 
 
 def apply_calibration(results_path, data_path, out_path, fmt: str | None = None) -> int:
@@ -31,48 +194,28 @@ def apply_calibration(results_path, data_path, out_path, fmt: str | None = None)
     The data are read with the units recorded in the results (those of the problem the
     calibration came from), so raw counts are converted exactly as during calibration.
     """
-    doc = read_results(results_path)
+    cal = Calibration.read(results_path)
     data_path, out_path = Path(data_path), Path(out_path)
     fmt = fmt or EXTENSIONS.get(data_path.suffix.lower())
     if fmt is None:
         raise InputError(data_path, "", f"cannot tell the format from the extension {data_path.suffix!r}; pass --format")
     if out_path.suffix.lower() not in (".csv", ".npz"):
         raise InputError(out_path, "", f"expected an output file ending in .csv or .npz, found {out_path.suffix!r}")
-    units = doc.get("units", {})
+    units = read_results(results_path).get("units", {})
     rec = read_recording(fmt, data_path, acc_units=units.get("data_accelerometer"),
                          gyro_units=units.get("data_gyroscope"))
-    acc, gyro = {}, {}
-    effects = doc.get("effects") or {}
-    reg = effects.get("regressors", {})
-    tau = (rec.t - reg.get("time", {}).get("t_mid_s", 0.0)) / reg.get("time", {}).get("t_half_s", 1.0)
-    for name, t in doc["triads"].items():
+    for name in cal.names:
         if name not in rec.acc:
             raise InputError(data_path, f"{name}.ax", f"the calibration has triad {name!r}; the data has {', '.join(rec.acc)}")
-        params = t.get("parameters", {})
-
-        def coef(key, n):
-            return np.asarray(params[key]["value"], float) if key in params else np.zeros(n)
-
-        def poly(c, x):  # the model's bias polynomial at single samples (moments x, x²)
-            return polynomial(c, x[:, None], x[:, None] ** 2)
-
-        temp = any(k in params for k in ("temperature_bias", "temperature_gain", "gyroscope.temperature_bias"))
-        if temp and name not in rec.temp:
+        if cal.needs(TEMPERATURE) and name not in rec.temp:
             raise InputError(data_path, f"{name}.temp", "the calibration has a temperature effect; the data logs "
                                                         f"no temperature for triad {name!r}")
-        dT = rec.temp[name] - reg.get("temperature_mean_K", {}).get(name, 0.0) if temp else np.zeros(len(rec.t))
-        T, b = np.asarray(t["accelerometer"]["T"]), np.asarray(t["accelerometer"]["b"])
-        y = rec.acc[name] - b - poly(coef("bias_drift", 6), tau) - poly(coef("temperature_bias", 6), dT)
-        gain, k2 = 1 + poly(coef("temperature_gain", 6), dT), coef("scale_nonlinearity", 3)
-        u = 2 * y / (gain + np.sqrt(np.maximum(gain ** 2 + 4 * k2 * y, 0)))  # root of k2 u² + gain u = y near y/gain
-        acc[name] = np.linalg.solve(T, u.T).T
-        if "gyroscope" in t and name in rec.gyro:
-            Tg, bg = np.asarray(t["gyroscope"]["T"]), np.asarray(t["gyroscope"]["b"])
-            G = coef("gyroscope.g_sensitivity", 9).reshape(3, 3)
-            f_sensor = acc[name] @ np.asarray(t["R_nominal"], float).T
-            yg = rec.gyro[name] - bg - poly(coef("gyroscope.bias_drift", 6), tau) \
-                - poly(coef("gyroscope.temperature_bias", 6), dT) - f_sensor @ G.T
-            gyro[name] = np.linalg.solve(Tg, yg.T).T
-    out = Recording(t=rec.t, acc=acc, gyro=gyro, source=str(data_path))
+    gyro = {n: rec.gyro[n] for n in cal.names if n in rec.gyro}
+    f, omega = cal.apply({n: rec.acc[n] for n in cal.names}, gyro, rec.t,
+                         {n: rec.temp[n] for n in cal.names if n in rec.temp})
+    out = Recording(t=rec.t, acc=f, gyro=omega or {}, source=str(data_path))
     (write_npz if out_path.suffix.lower() == ".npz" else write_csv)(out_path, out)
     return len(out)
+
+
+__all__ = ["Calibration", "apply_calibration", "UnitConversion"]

@@ -77,7 +77,7 @@ def diagnose_table(names: list[str]) -> str:
 
 
 def diagnose_all() -> None:
-    from castimate.simulate.static import REALISTIC_DYNAMIC_EFFECTS, REALISTIC_EFFECTS
+    from castimate.simulate.effects import REALISTIC_DYNAMIC_EFFECTS, REALISTIC_EFFECTS
 
     real = [f"mimu4444_exp{i}_static" for i in range(1, 6)] + ["xsens_imutk"]
     for name in real:

@@ -14,7 +14,7 @@ from castimate.simulate.montecarlo import diagnose_trials
 from castimate.problem.effects import BY_KEY
 from castimate.spec import load_problem
 from castimate.simulate.scenarios import simulate_scenario
-from castimate.simulate.static import REALISTIC_EFFECTS
+from castimate.simulate.effects import REALISTIC_EFFECTS
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIO = ROOT / "problems" / "sim_effects_8x24.yaml"

@@ -10,7 +10,8 @@ from castimate.problem.effects import EFFECTS, STATIC, effects_for
 from castimate.problem.triads import GroupSetting, Regressors, TriadConfig, group_name
 from castimate.problem.static import StaticConfig, build_static
 from castimate.prepare.poses import pose_averages_from_means
-from castimate.simulate.static import REALISTIC_EFFECTS, pose_directions, random_effects, random_static_truth, static_pose_means
+from castimate.simulate.effects import REALISTIC_EFFECTS, random_effects
+from castimate.simulate.static import pose_directions, random_static_truth, static_pose_means
 from castimate.solve.ipopt import Solver
 
 
@@ -74,7 +75,7 @@ def effect_case(sigma=0.02, gsigma=0.003, seed=3, M=4, P=24, effects=tuple(STATI
     rng = np.random.default_rng(seed)
     names = [f"imu{i + 1}" for i in range(M)]
     truth = random_static_truth(names, "imu1", rng, gyroscope=True)
-    random_effects(truth, {k: scale * REALISTIC_EFFECTS[k] for k in effects}, rng)
+    random_effects(truth.values, truth.names, {k: scale * REALISTIC_EFFECTS[k] for k in effects}, rng)
     U = pose_directions(P, rng)
     t = np.arange(P) * 15.0
     tau = 2 * t / t[-1] - 1
@@ -230,7 +231,7 @@ def test_apply_inverts_the_effect_model(tmp_path):
     from castimate.cli import main
     from castimate.io.readers import read_csv
     from castimate.simulate.scenarios import simulate_scenario
-    from castimate.simulate.static import StaticTruth, effect_terms
+    from castimate.simulate.effects import sample_terms
 
     root = __import__("pathlib").Path(__file__).resolve().parents[1]
     raw = yaml.safe_load((root / "problems" / "sim_effects_8x24.yaml").read_text())
@@ -252,16 +253,15 @@ def test_apply_inverts_the_effect_model(tmp_path):
     reg = doc["effects"]["regressors"]
     tau = (rec.t - reg["time"]["t_mid_s"]) / reg["time"]["t_half_s"]
     for name, t in doc["triads"].items():
-        est = StaticTruth([name], "imu1", 9.81, {name: np.asarray(t["R_nominal"])},
-                          {f"{name}.{'' if k.startswith('gyroscope') else 'accelerometer.'}{k}": np.asarray(v["value"])
-                           for k, v in t["parameters"].items()})
+        est = {f"{name}.{'' if k.startswith('gyroscope') else 'accelerometer.'}{k}": np.asarray(v["value"])
+               for k, v in t["parameters"].items()}
         dT = rec.temp[name] - reg["temperature_mean_K"][name]
         u = cal.acc[name] @ np.asarray(t["accelerometer"]["T"]).T
-        y = u + np.asarray(t["accelerometer"]["b"]) + effect_terms(est, name, "accelerometer", u, u, tau, dT)
+        y = u + np.asarray(t["accelerometer"]["b"]) + sample_terms(est, name, "accelerometer", u, u, tau, dT)
         np.testing.assert_allclose(y, rec.acc[name], atol=1e-9)
         f = cal.acc[name] @ np.asarray(t["R_nominal"]).T
         yg = cal.gyro[name] @ np.asarray(t["gyroscope"]["T"]).T + np.asarray(t["gyroscope"]["b"]) \
-            + effect_terms(est, name, "gyroscope", np.zeros_like(f), f, tau, dT)
+            + sample_terms(est, name, "gyroscope", np.zeros_like(f), f, tau, dT)
         np.testing.assert_allclose(yg, rec.gyro[name], atol=1e-12)
         # and the effects matter: the specific force has the gravity norm only with them
         assert np.abs(np.linalg.norm(cal.acc[name], axis=1) - 9.81).max() < 5e-3

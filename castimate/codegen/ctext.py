@@ -27,13 +27,14 @@ def c_double(x: float) -> str:
     return s if ("e" in s or "." in s or "inf" in s or "nan" in s) else s + ".0"
 
 
-def casadi_sources(functions, c_name: str) -> tuple[str, str]:
-    """CasADi's generated C file and header of ``functions`` (named ``c_name`` and its .h), as text."""
+def casadi_sources(functions, c_name: str, **options) -> tuple[str, str]:
+    """CasADi's generated C file and header of ``functions`` (named ``c_name`` and its .h), as text;
+    ``options`` override :data:`CG_OPTIONS` (e.g. ``casadi_real="float"`` with its own ``prefix``)."""
     import casadi as ca
 
     h_name = c_name[:-2] + ".h"
     with tempfile.TemporaryDirectory(prefix="castimate-codegen-") as tmp:
-        cg = ca.CodeGenerator(c_name, CG_OPTIONS)
+        cg = ca.CodeGenerator(c_name, {**CG_OPTIONS, **options})
         for f in functions:
             cg.add(f)
         cg.generate(tmp + "/")

@@ -454,4 +454,24 @@ def read_recording(
     raise InputError(path, "format", f"expected one of {', '.join(FORMATS)}, found {fmt!r}")
 
 
-__all__ = ["FORMATS", "read_csv", "read_npz", "write_csv", "write_npz", "read_recording"]
+def input_units(fmt: str, acc_units: UnitSpec | None = None, gyro_units: UnitSpec | None = None,
+                temp_units: UnitSpec | None = None) -> dict[str, UnitConversion]:
+    """The conversions to SI that :func:`read_recording` applies to ``fmt`` data with these
+    declarations (``None``: the format's default), per quantity: what a device that feeds its raw
+    values to a calibration must apply too."""
+    if fmt == "mimu":
+        from castimate.io.mimu import DEFAULT_ACC_UNITS, DEFAULT_GYRO_UNITS
+
+        defaults = (DEFAULT_ACC_UNITS, DEFAULT_GYRO_UNITS)
+    elif fmt == "imutk":
+        from castimate.io.imutk import XSENS_ACC_UNITS, XSENS_GYRO_UNITS
+
+        defaults = (XSENS_ACC_UNITS, XSENS_GYRO_UNITS)
+    else:
+        defaults = ("m/s^2", "rad/s")
+    return {q: _units(spec, default, fmt, f"{q}_units", q)
+            for q, spec, default in (("accelerometer", acc_units, defaults[0]), ("gyroscope", gyro_units, defaults[1]),
+                                     ("temperature", temp_units, "K"))}
+
+
+__all__ = ["FORMATS", "input_units", "read_csv", "read_npz", "write_csv", "write_npz", "read_recording"]

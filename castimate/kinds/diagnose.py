@@ -38,7 +38,7 @@ from .static import StaticOutcome, calibrate_static, load_static, static_config
 from .dynamic import DynamicOutcome, calibrate_dynamic, dynamic_config, load_dynamic, measurement_residuals
 from ..errors import CastimateError, InputError, NotConvergedError
 from ..problem.dynamic import build_dynamic
-from ..problem.effects import BY_KEY, EFFECTS, Effect
+from ..problem.effects import BY_KEY, EFFECTS, TEMPERATURE, Effect
 from ..spec import ProblemSpec
 from ..problem.triads import GroupSetting, Regressors, fixed_config, group_name
 from ..problem.static import build_static
@@ -337,7 +337,7 @@ def candidates(session: Session, model: Model) -> list[Effect]:
             continue
         if e.sensor == "gyroscope" and not model.outcome.problem.gyro_triads:
             continue
-        if e.needs == "temperature" and not session.has_temperature():
+        if TEMPERATURE in e.needs and not session.has_temperature():
             continue
         out.append(e)
     return out

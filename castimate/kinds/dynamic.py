@@ -18,6 +18,7 @@ from .static import check_temperature, load_recording
 from ..errors import InputError, NotConvergedError
 from ..io.readers import read_recording
 from ..io.recording import Recording
+from ..problem.compensation import linear_inverse
 from ..problem.triads import Regressors
 from ..models.rotation import rotation_to_quaternion
 from ..problem.dynamic import OMEGA, OMEGA_DOT, DynamicConfig, DynamicData, MotionSigmas, build_dynamic, build_joint
@@ -398,8 +399,8 @@ def _solve_bcd(spec: ProblemSpec, config: DynamicConfig, data: DynamicData, log:
     start = lay.unpack(lay.x0(), lay.p0())
     acc_cal = problem.calibration(start)
     gyro_cal = problem.gyro_calibration(start)
-    acc = np.stack([np.linalg.solve(acc_cal[n][0], (data.acc[n] - acc_cal[n][1]).T).T for n in config.names])
-    gyro = np.stack([np.linalg.solve(gyro_cal[n][0], (data.gyro[n] - gyro_cal[n][1]).T).T for n in problem.gyro_triads])
+    acc = np.stack([linear_inverse(*acc_cal[n], data.acc[n]) for n in config.names])
+    gyro = np.stack([linear_inverse(*gyro_cal[n], data.gyro[n]) for n in problem.gyro_triads])
     mask = np.stack([data.valid("gyro", n) for n in problem.gyro_triads])
     r0 = np.stack([start[f"{n}.position"] for n in config.names])
     ref = config.names.index(config.reference)

@@ -15,7 +15,8 @@ from . import Log, quiet
 from ..errors import InputError, NotConvergedError
 from ..io.readers import read_recording
 from ..io.recording import Recording
-from ..problem.effects import BY_KEY
+from ..problem.compensation import linear_inverse
+from ..problem.effects import BY_KEY, TEMPERATURE
 from ..spec import ProblemSpec
 from ..problem.static import StaticConfig, StaticProblem, build_static, initial_directions, recover_nominal_rotation, single_triad_config
 from ..problem.triads import TriadConfig
@@ -81,7 +82,7 @@ def pose_averages(spec: ProblemSpec, rec: Recording) -> tuple[PoseAverages, Dete
 def check_temperature(spec: ProblemSpec, logged: set[str]) -> None:
     """Refuse an included temperature effect on a triad whose temperature the data do not log."""
     for e in (BY_KEY[k] for k in spec.model.effects):
-        missing = [n for n in spec.array.names if e.needs == "temperature" and n not in logged
+        missing = [n for n in spec.array.names if TEMPERATURE in e.needs and n not in logged
                    and (n, e.sensor, e.name) in spec.model.settings]
         if missing:
             raise InputError(spec.path, f"model.{e.sensor}.{e.name}",
@@ -152,14 +153,9 @@ def check_identifiable(spec_path, problem: StaticProblem, solver: Solver, avg: P
 # Consistency (Nilsson 2014, sec. IV)
 # ---------------------------------------------------------------------------------------------
 
-def compensate(T: np.ndarray, b: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Body-frame input from raw readings: f = T^-1 (y - b), rows are samples."""
-    return np.linalg.solve(T, (y - b).T).T
-
-
 def array_spread(calibration: dict[str, tuple[np.ndarray, np.ndarray]], acc_mean: dict[str, np.ndarray]) -> np.ndarray:
     """Per pose, the trace of the across-triad sample covariance of the compensated forces, (m/s^2)^2."""
-    u = np.stack([compensate(*calibration[n], acc_mean[n]) for n in calibration])  # (M, P, 3)
+    u = np.stack([linear_inverse(*calibration[n], acc_mean[n]) for n in calibration])  # (M, P, 3)
     d = u - u.mean(axis=0)
     return (d ** 2).sum(axis=(0, 2)) / (u.shape[0] - 1)
 
@@ -216,7 +212,7 @@ class StaticOutcome:
         out = {}
         for n, (T, b) in self.calibration.items():
             y = self.averages.acc_mean[n]
-            out[n] = (np.abs(np.linalg.norm(y, axis=1) - g), np.abs(np.linalg.norm(compensate(T, b, y), axis=1) - g))
+            out[n] = (np.abs(np.linalg.norm(y, axis=1) - g), np.abs(np.linalg.norm(linear_inverse(T, b, y), axis=1) - g))
         return out
 
 

@@ -10,8 +10,19 @@ from typing import Any
 
 import numpy as np
 
+from ..io.readers import input_units
 from ..io.results import FORMAT
 
+
+def _units(spec, **extra) -> dict:
+    """The units section: SI outputs, the data's declared units, and ``input``: the conversion the
+    reader applied to the data (counts -> SI), which a device feeding raw values must apply too."""
+    d = spec.data
+    return {"accelerometer": "m/s^2", "gyroscope": "rad/s", **extra, "angles": "rad",
+            "data_accelerometer": d.acc_units.to_dict() if d.acc_units else None,
+            "data_gyroscope": d.gyro_units.to_dict() if d.gyro_units else None,
+            "data_format": d.format,
+            "input": {q: c.to_dict() for q, c in input_units(d.format, d.acc_units, d.gyro_units).items()}}
 
 
 def _parameters(layout, sol, name: str) -> dict:
@@ -52,10 +63,7 @@ def static_results(outcome) -> dict:
                    "wall_s": sol.wall_s, "build_s": outcome.solver.build_s},
         "gravity": cfg.gravity,
         "reference": cfg.reference,
-        "units": {"accelerometer": "m/s^2", "gyroscope": "rad/s", "angles": "rad",
-                  "data_accelerometer": spec.data.acc_units.to_dict() if spec.data.acc_units else None,
-                  "data_gyroscope": spec.data.gyro_units.to_dict() if spec.data.gyro_units else None,
-                  "data_format": spec.data.format},
+        "units": _units(spec),
         "triads": triads,
         "residuals": {"chi2": sol.chi2, "dof": sol.dof, "chi2_per_dof": sol.chi2_per_dof,
                       "rms": rms, "rms_unit": "m/s^2",
@@ -112,10 +120,7 @@ def dynamic_results(outcome) -> dict:
         "status": {"success": sol.success, "message": sol.message, "iterations": sol.iterations,
                    "wall_s": sol.wall_s, "build_s": outcome.solver.build_s, "attempts": outcome.attempts},
         "reference": cfg.reference,
-        "units": {"accelerometer": "m/s^2", "gyroscope": "rad/s", "position": "m", "angles": "rad",
-                  "data_accelerometer": spec.data.acc_units.to_dict() if spec.data.acc_units else None,
-                  "data_gyroscope": spec.data.gyro_units.to_dict() if spec.data.gyro_units else None,
-                  "data_format": spec.data.format},
+        "units": _units(spec, position="m"),
         "samples": outcome.data.n,
         "saturated_samples_masked": outcome.saturation,
         "motion_model": {"process_model": m.process_model, "sigma_s": m.sigma_s, "sigma_omega_dot": m.sigma_omega_dot,

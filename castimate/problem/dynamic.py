@@ -23,6 +23,7 @@ from ..models import triad as tri
 from .graph import FactorBlock, LeastSquaresProblem
 from .parameters import Group, Layout
 from . import effects as fxs
+from .compensation import linear_inverse
 from .parameters import XYZ
 from .triads import (ACC_FACTOR_GROUPS, GYRO_FACTOR_GROUPS, N_REGRESSORS, GroupSetting, Regressors, TriadConfig,
                      accelerometer_matrix, effect_context, effect_params, group_name, gyroscope_matrix, triad_groups)
@@ -93,11 +94,6 @@ class DynamicData:
         return np.ones(self.n, bool) if m is None else m
 
 
-def _needs_neighbours(effects: list[fxs.Effect]) -> bool:
-    """A time offset needs the reading's time derivative: the motion of the neighbouring samples."""
-    return any(e.name == "time_offset" for e in effects)
-
-
 def accelerometer_sample_factor(config: DynamicConfig) -> ca.Function:
     """Whitened residual of one accelerometer triad at one sample (DESIGN.md triad model with the
     rigid-body specific force, Carlsson 2017 eq. 1), plus the included effects' terms.
@@ -114,9 +110,9 @@ def accelerometer_sample_factor(config: DynamicConfig) -> ca.Function:
     c = effect_params(effects)
     T = Tfn(k, l, m, ca.reshape(R, 3, 3))
     f = mot.specific_force_at(s, w, wd, r)
-    z = [k, l, m, b, r, w, wd, s, *c]
+    z = [k, l, m, b, r, w, wd, s, *c]  # ω and ω̇ (the needs MOTION) are always there
     u_dot = None
-    if _needs_neighbours(effects):
+    if fxs.need(effects, fxs.NEIGHBOURS):
         prev, nxt = [ca.SX.sym(n, 9) for n in ("motion_prev", "motion_next")]
         z += [prev, nxt]
         f_prev = mot.specific_force_at(prev[6:9], prev[0:3], prev[3:6], r)
@@ -141,13 +137,13 @@ def gyroscope_sample_factor(config: DynamicConfig) -> ca.Function:
     Rbar = ca.reshape(R, 3, 3)
     T = gyroscope_matrix()(k, m, Rbar)
     z, f, u_dot = [k, m, b, w], None, None
-    if any(e.name == "g_sensitivity" for e in effects):
+    if fxs.need(effects, fxs.SPECIFIC_FORCE):
         r, wd, s = ca.SX.sym("r", 3), ca.SX.sym("omega_dot", 3), ca.SX.sym("s", 3)
         z += [r, wd, s]
         f = ca.mtimes(Rbar, mot.specific_force_at(s, w, wd, r))
     c = effect_params(effects)
     z += c
-    if _needs_neighbours(effects):
+    if fxs.need(effects, fxs.NEIGHBOURS):
         prev, nxt = ca.SX.sym("omega_prev", 3), ca.SX.sym("omega_next", 3)
         z += [prev, nxt]
         u_dot = ca.mtimes(T, nxt - prev) * inv_span
@@ -268,7 +264,7 @@ def initial_motion(config: DynamicConfig, data: DynamicData, gyro_triads: list[s
                                                    [1, 0, 0, 0] if config.misalignment == "rotation" else [0, 0, 0],
                                                    ref.R_nominal)
     b = np.asarray(init(ref, "accelerometer", "bias", [0, 0, 0]), float)
-    s = np.linalg.solve(np.asarray(T), (data.acc[ref.name] - b).T).T
+    s = linear_inverse(T, b, data.acc[ref.name])
     omega = np.zeros((data.n, 3))
     if gyro_triads:
         est, weight = np.zeros((data.n, 3)), np.zeros(data.n)
@@ -276,7 +272,7 @@ def initial_motion(config: DynamicConfig, data: DynamicData, gyro_triads: list[s
             t = next(t for t in config.triads if t.name == name)
             Tg = gyroscope_matrix()(init(t, "gyroscope", "gain", [1, 1, 1]), init(t, "gyroscope", "misalignment", [0, 0, 0]),
                                     t.R_nominal)
-            w = np.linalg.solve(np.asarray(Tg), (data.gyro[name] - np.asarray(init(t, "gyroscope", "bias", [0, 0, 0]))).T).T
+            w = linear_inverse(Tg, np.asarray(init(t, "gyroscope", "bias", [0, 0, 0]), float), data.gyro[name])
             ok = data.valid("gyro", name)
             est[ok] += w[ok]
             weight[ok] += 1
@@ -337,7 +333,7 @@ def build_dynamic(config: DynamicConfig, data: DynamicData, start: dict | None =
                           + [(tuple(f"{t}.position" for t in config.names), k), (OMEGA, n), (OMEGA_DOT, n), (S, n)]
                           + effect_inputs("accelerometer", config.names, k)
                           + ([(g, i) for i in (prev[n], nxt[n]) for g in (OMEGA, OMEGA_DOT, S)]
-                             if _needs_neighbours(effects) else []),
+                             if fxs.need(effects, fxs.NEIGHBOURS) else []),
                           np.zeros((len(k), 0)), valid=ok)]
     if gyro_triads:
         k, n, ok = instances("gyro", gyro_triads)
@@ -346,9 +342,9 @@ def build_dynamic(config: DynamicConfig, data: DynamicData, start: dict | None =
                                   [(tuple(group_name(t, "gyroscope", g) for t in gyro_triads), k) for g in GYRO_FACTOR_GROUPS]
                                   + [(OMEGA, n)]
                                   + ([(tuple(f"{t}.position" for t in gyro_triads), k), (OMEGA_DOT, n), (S, n)]
-                                     if any(e.name == "g_sensitivity" for e in effects) else [])
+                                     if fxs.need(effects, fxs.SPECIFIC_FORCE) else [])
                                   + effect_inputs("gyroscope", gyro_triads, k)
-                                  + ([(OMEGA, prev[n]), (OMEGA, nxt[n])] if _needs_neighbours(effects) else []),
+                                  + ([(OMEGA, prev[n]), (OMEGA, nxt[n])] if fxs.need(effects, fxs.NEIGHBOURS) else []),
                                   np.zeros((len(k), 0)), valid=ok))
     if config.process_model and N > 1:
         a, b = np.arange(N - 1), np.arange(1, N)

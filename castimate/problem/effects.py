@@ -15,6 +15,18 @@ Regressors an effect term may use (:class:`Context`):
 - ``f``: the specific force in the triad's frame (gyroscope g-sensitivity);
 - ``T``, ``omega``, ``omega_dot``: the triad matrix and the motion (size effect);
 - ``u_dot``: the time derivative of ``u`` (time offset).
+
+What an entry says about the data it needs (:attr:`Effect.needs`): :data:`TIME` (the sample times),
+:data:`TEMPERATURE` (a logged temperature), :data:`SPECIFIC_FORCE` (the specific force at the triad: in a dynamic problem the
+motion states s, ω̇ and the triad's position; when a calibration is applied, the compensated
+accelerometer of the same IMU), :data:`MOTION` (ω and ω̇ of the sample) and :data:`NEIGHBOURS` (the
+motion of the neighbouring samples, for a time derivative).
+
+How an entry is undone when a calibration is applied is derived from its symbolic term
+(:attr:`Effect.undoing`): a term that does not depend on the reading ``u`` is subtracted (closed
+form); one that does is removed by Newton steps on the CasADi expression
+(:mod:`castimate.problem.compensation`). Entries with ``sample_wise=False`` describe where or when a
+triad senses (sensing-element offsets, time offsets); they are not undone sample by sample.
 """
 
 from __future__ import annotations
@@ -22,10 +34,15 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Callable
 
+import casadi as ca
+
 from ..models import effects as fx
 from .parameters import XYZ, GroupDef
 
 STATIC, DYNAMIC = "static_array", "dynamic_array"
+TIME, TEMPERATURE, SPECIFIC_FORCE, MOTION, NEIGHBOURS = "time", "temperature", "specific_force", "motion", "neighbours"
+#: How an effect is undone when a calibration is applied (:attr:`Effect.undoing`).
+SUBTRACTED, NEWTON, NOT_SAMPLE_WISE = "subtracted", "newton", "not sample-wise"
 POLY = ("x1", "y1", "z1", "x2", "y2", "z2")  # linear then quadratic coefficient per axis
 
 
@@ -61,9 +78,15 @@ class Effect:
     kinds
         Problem kinds it applies to.
     needs
-        ``temperature`` if it needs a logged temperature, else ``""``.
+        The data its term uses beyond the reading (module docstring): :data:`TIME`, :data:`TEMPERATURE`,
+        :data:`SPECIFIC_FORCE`, :data:`MOTION`, :data:`NEIGHBOURS`.
     title
         One line for reports.
+    relative
+        Defined relative to the reference triad, whose value stays neutral (a gauge).
+    sample_wise
+        False for an effect that says where or when the triad senses: not undone sample by sample
+        when a calibration is applied.
     """
 
     name: str
@@ -71,24 +94,47 @@ class Effect:
     group: GroupDef
     term: Callable[[Any, Context], Any]
     kinds: tuple[str, ...] = (STATIC, DYNAMIC)
-    needs: str = ""
+    needs: tuple[str, ...] = ()
     title: str = ""
-    relative: bool = False  # defined relative to the reference triad, whose value stays neutral (a gauge)
+    relative: bool = False
+    sample_wise: bool = True
 
     @property
     def key(self) -> str:
         return f"{self.sensor}.{self.name}"
 
+    @property
+    def results_key(self) -> str:
+        """Its key in a triad's ``parameters`` of results.json (accelerometer effects unprefixed)."""
+        return self.name if self.sensor == "accelerometer" else self.key
+
+    @property
+    def undoing(self) -> str:
+        """How :mod:`castimate.problem.compensation` undoes it, from the symbolic term: :data:`SUBTRACTED`
+        if the term does not depend on the reading u, :data:`NEWTON` if it does, :data:`NOT_SAMPLE_WISE`."""
+        if not self.sample_wise:
+            return NOT_SAMPLE_WISE
+        ctx = probe_context()
+        term = self.term(ca.SX.sym("c", len(self.group.components)), ctx)
+        return NEWTON if ca.depends_on(term, ctx.u) else SUBTRACTED
+
+
+def probe_context() -> Context:
+    """Every regressor as a free symbol (to inspect a term's dependencies)."""
+    sym = ca.SX.sym
+    return Context(tau=(sym("tau"), sym("tau2")), temp=(sym("dT"), sym("dT2")), u=sym("u", 3), f=sym("f", 3),
+                   T=sym("T", 3, 3), omega=sym("omega", 3), omega_dot=sym("omega_dot", 3), u_dot=sym("u_dot", 3))
+
 
 def _bias_drift(sensor: str, unit: str, scale: float) -> Effect:
     return Effect("bias_drift", sensor, GroupDef(POLY, (0.0,) * 6, scale, unit),
-                  lambda c, x: fx.polynomial(c, *x.tau),
+                  lambda c, x: fx.polynomial(c, *x.tau), needs=(TIME,),
                   title=f"{sensor} bias drift, quadratic in time ({unit} at the session's ends)")
 
 
 def _temperature_bias(sensor: str, unit: str, scale: float) -> Effect:
     return Effect("temperature_bias", sensor, GroupDef(POLY, (0.0,) * 6, scale, f"{unit}/K, {unit}/K^2"),
-                  lambda c, x: fx.polynomial(c, *x.temp), needs="temperature",
+                  lambda c, x: fx.polynomial(c, *x.temp), needs=(TEMPERATURE,),
                   title=f"{sensor} bias linear and quadratic in temperature")
 
 
@@ -96,25 +142,28 @@ EFFECTS: tuple[Effect, ...] = (
     _bias_drift("accelerometer", "m/s^2", 1e-2),
     _temperature_bias("accelerometer", "m/s^2", 1e-3),
     Effect("temperature_gain", "accelerometer", GroupDef(POLY, (0.0,) * 6, 1e-4, "1/K, 1/K^2"),
-           lambda c, x: fx.relative_gain_change(c, *x.temp, x.u), needs="temperature",
+           lambda c, x: fx.relative_gain_change(c, *x.temp, x.u), needs=(TEMPERATURE,),
            title="accelerometer gain linear and quadratic in temperature"),
     Effect("scale_nonlinearity", "accelerometer", GroupDef(XYZ, (0.0,) * 3, 1e-4, "1/(m/s^2)"),
            lambda c, x: fx.scale_nonlinearity(c, x.u),
            title="accelerometer scale nonlinearity, quadratic per axis"),
     Effect("axis_offsets", "accelerometer", GroupDef(("yx", "yy", "yz", "zx", "zy", "zz"), (0.0,) * 6, 1e-3, "m"),
-           lambda c, x: fx.axis_offsets(x.T, c, x.omega, x.omega_dot), kinds=(DYNAMIC,), relative=True,
+           lambda c, x: fx.axis_offsets(x.T, c, x.omega, x.omega_dot), kinds=(DYNAMIC,), needs=(MOTION,),
+           relative=True, sample_wise=False,
            title="accelerometer sensing-element offsets (size effect): y and z elements relative to x, "
                  "relative to the reference triad's"),
     Effect("time_offset", "accelerometer", GroupDef(("dt",), (0.0,), 1e-3, "s"),
-           lambda c, x: fx.time_offset(c, x.u_dot), kinds=(DYNAMIC,), relative=True,
+           lambda c, x: fx.time_offset(c, x.u_dot), kinds=(DYNAMIC,), needs=(NEIGHBOURS,), relative=True,
+           sample_wise=False,
            title="accelerometer time offset (relative to the reference triad)"),
     _bias_drift("gyroscope", "rad/s", 1e-3),
     _temperature_bias("gyroscope", "rad/s", 1e-4),
     Effect("g_sensitivity", "gyroscope",
            GroupDef(("xx", "xy", "xz", "yx", "yy", "yz", "zx", "zy", "zz"), (0.0,) * 9, 1e-4, "rad/s per m/s^2"),
-           lambda c, x: fx.g_sensitivity(c, x.f), title="gyroscope g-sensitivity"),
+           lambda c, x: fx.g_sensitivity(c, x.f), needs=(SPECIFIC_FORCE,), title="gyroscope g-sensitivity"),
     Effect("time_offset", "gyroscope", GroupDef(("dt",), (0.0,), 1e-3, "s"),
-           lambda c, x: fx.time_offset(c, x.u_dot), kinds=(DYNAMIC,), title="gyroscope time offset"),
+           lambda c, x: fx.time_offset(c, x.u_dot), kinds=(DYNAMIC,), needs=(NEIGHBOURS,), sample_wise=False,
+           title="gyroscope time offset"),
 )
 BY_KEY = {e.key: e for e in EFFECTS}
 
@@ -127,6 +176,11 @@ def effects_for(sensor: str, kind: str) -> dict[str, Effect]:
 def included(keys, sensor: str) -> list[Effect]:
     """The effects among ``keys`` ("sensor.name") that act on ``sensor``, in library order."""
     return [e for e in EFFECTS if e.key in keys and e.sensor == sensor]
+
+
+def need(effects, what: str) -> bool:
+    """Whether any of ``effects`` needs ``what`` (:data:`TEMPERATURE`, :data:`SPECIFIC_FORCE`, ...)."""
+    return any(what in e.needs for e in effects)
 
 
 def total(effects, params, ctx: Context):

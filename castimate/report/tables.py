@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..problem.compensation import linear_inverse
+
 DEG = 180 / np.pi
 # (parameter key, component, column title, factor to display units)
 TABLE_I_COLUMNS = [("gain", i, f"k_{a} [-]", 1.0) for i, a in enumerate("xyz")] + \
@@ -70,7 +72,7 @@ def counts_comparison(result: dict, triad: str, sensor: str, nominal_offset, nom
 
 def gravity_norm_rms(acc_si: np.ndarray, T: np.ndarray, b: np.ndarray, g: float) -> float:
     """RMS over poses of | |T^-1 (y - b)| - g |, m/s²."""
-    f = np.linalg.solve(T, (acc_si - b).T).T
+    f = linear_inverse(T, b, acc_si)
     return float(np.sqrt(np.mean((np.linalg.norm(f, axis=1) - g) ** 2)))
 
 

@@ -24,6 +24,8 @@ from typing import Callable
 import numpy as np
 
 from ..models.rotation import rotation_to_quaternion
+from . import effects as fx
+from .effects import sensed_specific_force, shifted
 from .static import random_rotation
 
 GRAVITY = 9.81
@@ -366,13 +368,6 @@ def schopp_geometry(rng: np.random.Generator, position_error: float = 1e-3, orie
 _GYRO_KEYS = {"T_g", "b_g", "sigma", "saturation"}
 
 
-def _shifted(t: np.ndarray, x: np.ndarray, dt: float) -> np.ndarray:
-    """x(t + dt) by cubic-spline interpolation of the sampled true signal (N, 3)."""
-    from scipy.interpolate import CubicSpline
-
-    return CubicSpline(t, x, axis=0)(t + dt) if dt else x
-
-
 def dynamic_measurements(motion: Motion, positions, T, b, rng: np.random.Generator, acc_sigma, gyro=None,
                          names: list[str] | None = None, effects: dict | None = None
                          ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], dict[str, np.ndarray]]:
@@ -387,14 +382,18 @@ def dynamic_measurements(motion: Motion, positions, T, b, rng: np.random.Generat
     per gyroscope, True where the axis was clipped (empty dicts without gyroscopes).
     Names default to imu1..imuK.
 
-    ``effects`` (optional) maps "<triad>.<sensor>.<effect>" to coefficients of the dynamic-only
-    library effects, simulated exactly rather than as the model's first-order terms:
-    ``accelerometer.axis_offsets`` (δ_y, δ_z: axis i senses the specific force at r + δ_i) and
-    ``<sensor>.time_offset`` (the triad reads the true signal at t + Δt, cubic-spline interpolated).
+    ``effects`` (optional) maps "<triad>.<sensor>.<effect>" to coefficients of the effects
+    (:mod:`castimate.simulate.effects`, the truth terms shared with the static simulator): the
+    geometric ones simulated exactly rather than as the model's first-order terms
+    (``accelerometer.axis_offsets``: axis i senses the specific force at r + δ_i;
+    ``<sensor>.time_offset``: the triad reads the true signal at t + Δt), and the sample-wise ones
+    that need no temperature or specific force at the gyroscope (drifts over the record, scale terms).
     """
     effects = effects or {}
     positions = np.asarray(positions, dtype=float).reshape(-1, 3)
     K, N = len(positions), len(motion.t)
+    t0, t1 = motion.t[0], motion.t[-1]
+    tau, zero = (motion.t - (t0 + t1) / 2) / max((t1 - t0) / 2, 1e-9), np.zeros(N)  # normalised time; no temperature
     T = np.broadcast_to(np.asarray(T, dtype=float), (K, 3, 3))
     b = np.broadcast_to(np.asarray(b, dtype=float), (K, 3))
     sig = np.broadcast_to(np.asarray(acc_sigma, dtype=float), (K, 3))
@@ -403,14 +402,9 @@ def dynamic_measurements(motion: Motion, positions, T, b, rng: np.random.Generat
         raise ValueError(f"{len(names)} names for {K} positions")
     acc: dict[str, np.ndarray] = {}
     for k, n in enumerate(names):
-        dt = float(np.ravel(effects.get(f"{n}.accelerometer.time_offset", 0.0))[0])
-        f = _shifted(motion.t, motion.specific_force_at(positions[k]), dt)
-        y = f @ T[k].T
-        delta = effects.get(f"{n}.accelerometer.axis_offsets")
-        if delta is not None:
-            for axis, d in ((1, delta[0:3]), (2, delta[3:6])):
-                y[:, axis] = (_shifted(motion.t, motion.specific_force_at(positions[k] + d), dt) @ T[k].T)[:, axis]
-        acc[n] = y + b[k] + sig[k] * rng.standard_normal((N, 3))
+        u = sensed_specific_force(effects, n, motion.t, motion.specific_force_at, positions[k], T[k])
+        acc[n] = u + b[k] + fx.sample_terms(effects, n, "accelerometer", u, None, tau, zero) \
+            + sig[k] * rng.standard_normal((N, 3))
     gyro_out: dict[str, np.ndarray] = {}
     saturated: dict[str, np.ndarray] = {}
     if gyro is not None:
@@ -424,8 +418,9 @@ def dynamic_measurements(motion: Motion, positions, T, b, rng: np.random.Generat
         sg = np.broadcast_to(np.asarray(gyro["sigma"], dtype=float), (K, 3))
         sat = gyro.get("saturation")
         for k, n in enumerate(names):
-            dt = float(np.ravel(effects.get(f"{n}.gyroscope.time_offset", 0.0))[0])
-            y = _shifted(motion.t, motion.omega, dt) @ Tg[k].T + bg[k] + sg[k] * rng.standard_normal((N, 3))
+            u = shifted(motion.t, motion.omega, fx.time_offset(effects, n, "gyroscope")) @ Tg[k].T
+            y = u + bg[k] + fx.sample_terms(effects, n, "gyroscope", u, None, tau, zero) \
+                + sg[k] * rng.standard_normal((N, 3))
             if sat is None:
                 saturated[n] = np.zeros((N, 3), dtype=bool)
             else:

@@ -15,7 +15,8 @@ from ..io.atomic import write_atomic
 from ..io.results import write_json
 from ..validation import Check
 from ..problem.effects import BY_KEY
-from .static import REALISTIC_DYNAMIC_EFFECTS, REALISTIC_EFFECTS, StaticTruthScale, pose_directions, random_effects, random_static_truth, static_pose_means, static_time_series
+from .effects import REALISTIC_DYNAMIC_EFFECTS, REALISTIC_EFFECTS, random_coefficients, random_effects
+from .static import StaticTruthScale, pose_directions, random_static_truth, static_pose_means, static_time_series
 
 SCENARIO_KEYS = ("kind", "seed", "gravity", "triads", "reference", "poses", "noise", "samples_per_pose",
                  "truth", "gyroscope", "time_series", "rate", "pose_duration", "transition", "effects", "temperature",
@@ -108,7 +109,7 @@ def _static_scenario(c: Check, raw: dict, path: Path, out: Path) -> dict[str, Pa
     truth = random_static_truth(names, ref, rng, g, scale, gyroscope=gyro)
     U = pose_directions(P, rng)
     effects = _effects(c, s, gyro)
-    random_effects(truth, effects, rng)
+    random_effects(truth.values, truth.names, effects, rng)
     tsec = c.mapping(s.get("temperature"), "temperature", ("mean", "amplitude"))
     if any(k.split(".")[1].startswith("temperature") for k in effects) and "temperature" not in s:
         c.fail("effects", "temperature effects need a logged temperature: add temperature: {mean, amplitude}")
@@ -208,8 +209,7 @@ def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path) -> dict[str, P
     origin = true[0]
     effects = {}
     for key, m in _effects(c, s, gyro, REALISTIC_DYNAMIC_EFFECTS).items():
-        size = 6 if key.endswith("axis_offsets") else 1
-        effects.update({f"{n}.{key}": m * rng.standard_normal(size) for n in names
+        effects.update({f"{n}.{key}": random_coefficients(key, m, rng) for n in names
                         if not (BY_KEY[key].relative and n == names[0])})  # the reference's is the gauge
     acc, gy, saturated = dynamic_measurements(motion, true - origin, np.stack([true_R[n] for n in names]),
                                               np.zeros((K, 3)), rng, acc_sigma, gyro=gyro_model, names=names,

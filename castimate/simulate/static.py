@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..io.recording import Recording
+from .effects import sample_terms
 
 
 def icosahedron_face_normals() -> np.ndarray:
@@ -109,71 +110,6 @@ def random_static_truth(names: list[str], reference: str, rng: np.random.Generat
     return truth
 
 
-#: Realistic magnitudes of the library's effects for MEMS IMUs of the MPU-9150 class (the σ of
-#: each random coefficient), in the effect's units: a few mg of warm-up drift over a session,
-#: 0.2 mg/K and 0.01 %/K thermal coefficients, a 0.02 % quadratic nonlinearity at 1 g, and
-#: 0.05 °/s/g gyroscope g-sensitivity.
-REALISTIC_EFFECTS = {
-    "accelerometer.bias_drift": 3e-3,  # m/s^2 at the session's ends
-    "accelerometer.temperature_bias": 2e-3,  # m/s^2/K (and /K^2 scaled by 1/10 below)
-    "accelerometer.temperature_gain": 1e-4,  # 1/K
-    "accelerometer.scale_nonlinearity": 2e-5,  # 1/(m/s^2)
-    "gyroscope.bias_drift": 2e-4,  # rad/s
-    "gyroscope.temperature_bias": 1e-4,  # rad/s/K
-    "gyroscope.g_sensitivity": 1e-4,  # rad/s per m/s^2
-}
-#: The same for the dynamic-only effects: sensing elements 0.3 mm apart inside a MEMS package, and
-#: sampling instants 0.5 ms apart between IMUs read in turn.
-REALISTIC_DYNAMIC_EFFECTS = {
-    "accelerometer.axis_offsets": 3e-4,  # m
-    "accelerometer.time_offset": 5e-4,  # s
-    "gyroscope.time_offset": 5e-4,  # s
-}
-
-
-def random_effects(truth: StaticTruth, magnitudes: dict[str, float], rng: np.random.Generator) -> None:
-    """Add random effect coefficients (group ``<triad>.<sensor>.<effect>``) to the truth; a quadratic
-    coefficient in temperature gets a tenth of the linear one's magnitude."""
-    sizes = {"bias_drift": 6, "temperature_bias": 6, "temperature_gain": 6, "scale_nonlinearity": 3,
-             "g_sensitivity": 9}
-    for key, m in magnitudes.items():
-        sensor, name = key.split(".")
-        for n in truth.names:
-            c = m * rng.standard_normal(sizes[name])
-            if name.startswith("temperature"):
-                c[3:] /= 10
-            truth.values[f"{n}.{sensor}.{name}"] = c
-
-
-def _poly(c: np.ndarray, x: np.ndarray) -> np.ndarray:
-    return np.outer(x, c[:3]) + np.outer(x ** 2, c[3:6])
-
-
-def effect_terms(truth: StaticTruth, name: str, sensor: str, u: np.ndarray, f_sensor: np.ndarray,
-                 tau: np.ndarray, dT: np.ndarray) -> np.ndarray:
-    """(P, 3) sum of the truth's effect terms of one triad's sensor at single instants: normalised
-    time τ, temperature deviation ΔT [K], linear reading u and (gyroscopes) the specific force in
-    the sensor frame. Written independently of :mod:`castimate.models.effects`."""
-    v = truth.values
-    out = np.zeros_like(u)
-    c = v.get(f"{name}.{sensor}.bias_drift")
-    if c is not None:
-        out += _poly(c, tau)
-    c = v.get(f"{name}.{sensor}.temperature_bias")
-    if c is not None:
-        out += _poly(c, dT)
-    c = v.get(f"{name}.{sensor}.temperature_gain")
-    if c is not None:
-        out += _poly(c, dT) * u
-    c = v.get(f"{name}.{sensor}.scale_nonlinearity")
-    if c is not None:
-        out += c * u ** 2
-    c = v.get(f"{name}.{sensor}.g_sensitivity")
-    if c is not None:
-        out += f_sensor @ c.reshape(3, 3).T
-    return out
-
-
 def static_pose_means(truth: StaticTruth, U: np.ndarray, sigma: float, n_samples: int,
                       rng: np.random.Generator, gyro_sigma: float | None = None,
                       tau: np.ndarray | None = None, temperature: dict[str, np.ndarray] | None = None
@@ -191,7 +127,7 @@ def static_pose_means(truth: StaticTruth, U: np.ndarray, sigma: float, n_samples
     acc = {}
     for n in truth.names:
         u = truth.gravity * U @ truth.T(n).T
-        acc[n] = u + truth.b(n) + effect_terms(truth, n, "accelerometer", u, u, tau, dT[n]) \
+        acc[n] = u + truth.b(n) + sample_terms(truth.values, n, "accelerometer", u, u, tau, dT[n]) \
             + s * rng.standard_normal(U.shape)
     gyro = {}
     if gyro_sigma is not None:
@@ -199,7 +135,7 @@ def static_pose_means(truth: StaticTruth, U: np.ndarray, sigma: float, n_samples
         for n in truth.names:
             f = truth.gravity * U @ truth.R_nominal[n].T
             gyro[n] = truth.values[f"{n}.gyroscope.bias"] + \
-                effect_terms(truth, n, "gyroscope", np.zeros_like(f), f, tau, dT[n]) + sg * rng.standard_normal(U.shape)
+                sample_terms(truth.values, n, "gyroscope", np.zeros_like(f), f, tau, dT[n]) + sg * rng.standard_normal(U.shape)
     return acc, gyro
 
 

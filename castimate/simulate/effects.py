@@ -1,0 +1,111 @@
+"""The simulator's truth terms of every sensor effect, in one place, used by the static and the
+dynamic simulator.
+
+Written in numpy independently of :mod:`castimate.models.effects` and the registry on purpose:
+recovery tests then cross-check the estimator's symbolic model against physics it was not derived
+from. Where the model uses a first-order term, the truth here is exact (time offsets read the
+true signal at t + Δt; axis offsets read the specific force at the element's own position).
+
+Coefficients are keyed like the solver's groups, ``<triad>.<sensor>.<effect>``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Realistic magnitudes of the effects for MEMS IMUs of the MPU-9150 class (the σ of each random
+#: coefficient), in the effect's units: a few mg of warm-up drift over a session, 0.2 mg/K and
+#: 0.01 %/K thermal coefficients, a 0.02 % quadratic nonlinearity at 1 g, and 0.05 °/s/g gyroscope
+#: g-sensitivity.
+REALISTIC_EFFECTS = {
+    "accelerometer.bias_drift": 3e-3,  # m/s^2 at the session's ends
+    "accelerometer.temperature_bias": 2e-3,  # m/s^2/K (and /K^2 scaled by 1/10 below)
+    "accelerometer.temperature_gain": 1e-4,  # 1/K
+    "accelerometer.scale_nonlinearity": 2e-5,  # 1/(m/s^2)
+    "gyroscope.bias_drift": 2e-4,  # rad/s
+    "gyroscope.temperature_bias": 1e-4,  # rad/s/K
+    "gyroscope.g_sensitivity": 1e-4,  # rad/s per m/s^2
+}
+#: The same for the dynamic-only effects: sensing elements 0.3 mm apart inside a MEMS package, and
+#: sampling instants 0.5 ms apart between IMUs read in turn.
+REALISTIC_DYNAMIC_EFFECTS = {
+    "accelerometer.axis_offsets": 3e-4,  # m
+    "accelerometer.time_offset": 5e-4,  # s
+    "gyroscope.time_offset": 5e-4,  # s
+}
+#: Number of coefficients of each effect (the simulator's own table).
+SIZES = {"bias_drift": 6, "temperature_bias": 6, "temperature_gain": 6, "scale_nonlinearity": 3,
+         "g_sensitivity": 9, "axis_offsets": 6, "time_offset": 1}
+
+
+def random_coefficients(key: str, magnitude: float, rng: np.random.Generator) -> np.ndarray:
+    """Random coefficients of effect ``key`` (``sensor.effect``) with σ ``magnitude``; a quadratic
+    coefficient in temperature gets a tenth of the linear one's."""
+    name = key.split(".")[1]
+    c = magnitude * rng.standard_normal(SIZES[name])
+    if name.startswith("temperature"):
+        c[3:] /= 10
+    return c
+
+
+def random_effects(values: dict, names, magnitudes: dict[str, float], rng: np.random.Generator) -> None:
+    """Add random coefficients of every effect in ``magnitudes`` for every triad to ``values``."""
+    for key, m in magnitudes.items():
+        for n in names:
+            values[f"{n}.{key}"] = random_coefficients(key, m, rng)
+
+
+def _poly(c: np.ndarray, x: np.ndarray) -> np.ndarray:
+    return np.outer(x, c[:3]) + np.outer(x ** 2, c[3:6])
+
+
+def sample_terms(values: dict, name: str, sensor: str, u: np.ndarray, f_sensor: np.ndarray | None,
+                 tau: np.ndarray, dT: np.ndarray) -> np.ndarray:
+    """(N, 3) sum of the truth's sample-wise effect terms of one triad's sensor at single instants:
+    normalised time τ, temperature deviation ΔT [K], linear reading u = T x (sensor frame), and for
+    gyroscopes the specific force in the sensor frame (g-sensitivity)."""
+    out = np.zeros_like(u)
+    c = values.get(f"{name}.{sensor}.bias_drift")
+    if c is not None:
+        out += _poly(c, tau)
+    c = values.get(f"{name}.{sensor}.temperature_bias")
+    if c is not None:
+        out += _poly(c, dT)
+    c = values.get(f"{name}.{sensor}.temperature_gain")
+    if c is not None:
+        out += _poly(c, dT) * u
+    c = values.get(f"{name}.{sensor}.scale_nonlinearity")
+    if c is not None:
+        out += c * u ** 2
+    c = values.get(f"{name}.{sensor}.g_sensitivity")
+    if c is not None:
+        if f_sensor is None:
+            raise ValueError(f"{name}.{sensor}.g_sensitivity needs the specific force at the triad")
+        out += f_sensor @ c.reshape(3, 3).T
+    return out
+
+
+def time_offset(values: dict, name: str, sensor: str) -> float:
+    """The triad's sampling delay Δt [s] (it reads the signal at t + Δt), 0 if none."""
+    return float(np.ravel(values.get(f"{name}.{sensor}.time_offset", 0.0))[0])
+
+
+def shifted(t: np.ndarray, x: np.ndarray, dt: float) -> np.ndarray:
+    """x(t + dt) by cubic-spline interpolation of the sampled true signal (N, 3)."""
+    from scipy.interpolate import CubicSpline
+
+    return CubicSpline(t, x, axis=0)(t + dt) if dt else x
+
+
+def sensed_specific_force(values: dict, name: str, t: np.ndarray, specific_force_at, position: np.ndarray,
+                          T: np.ndarray) -> np.ndarray:
+    """(N, 3) T f as the accelerometer triad senses it, exactly: each axis at its own sensing
+    element (the y and z elements at position + δ_y, + δ_z, the axis offsets) and instant (t + Δt).
+    ``specific_force_at(r)`` gives the true specific force (N, 3) at body position r."""
+    dt = time_offset(values, name, "accelerometer")
+    y = shifted(t, specific_force_at(position), dt) @ T.T
+    delta = values.get(f"{name}.accelerometer.axis_offsets")
+    if delta is not None:
+        for axis, d in ((1, delta[0:3]), (2, delta[3:6])):
+            y[:, axis] = (shifted(t, specific_force_at(position + d), dt) @ T.T)[:, axis]
+    return y
