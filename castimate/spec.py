@@ -437,6 +437,8 @@ def _solver(c: Check, s) -> SolverOptions:
             kw[k] = c.choice(v, w, ("exact", "gauss_newton"))
         elif k == "method":
             kw[k] = c.choice(v, w, ("ipopt", "bcd"))
+        elif k == "elimination":
+            kw[k] = c.choice(v, w, ("motion", "none"))
         elif isinstance(default, bool):
             if not isinstance(v, bool):
                 c.fail(w, f"expected true or false, found {v!r}")

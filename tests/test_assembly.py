@@ -86,7 +86,7 @@ def assembled(solver: Solver, x, p, lam_f, lam_g):
 @pytest.mark.parametrize("hessian", ["exact", "gauss_newton"])
 def test_assembled_derivatives_equal_casadi_ad(kind, hessian):
     prob = static_case() if kind == "static" else dynamic_case(process_model=kind == "dynamic")
-    solver = Solver(prob.lsq, SolverOptions(hessian=hessian, jit=False))
+    solver = Solver(prob.lsq, SolverOptions(hessian=hessian, jit=False, elimination="none"))
     assert (solver.stages is None) == (kind == "static")  # the dynamic problems are assembled by stage
     rng = np.random.default_rng(0)
     lay = prob.lsq.layout
@@ -120,22 +120,25 @@ def test_assembled_derivatives_equal_casadi_ad(kind, hessian):
         np.testing.assert_allclose(H, expect, rtol=1e-9, atol=1e-9 * np.abs(expect).max())
 
 
+@pytest.mark.parametrize("elimination", ["none", "motion"])
 @pytest.mark.parametrize("kind", ["dynamic", "static"])
-def test_information_is_jacobian_gram(kind):
+def test_information_is_jacobian_gram(kind, elimination):
     """The Fisher information assembled from local Jacobians equals J^T J of the full Jacobian."""
     prob = static_case() if kind == "static" else dynamic_case()
-    solver = Solver(prob.lsq, SolverOptions(jit=False))
+    solver = Solver(prob.lsq, SolverOptions(jit=False, elimination=elimination))
     x = prob.lsq.layout.x0() * (1 + 0.05 * np.random.default_rng(1).standard_normal(prob.lsq.layout.n_x))
     J, _ = solver.jacobians(x)
     expect = (J.T @ J).toarray()
     np.testing.assert_allclose(solver.information(x).toarray(), expect, rtol=1e-10, atol=1e-10 * np.abs(expect).max())
 
 
+@pytest.mark.parametrize("elimination", ["none", "motion"])
 @pytest.mark.parametrize("process_model", [True, False])
-def test_marginal_information_is_schur_complement(process_model):
-    """The stage-blocked elimination of the motion equals the dense Schur complement of J^T J."""
+def test_marginal_information_is_schur_complement(process_model, elimination):
+    """The stage-blocked elimination of the motion (sparse LU of the full information, or the
+    projection's block-banded Cholesky) equals the dense Schur complement of J^T J."""
     prob = dynamic_case(process_model=process_model)
-    solver = Solver(prob.lsq, SolverOptions(jit=False))
+    solver = Solver(prob.lsq, SolverOptions(jit=False, elimination=elimination))
     x = prob.lsq.layout.x0() * (1 + 0.05 * np.random.default_rng(4).standard_normal(prob.lsq.layout.n_x))
     J, G = solver.jacobians(x)
     F = (J.T @ J).toarray()
@@ -148,9 +151,10 @@ def test_marginal_information_is_schur_complement(process_model):
     np.testing.assert_allclose(G_t, G[:, t].toarray())
 
 
-def test_jacobian_matches_finite_differences_of_residuals():
+@pytest.mark.parametrize("elimination", ["none", "motion"])
+def test_jacobian_matches_finite_differences_of_residuals(elimination):
     prob = dynamic_case()
-    solver = Solver(prob.lsq, SolverOptions(jit=False))
+    solver = Solver(prob.lsq, SolverOptions(jit=False, elimination=elimination))
     x = prob.lsq.layout.x0()
     J = solver.jacobians(x)[0].toarray()
     rng = np.random.default_rng(2)
@@ -163,7 +167,7 @@ def test_jacobian_matches_finite_differences_of_residuals():
 
 def test_compiled_and_virtual_machine_assembly_agree():
     prob = dynamic_case()
-    a, b = Solver(prob.lsq, SolverOptions(jit=True)), Solver(prob.lsq, SolverOptions(jit=False))
+    a, b = (Solver(prob.lsq, SolverOptions(jit=jit, elimination="none")) for jit in (True, False))
     x = prob.lsq.layout.x0()[a.perm]
     p = a.fixed_and_data(None, None)[0]
     lam_g = np.linspace(-1, 1, a.n_constraints)
@@ -177,9 +181,9 @@ def test_chunked_evaluation_equals_one_chunk(monkeypatch):
 
     prob = dynamic_case()
     x = prob.lsq.layout.x0()
-    one = Solver(prob.lsq, SolverOptions(jit=False))
+    one = Solver(prob.lsq, SolverOptions(jit=False, elimination="none"))
     monkeypatch.setattr(solve, "CHUNK", 7)  # several chunks per block, not a multiple of the triads
-    many = Solver(prob.lsq, SolverOptions(jit=False))
+    many = Solver(prob.lsq, SolverOptions(jit=False, elimination="none"))
     pf, data = one.fixed_and_data(None, None)
     fa, ga, ha = one.assembly.assemble(x[one.perm], pf, data)
     fb, gb, hb = many.assembly.assemble(x[many.perm], pf, data)
@@ -189,12 +193,35 @@ def test_chunked_evaluation_equals_one_chunk(monkeypatch):
     np.testing.assert_allclose(ha, hb, rtol=1e-12, atol=1e-12 * np.abs(ha).max())
 
 
-def test_masked_samples_are_not_residuals():
+@pytest.mark.parametrize("elimination", ["none", "motion"])
+def test_masked_samples_are_not_residuals(elimination):
     prob = dynamic_case()
-    solver = Solver(prob.lsq, SolverOptions(jit=False))
+    solver = Solver(prob.lsq, SolverOptions(jit=False, elimination=elimination))
     n = prob.n_samples
     masked = int((np.arange(n) % 7 == 3).sum() + (np.arange(n) % 5 == 1).sum())
     full = 3 * n * 4 + 3 * n * 3 + 9 * (n - 1)
     assert solver.n_data_residuals == full - 3 * masked
     J, _ = solver.jacobians(prob.lsq.layout.x0())
     assert J.shape[0] == solver.n_residuals == solver.residuals(prob.lsq.layout.x0()).size
+
+
+def test_projection_compiled_virtual_machine_and_chunks_agree(monkeypatch):
+    """The projection's reduced objective, gradient and Hessian: compiled and on CasADi's virtual
+    machine, and with the instances split into chunks that are not a multiple of the triads."""
+    import castimate.solve.elimination as elimination
+
+    prob = dynamic_case()
+    pf = prob.lsq.layout.p0()
+    x0 = prob.lsq.layout.x0()
+
+    def reduced(jit):
+        P = Solver(prob.lsq, SolverOptions(jit=jit)).projection
+        return P.reduced(P.reset(x0, None), pf, None)
+
+    a, b = reduced(True), reduced(False)
+    monkeypatch.setattr(elimination, "CHUNK", 7)
+    c = reduced(False)
+    for other in (b, c):
+        assert other[0] == pytest.approx(a[0], rel=1e-13)
+        for u, v in zip(a[1:], other[1:]):
+            np.testing.assert_allclose(v, u, rtol=1e-11, atol=1e-11 * np.abs(u).max())

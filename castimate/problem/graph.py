@@ -38,6 +38,13 @@ class SolverOptions:
     jit
         Compile the factors' local functions to C (:mod:`castimate.jit`, cached on disk); the
         results are the same as on CasADi's virtual machine, about ten times faster.
+    elimination
+        ``motion`` (default): IPOPT solves for the calibration parameters only, with the per-sample
+        motion and the per-pose directions eliminated exactly at every iterate (variable projection,
+        :mod:`castimate.solve.elimination`): time and memory per iteration linear in the samples,
+        only the calibration parameters dense. ``none``: the full NLP with every nuisance variable,
+        its KKT system factorised by MUMPS (the reference path). Problems without such nuisance
+        rows solve the same either way.
     """
 
     method: str = "ipopt"
@@ -48,6 +55,7 @@ class SolverOptions:
     hessian: str = "exact"
     identifiability_tol: float = 1e-10
     jit: bool = True
+    elimination: str = "motion"
 
     def ipopt(self) -> dict:
         return {

@@ -20,6 +20,13 @@ CasADi's default, colours a Hessian with a dense border and grows about quadrati
 local functions inside one MX graph grew CasADi's work arrays past 6 GB at 32 IMUs x 20 000
 samples.) ``Solver.symbolic_nlp`` gives the same problem as one graph, as a reference.
 
+By default (``SolverOptions.elimination = "motion"``) IPOPT sees only the calibration parameters:
+the per-sample motion and the per-pose directions are eliminated exactly at every iterate
+(variable projection, :mod:`castimate.solve.elimination`), with the reduced gradient and the exact
+reduced Hessian (the Schur complement of the full Hessian) from the implicit function theorem; the
+per-sample work is block diagonal or block banded, so nothing dense grows with the samples. The
+full NLP above (``elimination = "none"``) is kept as the reference.
+
 Uncertainty comes from the Fisher information J^T J at the solution, assembled the same way from
 the local Jacobians and restricted to the tangent space of the constraints; its inverse's blocks
 for the calibration parameters are the marginals with the nuisance variables (the motion)

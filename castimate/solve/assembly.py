@@ -89,7 +89,7 @@ class Block:
             W = layout.w_index(g) if isinstance(g, str) else np.vstack([layout.w_index(n) for n in g])
             cols.append(np.broadcast_to(W[0], (block.n, W.shape[1])) if rows is None else W[np.asarray(rows)])
         # C order: gathers by rows stay C order; 32 bits: half the memory of the largest index array
-        self.w_idx = np.ascontiguousarray(np.hstack(cols), dtype=np.int32 if layout.n_x + layout.n_p < 2**31 else int)
+        self.w_idx = np.hstack(cols, dtype=np.int32 if layout.n_x + layout.n_p < 2**31 else int)
         nz = block.residual.size1_in(0)
         if self.w_idx.shape[1] != nz:
             raise ValueError(f"factor block {block.name}: inputs give {self.w_idx.shape[1]} values, "
@@ -108,48 +108,59 @@ class Block:
         self.f = cache[key]
 
 
-class _NotStaged(Exception):
+class NotStaged(Exception):
     """A block touches stage variables without the stage structure."""
 
 
-class _StagedBlock:
+class StagedBlock:
     """How the instances of one block map to stages: instance t = j K + k belongs to stage
-    ``base + j`` (plus the offset ``rel`` of each input component, 0 or 1) and sees the same
-    variables of it for every k; which calibration variables it sees depends on k only.
-    Raises LookupError for a block without stage variables, _NotStaged for one that has them
-    without this structure."""
+    ``base + j`` (plus the offset ``rel`` of each input component, at most ``max_offset``; None:
+    any) and sees the same variables of it for every k; which calibration variables it sees
+    depends on k only. ``st`` gives every x index's stage and position within it (``stage_of``,
+    ``within``, -1 for other variables). Raises LookupError for a block without stage variables,
+    NotStaged for one that has them without this structure."""
 
-    def __init__(self, b: Block, st: "Stages"):
-        n = len(st.stage_of)
+    def __init__(self, b: Block, st, max_offset: int | None = 1):
         W = b.w_idx
-        free = W < n
-        stage_of = np.append(st.stage_of, -1)  # w indices of fixed values map to -1
-        stg = stage_of[np.where(free, W, n)]
-        is_st = (stg >= 0).any(axis=0)
+        n = len(st.stage_of)
+        # stage and position of every w index (-1: none) in 32 bits: the gathers below are as
+        # large as the block's index matrix (at 32 IMUs x 20 000 samples, 61 MB each)
+        size = max(int(W.max()) + 1, n)
+        stage_of, within = np.full(size, -1, np.int32), np.full(size, -1, np.int32)
+        stage_of[:n], within[:n] = st.stage_of, st.within
+        S = stage_of[W]
+        is_st = (S >= 0).any(axis=0)
         if not is_st.any():
             raise LookupError
-        S = stg[:, is_st]
+        S = S[:, is_st]
         if not (S >= 0).all():
-            raise _NotStaged
+            raise NotStaged
         N = W.shape[0]
         base = S.min(axis=1)
         K = int(np.count_nonzero(base == base[0]))
         J = N // K
         if N % K or not np.array_equal(base, base[0] + np.arange(N) // K):
-            raise _NotStaged
-        rel = np.where(is_st, stg[:K] - base[:K, None], -1)
-        q = np.where(is_st, st.within[np.where(free[:K], W[:K], 0)], W[:K])  # stage position, or w index
+            raise NotStaged
+        S -= base[:, None]
+        rel = np.full((K, W.shape[1]), -1)
+        rel[:, is_st] = S[:K]
+        q = np.where(is_st, within[W[:K]], W[:K])  # stage position, or w index
         # every stage group sees the same stage positions and offsets and the same calibration inputs
-        Wc = W[:, ~is_st].reshape(J, K, -1)
-        if not ((S - base[:, None]).reshape(J, K, -1) == rel[:, is_st]).all() or not (Wc == Wc[0]).all() \
-                or not (st.within[W[:, is_st]].reshape(J, K, -1) == q[:, is_st]).all() \
-                or rel.max() > 1 or not np.where(is_st, q == q[0], True).all():
-            raise _NotStaged
+        if not (S.reshape(J, K, -1) == S[:K]).all() or (max_offset is not None and rel.max() > max_offset) \
+                or not (W[:, ~is_st].reshape(J, K, -1) == W[:K, ~is_st]).all() \
+                or not (within[W[:, is_st]].reshape(J, K, -1) == q[:, is_st]).all() \
+                or not np.where(is_st, q == q[0], True).all():
+            raise NotStaged
         self.K, self.J, self.base = K, J, int(base[0])
         self.rel, self.q, self.is_st = rel, q, is_st
         self.n_cal = int((~is_st).sum())
         # calibration components first, then the stage components by offset and position
         self.order = np.lexsort((q[0], rel[0], is_st))
+
+    def reordered(self):
+        """Adopt the block's reordering by ``order`` (after Block.reorder)."""
+        self.rel, self.q = (np.ascontiguousarray(M[:, self.order]) for M in (self.rel, self.q))
+        self.is_st = self.is_st[self.order]
 
     def stage_inputs(self, Xs: np.ndarray, j0: int, j1: int) -> np.ndarray:
         """The stage components (j1 - j0, n_s) of instance groups j0 ... j1 - 1, from the stage
@@ -165,7 +176,7 @@ class Stages:
     states of each sample). Inside the NLP the decision vector is ordered [calibration variables
     (everything else) | stage 0 | stage 1 | ...], each stage holding its row of every stage group.
     A block is *staged* when its instances come in runs of K per stage (t = j K + k: sample j,
-    triad k) and each touches its stage and possibly the next (:class:`_StagedBlock`).
+    triad k) and each touches its stage and possibly the next (:class:`StagedBlock`).
 
     The upper-triangular Hessian's columns of stage s then have the same pattern for every s: rows
     of calibration variables, of stage s-1 and of stage s (the first stage lacks s-1), and the
@@ -191,7 +202,7 @@ class Stages:
 
     @staticmethod
     def find(lay: Layout, blocks: list[Block]) -> tuple["Stages | None", dict]:
-        """The stage structure and the staged blocks {block index: _StagedBlock} (reordering
+        """The stage structure and the staged blocks {block index: StagedBlock} (reordering
         their inputs), or (None, {}) if the problem has none or a block touches stage variables
         otherwise."""
         by_rows: dict = {}
@@ -210,16 +221,15 @@ class Stages:
         staged = {}
         for i, b in enumerate(blocks):
             try:
-                sb = _StagedBlock(b, st)
+                sb = StagedBlock(b, st)
             except LookupError:
                 continue
-            except _NotStaged:
+            except NotStaged:
                 for b2 in blocks:
                     b2.reorder(np.argsort(b2.order))
                 return None, {}
             b.reorder(sb.order)
-            sb.rel, sb.q = (np.ascontiguousarray(M[:, sb.order]) for M in (sb.rel, sb.q))
-            sb.is_st = sb.is_st[sb.order]
+            sb.reordered()
             staged[i] = sb
         return st, staged
 
@@ -356,7 +366,7 @@ class Assembly:
         self.sparsity = ca.Sparsity(n, n, indptr.tolist(), indices.tolist())
         self.nnz = len(indices)
 
-    def _stage_entries(self, i, sb: _StagedBlock, a_idx, b_idx, sx) -> dict:
+    def _stage_entries(self, i, sb: StagedBlock, a_idx, b_idx, sx) -> dict:
         """The stage-column entries of one staged block's local Hessian pairs, for one stage group:
         kind (0: calibration row, 1: previous stage's row, 2: own stage's row), row (NLP index or
         stage position), column (stage position), shift (the stage of instance group j is

@@ -16,6 +16,7 @@ import scipy.sparse as sp
 from ..problem.graph import LeastSquaresProblem, Solution, SolverOptions
 from . import uncertainty
 from .assembly import Assembly, Block, Callback, Stages
+from .elimination import Projection
 
 
 
@@ -31,11 +32,17 @@ class Solver:
         lay = problem.layout
         self.n_x = n = lay.n_x
         self.blocks = [Block(b, lay) for b in problem.blocks if b.n]
-        self.stages, self.staged = st, staged = Stages.find(lay, self.blocks)
+        if options.elimination not in ("motion", "none"):
+            raise ValueError(f"unknown elimination {options.elimination!r}")
+        # the nuisance rows eliminated by variable projection (compiles the blocks), or None
+        self.projection = P = Projection.build(self.blocks, lay, options.hessian, options.jit) \
+            if options.elimination == "motion" else None
+        self.stages, self.staged = st, staged = Stages.find(lay, self.blocks) if P is None else (None, {})
         cache: dict = {}
         off = 0
         for i, b in enumerate(self.blocks):
-            b.compile(cache, staged[i].n_cal if i in staged else b.w_idx.shape[1], options.hessian, options.jit)
+            if P is None:
+                b.compile(cache, staged[i].n_cal if i in staged else b.w_idx.shape[1], options.hessian, options.jit)
             b.data_offset = off  # into the data vector
             b.data = np.ascontiguousarray(b.block.data, float)  # the default data, not copied
             off += b.block.n * b.f.nd
@@ -48,25 +55,37 @@ class Solver:
         self.n_data_residuals = int(self.keep.sum()) - len(pi)
         self.n_residuals = int(self.keep.sum())
 
-        # constraints |row|^2 = 1, rows grouped by width for vectorisation
+        # constraints |row|^2 = 1, rows grouped by width for vectorisation; with the projection
+        # only the rows on calibration variables (the families' own are kept inside it)
         self.unit_rows = U = lay.unit_norm_rows()
         self.n_constraints = U.shape[0]
-        x = ca.MX.sym("x", n)  # in NLP order
         p = ca.MX.sym("p", lay.n_p)  # the fixed values; the data stay in numpy (Assembly.data)
-        w = ca.vertcat((x[np.argsort(self.perm).tolist()] if st else x) * lay.x_scale, p)
+        if P is None:
+            x = ca.MX.sym("x", n)  # in NLP order
+            w = ca.vertcat((x[np.argsort(self.perm).tolist()] if st else x) * lay.x_scale, p)
+            w_pos, rows = np.arange(n + lay.n_p), np.arange(len(U))
+        else:
+            x = ca.MX.sym("theta", P.c)
+            w = ca.vertcat(x * lay.x_scale[P.cal], p)
+            w_pos = np.concatenate([P.tpos, P.c + np.arange(lay.n_p)])  # w index -> position in this w
+            rows = np.array([j for j, r in enumerate(U) if (P.tpos[r[(r >= 0) & (r < n)]] >= 0).all()], int)
         c_parts, self.unit_order = [], []
-        for width in sorted({int((row >= 0).sum()) for row in U}):
-            sel = np.flatnonzero((U >= 0).sum(axis=1) == width)
-            idx = U[sel][:, :width]
+        for width in sorted({int((U[j] >= 0).sum()) for j in rows}):
+            sel = rows[(U[rows] >= 0).sum(axis=1) == width]
+            idx = w_pos[U[sel][:, :width]]
             c_parts.append(ca.sum1(ca.reshape(w[idx.ravel().tolist()], width, len(sel)) ** 2).T - 1)
             self.unit_order.append(sel)
         c = ca.vertcat(*c_parts) if c_parts else ca.MX(0, 1)
         self.constraint_order = np.concatenate(self.unit_order) if self.unit_order else np.zeros(0, int)
+        if P is not None:
+            self.assembly = P  # residuals and local functions, in layout order
+            self.nlp = self._projected_nlp(x, p, c)
+            self.theta = self._reported()
+            self.build_s = time.perf_counter() - t0
+            return
 
         # objective, gradient and Hessian of the Lagrangian: numpy assembly of the local functions
         A = self.assembly = Assembly(self.blocks, lay, st, staged, self.perm, U[self.constraint_order], self.n_constraints)
-        dense = ca.Sparsity.dense
-        io = [dense(n), dense(lay.n_p)]
 
         def objective(a, o):
             o[0][0] = A.objective(a[0], a[1], A.data)
@@ -80,24 +99,66 @@ class Solver:
             A.hessian_values(H, a[2][0], out=o[0])
             o[0][: A.n_cal_nz] += A.C_h @ a[3]
 
+        self.nlp = self._nlpsol(x, p, c, objective, gradient, hessian, A.sparsity)
+        self.theta = self._reported()
+        self.build_s = time.perf_counter() - t0
+
+    def _reported(self) -> np.ndarray:
+        """The reported parameters (layout x indices): their covariance is computed."""
+        lay = self.problem.layout
+        nuisance = np.zeros(self.n_x, bool)
+        for g in lay.groups:
+            if g.nuisance:
+                nuisance[lay.x_indices(g.name)] = True
+        return np.flatnonzero(~nuisance)
+
+    def _projected_nlp(self, x, p, c):
+        """IPOPT over the calibration variables θ: the reduced objective, its gradient and the
+        dense upper triangle of its exact Hessian plus the constraints' curvature
+        (:class:`castimate.solve.elimination.Projection`)."""
+        P, lay = self.projection, self.problem.layout
+        H_sp = ca.Sparsity.upper(P.c)
+        hr, hc = (np.asarray(v, int) for v in H_sp.get_triplet())
+        diag_nz = np.full(P.c, -1)
+        diag_nz[hr[hr == hc]] = np.flatnonzero(hr == hc)
+        # d^2/dθ^2 of |θ s|^2 - 1 = 2 s^2 on the diagonal, per constraint (in CasADi's order)
+        rows, cols, vals = [], [], []
+        for j, row in enumerate(self.unit_rows[self.constraint_order]):
+            f = P.tpos[row[(row >= 0) & (row < self.n_x)]]
+            rows.append(diag_nz[f]), cols.append(np.full(len(f), j)), vals.append(2 * lay.x_scale[P.cal][f] ** 2)
+        cat = lambda a, t: np.concatenate(a).astype(t) if a else np.zeros(0, t)  # noqa: E731
+        C_h = sp.csr_matrix((cat(vals, float), (cat(rows, int), cat(cols, int))), shape=(len(hr), c.numel()))
+
+        def objective(a, o):
+            o[0][0] = P.reduced(a[0], a[1], P.data)[0]
+
+        def gradient(a, o):
+            f, g, _ = P.reduced(a[0], a[1], P.data)
+            o[0][0], o[1][:] = f, g
+
+        def hessian(a, o):
+            S = P.reduced(a[0], a[1], P.data)[2]
+            o[0][:] = S[hr, hc] * a[2][0] + C_h @ a[3]
+
+        return self._nlpsol(x, p, c, objective, gradient, hessian, H_sp)
+
+    def _nlpsol(self, x, p, c, objective, gradient, hessian, H_sp):
+        """nlpsol with the numpy callbacks for the objective, its gradient and the Hessian of the
+        Lagrangian (sparsity H_sp); CasADi never differentiates the objective itself."""
+        dense = ca.Sparsity.dense
+        n, n_c = x.numel(), c.numel()
+        io = [dense(n), dense(p.numel())]
         grad_cb = Callback("gradient", io, [dense(1), dense(n)], gradient)
         self.callbacks = cbs = [Callback("objective", io, [dense(1)], objective, grad_cb), grad_cb,
-                                 Callback("hessian", io + [dense(1), dense(self.n_constraints)], [A.sparsity], hessian)]
-        lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", self.n_constraints)
-        # the derivative functions are given, so that CasADi never differentiates the objective
+                                Callback("hessian", io + [dense(1), dense(n_c)], [H_sp], hessian)]
+        lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", n_c)
         grad_f = ca.Function("nlp_grad_f", [x, p], cbs[1](x, p), ["x", "p"], ["f", "grad"])
         hess_lag = ca.Function("nlp_hess_l", [x, p, lam_f, lam_g], [cbs[2](x, p, lam_f, lam_g)],
                                ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
         jac_g = ca.Function("nlp_jac_g", [x, p], [c, ca.jacobian(c, x)], ["x", "p"], ["g", "jac_g_x"])
         nlp = {"x": x, "p": p, "f": cbs[0](x, p), "g": c}
-        self.nlp = ca.nlpsol("castimate", "ipopt", nlp, {**options.ipopt(), "hess_lag": hess_lag, "grad_f": grad_f,
-                                                         "jac_g": jac_g})
-        nuisance = np.zeros(n, bool)
-        for g in lay.groups:
-            if g.nuisance:
-                nuisance[lay.x_indices(g.name)] = True
-        self.theta = np.flatnonzero(~nuisance)  # reported parameters: their covariance is computed
-        self.build_s = time.perf_counter() - t0
+        return ca.nlpsol("castimate", "ipopt", nlp, {**self.options.ipopt(), "hess_lag": hess_lag,
+                                                     "grad_f": grad_f, "jac_g": jac_g})
 
     # -- numeric ---------------------------------------------------------------------------------
     def fixed_and_data(self, p_fixed, data) -> tuple[np.ndarray, np.ndarray | None]:
@@ -187,23 +248,33 @@ class Solver:
     def solve(self, x0=None, p_fixed=None, data=None, lam_g0=None) -> Solution:
         """Solve from x0 (default: the groups' initial values); ``lam_g0`` warm-starts the constraint
         multipliers, e.g. from a Gauss-Newton solution polished with the exact Hessian."""
+        if self.projection is not None:  # no MUMPS factor storage to keep: glibc's defaults fragment less
+            return self._solve(x0, p_fixed, data, lam_g0)
         with _heap_allocation():
             return self._solve(x0, p_fixed, data, lam_g0)
 
     def _solve(self, x0, p_fixed, data, lam_g0) -> Solution:
-        lay = self.problem.layout
+        lay, P = self.problem.layout, self.projection
         x0 = lay.x0() if x0 is None else np.asarray(x0, float)
         lbx, ubx = lay.bounds()
         pf, data = self.fixed_and_data(p_fixed, data)
-        perm = self.perm
         t0 = time.perf_counter()
-        self.assembly.data, self.assembly._cache = data, None
-        sol = self.nlp(x0=x0[perm], p=pf, lbx=lbx[perm], ubx=ubx[perm], lbg=0, ubg=0,
+        if P is None:
+            sel = self.perm
+            self.assembly.data, self.assembly._cache = data, None
+            start = x0[sel]
+        else:  # IPOPT over the calibration variables
+            sel = P.cal
+            start = P.reset(x0, data)
+        sol = self.nlp(x0=start, p=pf, lbx=lbx[sel], ubx=ubx[sel], lbg=0, ubg=0,
                        lam_g0=0 if lam_g0 is None else lam_g0)
         wall = time.perf_counter() - t0
         st = self.nlp.stats()
-        x = np.empty(self.n_x)
-        x[perm] = np.asarray(sol["x"]).ravel()
+        if P is None:
+            x = np.empty(self.n_x)
+            x[sel] = np.asarray(sol["x"]).ravel()
+        else:
+            x = P.solution(np.asarray(sol["x"]).ravel(), pf)
         values = lay.unpack(x, pf)
         cov = self.covariance(x, pf, data)
         sd = np.full(self.n_x, np.nan)
@@ -213,7 +284,8 @@ class Solver:
             s = np.zeros(g.free.shape)
             s[g.free] = sd[lay.x_indices(g.name)]
             std[g.name] = g.shaped(s)
-        cost = float(sol["f"])
+        residual = self.residuals(x, pf, data)
+        cost = 0.5 * float(residual @ residual)
         lam = np.asarray(sol["lam_g"]).ravel()
         success, message = bool(st["success"]), str(st["return_status"])
         if not success and message == "Search_Direction_Becomes_Too_Small":
@@ -234,7 +306,7 @@ class Solver:
             cost=cost,
             chi2=2.0 * cost,
             dof=int(self.n_residuals - (x.size - self.n_constraints)),
-            residual=self.residuals(x, pf, data)[: self.n_data_residuals],
+            residual=residual[: self.n_data_residuals],
             covariance=cov,
             lam_g=lam,
         )

@@ -20,6 +20,9 @@ def factor(K: sp.spmatrix):
 def information(solver, x, p_fixed=None, data=None) -> sp.csc_matrix:
     """The Fisher information J^T J of the whitened residuals (priors included) at scaled x, in
     the layout's order and scaled units, assembled like the Hessian from the local Jacobians."""
+    if solver.projection is not None:  # small problems (tests): from the Jacobian
+        J = solver.jacobians(x, p_fixed, data)[0]
+        return (J.T @ J).tocsc()
     A = solver.assembly
     U = A.csc(A.hessian_values(A.assemble(solver.nlp_order(x), *solver.fixed_and_data(p_fixed, data), information=True)))
     F = (U + U.T - sp.diags(U.diagonal())).tocsr()
@@ -34,6 +37,8 @@ def eliminate(solver, x, p_fixed=None, data=None, g: np.ndarray | None = None):
     gradient g_t - B N^-1 g_n and g_n^T N^-1 g_n. Unit-norm constraints act on either block,
     never both.
     """
+    if solver.projection is not None:
+        return _eliminate_projected(solver, x, p_fixed, data, g)
     # in NLP order: the reported parameters are calibration variables, never stage variables
     A = solver.assembly
     pf, d = solver.fixed_and_data(p_fixed, data)
@@ -75,6 +80,40 @@ def eliminate(solver, x, p_fixed=None, data=None, g: np.ndarray | None = None):
             g_t -= B_T(y)
             g_nn = float(g[nu] @ y[: len(nu)])
     return S, G_t.toarray(), g_t, g_nn
+
+
+def _eliminate_projected(solver, x, p_fixed, data, g):
+    """:func:`eliminate` with the nuisance families eliminated by the projection
+    (:meth:`castimate.solve.elimination.Projection.marginal`), then the remaining nuisance
+    calibration variables (if any) by a dense Schur complement with their constraints."""
+    P = solver.projection
+    pf, d = solver.fixed_and_data(p_fixed, data)
+    x = np.asarray(x, float)
+    S, gr, g_nn = P.marginal(x, pf, d, g)
+    G = solver.constraint_jacobian(x, pf)[:, P.cal]
+    t = P.tpos[solver.theta]
+    nc = np.setdiff1d(np.arange(P.c), t)
+    on_t = np.asarray(abs(G[:, t]).sum(axis=1)).ravel() > 0
+    on_n = np.asarray(abs(G[:, nc]).sum(axis=1)).ravel() > 0
+    G_t, G_n = G[on_t][:, t].toarray(), G[on_n & ~on_t][:, nc].toarray()
+    S_tt, g_t = S[np.ix_(t, t)], None if gr is None else gr[t]
+    if len(nc):
+        k = G_n.shape[0]
+        K = np.zeros((len(nc) + k, len(nc) + k))
+        K[: len(nc), : len(nc)], K[len(nc):, : len(nc)], K[: len(nc), len(nc):] = S[np.ix_(nc, nc)], G_n, G_n.T
+        B = np.zeros((len(nc) + k, len(t)))
+        B[: len(nc)] = S[np.ix_(nc, t)]
+        rhs = B if gr is None else np.column_stack([B, np.concatenate([gr[nc], np.zeros(k)])])
+        try:
+            Y = np.linalg.solve(K, rhs)
+        except np.linalg.LinAlgError:
+            raise np.linalg.LinAlgError("the nuisance variables are not determined by the data") from None
+        S_tt = S_tt - B.T @ Y[:, : len(t)]
+        if gr is not None:
+            g_t = g_t - B.T @ Y[:, -1]
+            g_nn += float(gr[nc] @ Y[: len(nc), -1])
+    return S_tt, G_t, g_t, g_nn
+
 
 def marginal_information(solver, x, p_fixed=None, data=None) -> tuple[np.ndarray, np.ndarray]:
     """Fisher information of the reported parameters with the nuisance variables marginalised:
@@ -127,9 +166,16 @@ def newton_decrement(solver, x, lam_g, p_fixed=None, data=None) -> float:
     block is eliminated first (:func:`eliminate`), so this costs what the covariance costs."""
     pf, d = solver.fixed_and_data(p_fixed, data)
     G = solver.constraint_jacobian(x, pf)
-    lam = np.zeros(solver.n_constraints)
-    lam[solver.constraint_order] = lam_g  # CasADi's multipliers follow its constraint order (grouped by width)
-    g = solver.assembly.derivatives(solver.nlp_order(x), pf, d)[1][solver.assembly.ipos] + G.T @ lam
+    lam, lam_g = np.zeros(solver.n_constraints), np.asarray(lam_g, float).ravel()
+    if lam_g.size == solver.constraint_order.size:  # a solve's multipliers (Solution.lam_g)
+        lam[solver.constraint_order] = lam_g  # CasADi's multipliers follow its constraint order (grouped by width)
+    elif lam_g.any():  # else only zeros, of any length: no multipliers
+        raise ValueError(f"expected {solver.constraint_order.size} constraint multipliers, found {lam_g.size}")
+    if solver.projection is not None:
+        g = solver.projection.gradient(np.asarray(x, float), pf, d)
+    else:
+        g = solver.assembly.derivatives(solver.nlp_order(x), pf, d)[1][solver.assembly.ipos]
+    g = g + G.T @ lam
     try:
         S, G_t, g_t, g_nn = eliminate(solver, x, p_fixed, data, g)
     except np.linalg.LinAlgError:

@@ -1,0 +1,678 @@
+"""Variable projection: the per-sample motion and the per-pose directions eliminated exactly.
+
+Every problem is arrow-shaped: thousands of small nuisance blocks (the motion states ω, ω̇, s of
+each sample; the specific-force direction of each static pose) couple to each other only through a
+banded process model, and to a few hundred calibration parameters θ, a dense border. IPOPT solves
+the *reduced* problem over θ alone::
+
+    φ(θ) = min_m f(θ, m)    (m: the nuisance rows, subject to their own unit-norm constraints)
+
+At each θ the nuisance m*(θ) is found by Newton steps on m alone, warm-started from the first-order
+prediction of the implicit function theorem, dm/dθ = -H_mm^-1 H_mθ. The reduced gradient is
+∇φ = g_θ - H_θm H_mm^-1 g_m (exact at m*; the correction makes it exact to second order in the
+inner residual), and the exact reduced Hessian is the Schur complement of the full Hessian of the
+Lagrangian, second-order terms included::
+
+    ∇²φ = H_θθ - H_θm H_mm^-1 H_mθ
+
+H_mm is block diagonal (independent samples or poses) or block banded (a process model coupling
+consecutive samples: a Kalman/RTS-like sweep, here LAPACK's band Cholesky), so every evaluation costs
+time and memory linear in the number of samples; the only dense matrix is the (θ, θ) one. Unit-norm
+rows of a nuisance family (pose directions) are handled in their tangent space (basis Z, multiplier
+curvature added). The covariance uses the same elimination with the Fisher information J^T J.
+
+A *family* is a set of nuisance matrix groups with the same rows (:class:`Family`); the factor
+blocks that touch it must come in runs of instances per row (:class:`assembly.StagedBlock`, the
+instances sorted by row if needed). Local derivatives come from the same compiled local functions
+as the reference assembly (:mod:`castimate.solve.assembly`), plus one of the nuisance components
+alone for the inner steps, and land on the eliminated system's arrays through small constant maps
+(:class:`_Plan`).
+
+Measured against the reference path (the full NLP, KKT factorised by MUMPS), same start, same
+optimum to 1e-13 relative: see ``benchmarks/dynamic_scaling.py``.
+"""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+import scipy.linalg as sla
+from scipy.linalg import blas, lapack
+
+from ..jit import compile_functions
+from ..problem.parameters import Layout
+from .assembly import CHUNK, Block, NotStaged, StagedBlock
+
+
+class Family:
+    """Rows of nuisance matrix groups eliminated together: the motion states of every sample, or
+    the direction of every static pose. Stage r holds row r of every group of the family."""
+
+    def __init__(self, lay: Layout, groups):
+        self.groups = groups
+        self.R = groups[0].rows
+        self.X = np.hstack([lay.w_index(g.name)[:, g.free[0]] for g in groups])  # (R, m) layout x indices
+        self.m = self.X.shape[1]
+        n = lay.n_x
+        self.stage_of = np.full(n, -1)
+        self.stage_of[self.X] = np.arange(self.R)[:, None]
+        self.within = np.full(n, -1)
+        self.within[self.X] = np.arange(self.m)[None, :]
+        self.scale = lay.x_scale[self.X[0]]
+        self.unit = []  # unit-norm groups: (stage positions (k,), w indices of fixed components (R, nf))
+        col = 0
+        for g in groups:
+            f = g.free[0]
+            k = int(f.sum())
+            if g.unit_norm:
+                self.unit.append((col + np.arange(k), lay.w_index(g.name)[:, ~f]))
+            col += k
+        self.width = 1  # stages coupled by one factor instance (1: independent stages)
+
+    @staticmethod
+    def eligible(g) -> bool:
+        f = g.free[0]
+        return bool(g.matrix and g.nuisance and g.free.any() and g.rows >= 2 and (g.free == f).all()
+                    and not np.isfinite(g.prior_std[g.free]).any() and (g.scale[:, f] == g.scale[0, f]).all()
+                    and np.isinf(g.lower[g.free]).all() and np.isinf(g.upper[g.free]).all())
+
+
+class _View:
+    """A block's instances in another order (sorted by stage) for the stage analysis."""
+
+    def __init__(self, w_idx):
+        self.w_idx = w_idx
+
+
+def find_families(lay: Layout, blocks: list[Block]):
+    """Families and, per block, (family index, StagedBlock, instance order or None); blocks are
+    reordered (calibration inputs first). Families that some block touches without the stage
+    structure are dropped (their variables stay calibration variables)."""
+    by_rows: dict = {}
+    for g in lay.groups:
+        if Family.eligible(g):
+            by_rows.setdefault(g.rows, []).append(g)
+    cands = list(by_rows.values())
+    while True:
+        fams = [Family(lay, gs) for gs in cands]
+        staged, bad = {}, None
+        for i, b in enumerate(blocks):
+            for fi, fam in enumerate(fams):
+                try:
+                    sb, order = _stage(b, fam)
+                except LookupError:
+                    continue
+                except NotStaged:
+                    bad = fi
+                    break
+                if i in staged:  # touches two families
+                    bad = fi
+                    break
+                staged[i] = (fi, sb, order)
+            if bad is not None:
+                break
+        if bad is None:
+            break
+        cands.pop(bad)
+    for i, (fi, sb, order) in staged.items():
+        b = blocks[i]
+        b.reorder(sb.order)
+        sb.reordered()
+        fams[fi].width = max(fams[fi].width, int(sb.rel.max()) + 1)
+    return fams, staged
+
+
+def _stage(b, fam):
+    """StagedBlock of b for a family, on the instances sorted by their first stage if needed."""
+    W = b.w_idx
+    n = len(fam.stage_of)
+    stage_of = np.full(max(int(W.max()) + 1, n), np.iinfo(np.int32).max, np.int32)
+    stage_of[:n][fam.stage_of >= 0] = fam.stage_of[fam.stage_of >= 0]
+    base = stage_of[W].min(axis=1)
+    if (base == np.iinfo(np.int32).max).all():
+        raise LookupError
+    order = None
+    if (np.diff(base) < 0).any():
+        order = np.argsort(base, kind="stable")
+        b = _View(W[order])
+    return StagedBlock(b, fam, max_offset=None), order
+
+
+# ------------------------------------------------------------------------------------------------
+# Local functions of the stage components only (the inner problem)
+# ------------------------------------------------------------------------------------------------
+
+def inner_function(fn: ca.Function, order: np.ndarray, n_cal: int, hessian: str, jit: bool):
+    """The local function of the nuisance components alone, for the inner Newton steps:
+    (z_cal, z_stage, d) -> (r, J_s^T r, H_ss and J_s^T J_s at the pairs), with the pairs and the
+    active components as indices into z. H_ss is the exact Hessian of 1/2 |r|^2 (J_s^T J_s for
+    ``gauss_newton``); J_s^T J_s serves the Levenberg-Marquardt steps far from the optimum."""
+    nz, nd = fn.size1_in(0), fn.size1_in(1)
+    zc, zs, d = ca.SX.sym("zc", n_cal), ca.SX.sym("zs", nz - n_cal), ca.SX.sym("d", nd)
+    z = ca.vertcat(zc, zs)
+    r = fn(z[np.argsort(order).tolist()], d)
+    J = ca.jacobian(r, zs)
+    JtJ = ca.mtimes(J.T, J)
+    H = ca.hessian(0.5 * ca.sumsqr(r), zs)[0] if hessian == "exact" else JtJ
+    sp_H = H.sparsity().unite(JtJ.sparsity())
+    ns = nz - n_cal
+    pairs = np.array([(a, b) for b in range(ns) for a in range(b + 1) if sp_H.has_nz(a, b)], int).reshape(-1, 2)
+
+    def entries(M):
+        return ca.densify(ca.vertcat(*[M[int(a), int(b)] for a, b in pairs])) if len(pairs) else ca.SX(0, 1)
+
+    f = ca.Function(f"{fn.name()}_rghs", [zc, zs, d], [r, ca.densify(ca.mtimes(J.T, r)), entries(H), entries(JtJ)])
+    out = (compile_functions([f]) if jit else None) or [f]
+    return out[0], n_cal + pairs, n_cal + np.arange(ns)
+
+
+class _Map:
+    """Local entries -> targets: ``out[:, dest] += (V[:, src] * val)`` summed over equal targets."""
+
+    def __init__(self, src, dest, val):
+        o = np.argsort(dest, kind="stable")
+        self.src, dest, self.val = src[o], dest[o], val[o]
+        self.dest, starts = np.unique(dest, return_index=True)
+        self.starts = None if len(starts) == len(dest) else starts
+
+    def __call__(self, V):
+        X = V[:, self.src] * self.val
+        return X if self.starts is None else np.add.reduceat(X, self.starts, axis=1)
+
+
+class _Plan:
+    """Where the local gradient and Hessian entries of one stage group of a block land.
+
+    Sources: stage group j's entries k * width + e (instance k of the group, entry e). Targets:
+    ``gc`` (c,) and ``hcc`` (c * c,) summed over the groups; per stage offset d, ``gs[d]`` (m,),
+    ``hsc[d]`` (m * c,) of stage base + j + d; per (d, o), ``hss[(d, o)]`` (m * m,) of the block
+    coupling stage base + j + d to stage base + j + d + o (o = 0: the diagonal block)."""
+
+    def __init__(self, K, is_st, rel, q, act, pairs, fam_scale, m, tpos, xscale, n, c):
+        na, P = len(act), len(pairs)
+        self.na, self.P, self.K = na, P, K
+        # gradient
+        k = np.repeat(np.arange(K), na)
+        a = np.tile(act, K)
+        src = k * na + np.tile(np.arange(na), K)
+        st, r, qq = is_st[a], rel[k, a], q[k, a]
+        cal = ~st & (qq < n)
+        self.gc = _Map(src[cal], tpos[qq[cal]], xscale[qq[cal]]) if cal.any() else None
+        # stage targets are the same for every instance of a stage group (StagedBlock): their
+        # entries are summed over the group first, and the maps read instance 0's sources
+        st &= k == 0
+        self.gs = {int(d): _Map(src[s], qq[s], fam_scale[qq[s]]) for d in np.unique(r[st]) for s in [st & (r == d)]}
+        # Hessian
+        k = np.repeat(np.arange(K), P)
+        pa, pb = np.tile(pairs[:, 0], K), np.tile(pairs[:, 1], K)
+        src = k * P + np.tile(np.arange(P), K)
+        sa, sb = is_st[pa], is_st[pb]
+        qa, qb, ra, rb = q[k, pa], q[k, pb], rel[k, pa], rel[k, pb]
+        keep = (sa | (qa < n)) & (sb | (qb < n))
+        s = keep & ~sa & ~sb
+        i, j, v, mirror = tpos[qa[s]], tpos[qb[s]], xscale[qa[s]] * xscale[qb[s]], pa[s] != pb[s]
+        self.hcc = _Map(np.concatenate([src[s], src[s][mirror]]), np.concatenate([i * c + j, (j * c + i)[mirror]]),
+                        np.concatenate([v, v[mirror]])) if s.any() else None
+        s = keep & (sa ^ sb)
+        sq, sr, cq = np.where(sa, qa, qb)[s], np.where(sa, ra, rb)[s], np.where(sa, qb, qa)[s]
+        v, dest, ss = fam_scale[sq] * xscale[cq], sq * c + tpos[cq], src[s]
+        self.hsc = {int(d): _Map(ss[sel], dest[sel], v[sel]) for d in np.unique(sr) for sel in [sr == d]}
+        s = keep & sa & sb & (k == 0)
+        swap = ra[s] > rb[s]
+        r1, r2 = np.where(swap, rb[s], ra[s]), np.where(swap, ra[s], rb[s])
+        q1, q2 = np.where(swap, qb[s], qa[s]), np.where(swap, qa[s], qb[s])
+        v, ss, o = fam_scale[q1] * fam_scale[q2], src[s], r2 - r1
+        mirror = (o == 0) & (pa[s] != pb[s])
+        self.hss = {}
+        for key in sorted({(int(x), int(y)) for x, y in zip(r1, o)}):
+            sel = (r1 == key[0]) & (o == key[1])
+            ms = sel & mirror
+            self.hss[key] = _Map(np.concatenate([ss[sel], ss[ms]]),
+                                 np.concatenate([q1[sel] * m + q2[sel], q2[ms] * m + q1[ms]]),
+                                 np.concatenate([v[sel], v[ms]]))
+
+
+class _Parts:
+    """The assembled pieces at one point: objective, calibration gradient and Hessian, and per
+    family the stage gradient G (R, m), the stage Hessian blocks B[o] (R - o, m, m) and the
+    coupling Hsc (R, m, c)."""
+
+    def __init__(self, c, fams, cal: bool, gn: bool = False):
+        self.f = 0.0
+        self.gc = np.zeros(c) if cal else None
+        self.hcc = np.zeros(c * c) if cal else None
+        self.G = [np.zeros((f.R, f.m)) for f in fams]
+        self.B = [[np.zeros((f.R - o, f.m, f.m)) for o in range(f.width)] for f in fams]
+        self.Hsc = [np.zeros((f.R, f.m, c)) for f in fams] if cal else None
+        self.Bgn = [[np.zeros((f.R - o, f.m, f.m)) for o in range(f.width)] for f in fams] if gn else None
+
+
+class _Factor:
+    """Cholesky factor L of a family's stage Hessian (block diagonal: per stage; block banded:
+    LAPACK band storage). ``lower(v)`` = L^-1 v, ``upper(v)`` = L^-T v for v (R, m, k)."""
+
+    def __init__(self, B):
+        self.R, self.m = B[0].shape[0], B[0].shape[1]
+        if len(B) == 1:
+            self.Linv = np.linalg.inv(np.linalg.cholesky(B[0]))
+            self.L = None
+        else:
+            self.L = sla.cholesky_banded(_banded(B, self.m), lower=True, check_finite=False)
+
+    def lower(self, v, inplace: bool = False):
+        if self.L is None:
+            if not inplace:
+                return np.matmul(self.Linv, v)
+            for s0 in range(0, self.R, 1024):  # in place, a slab of stages at a time
+                v[s0: s0 + 1024] = np.matmul(self.Linv[s0: s0 + 1024], v[s0: s0 + 1024])
+            return v
+        k = v.shape[2]
+        return _tbtrs(self.L, np.asfortranarray(v.reshape(-1, k))).reshape(self.R, self.m, k)
+
+    def upper(self, v):
+        if self.L is None:
+            return np.matmul(self.Linv.transpose(0, 2, 1), v)
+        k = v.shape[2]
+        return _tbtrs(self.L, np.asfortranarray(v.reshape(-1, k)), "T").reshape(self.R, self.m, k)
+
+
+def _banded(B, m):
+    """LAPACK lower band storage ab[i - j, j] = H[i, j] of the block-banded symmetric matrix with
+    blocks B[o][s] = H[stage s, stage s + o]."""
+    R = B[0].shape[0]
+    ab = np.zeros((len(B) * m, R * m))
+    a, b = np.meshgrid(np.arange(m), np.arange(m), indexing="ij")
+    for o, Bo in enumerate(B):
+        diff = o * m + a - b
+        ok = diff >= 0
+        ab[diff[ok][None, :], np.arange(R - o)[:, None] * m + b[ok][None, :]] = Bo[:, b[ok], a[ok]]
+    return ab
+
+
+def _tbtrs(L, rhs, trans="N"):
+    x, info = lapack.dtbtrs(L, rhs, uplo="L", trans=trans, overwrite_b=1)
+    if info:
+        raise np.linalg.LinAlgError("singular band factor")
+    return x
+
+
+class Projection:
+    """The reduced objective φ(θ) of the calibration variables θ (every free variable outside the
+    nuisance families, in layout order), its gradient and exact Hessian, and the elimination of
+    the families at any point. Built by :meth:`build`, which compiles the blocks' local functions.
+
+    Scaled variables throughout (x = value / scale); stage values Xs: one (R, m) array per family.
+    """
+
+    max_inner = 60  # Newton steps on the nuisance at one θ
+    inner_tol = 1e-12  # Newton decrement (χ²/2 units) at which the nuisance counts as converged, relative to 1 + f
+
+    @classmethod
+    def build(cls, blocks: list[Block], layout: Layout, hessian: str, jit: bool) -> "Projection | None":
+        """The projection of a problem, or None if it has no nuisance family to eliminate or nothing
+        else to estimate (the motion alone, for a known geometry: the full NLP is that problem)."""
+        fams, staged = find_families(layout, blocks)
+        if not fams or sum(f.X.size for f in fams) == layout.n_x:
+            for i, (_, sb, _) in staged.items():  # undo the reordering
+                blocks[i].reorder(np.argsort(blocks[i].order))
+            return None
+        return cls(blocks, layout, fams, staged, hessian, jit)
+
+    def __init__(self, blocks, layout, fams, staged, hessian: str, jit: bool):
+        self.layout, self.blocks = layout, blocks
+        n = self.n = layout.n_x
+        self.fams, self.staged = fams, staged
+        in_fam = np.zeros(n, bool)
+        for f in fams:
+            in_fam[f.X.ravel()] = True
+        self.cal = np.flatnonzero(~in_fam)
+        c = self.c = len(self.cal)
+        self.tpos = np.full(n, -1)
+        self.tpos[self.cal] = np.arange(c)
+        self.xscale = xs = layout.x_scale
+        cache, inner_cache = {}, {}
+        self.plans, self.inner = [], []
+        for i, b in enumerate(blocks):
+            st = staged.get(i)
+            n_cal = st[1].n_cal if st else b.w_idx.shape[1]
+            b.compile(cache, n_cal, hessian, jit)
+            f = b.f
+            if st is None:
+                N, nz = b.w_idx.shape
+                self.plans.append(_Plan(N, np.zeros(nz, bool), np.zeros((N, nz), int), b.w_idx, f.act, f.pairs,
+                                        np.ones(1), 1, self.tpos, xs, n, c))
+                self.inner.append(None)
+                continue
+            fi, sb, _ = st
+            fam = fams[fi]
+            self.plans.append(_Plan(sb.K, sb.is_st, sb.rel, sb.q, f.act, f.pairs, fam.scale, fam.m, self.tpos, xs, n, c))
+            key = (id(b.block.residual), b.order.tobytes(), n_cal)
+            if key not in inner_cache:
+                inner_cache[key] = inner_function(b.block.residual, b.order, n_cal, hessian, jit)
+            fn, pairs_s, act_s = inner_cache[key]
+            self.inner.append((fn, _Plan(sb.K, sb.is_st, sb.rel, sb.q, act_s, pairs_s, fam.scale, fam.m, self.tpos,
+                                         xs, n, c)))
+        self.prior = layout.priors()
+        self.data = None
+        self._cache, self._anchor, self._factors = None, None, None
+
+    # -- evaluation --------------------------------------------------------------------------------
+    def x_full(self, theta, Xs) -> np.ndarray:
+        x = np.empty(self.n)
+        x[self.cal] = theta
+        for f, X in zip(self.fams, Xs):
+            x[f.X] = X
+        return x
+
+    def split(self, x):
+        return x[self.cal], [x[f.X] for f in self.fams]
+
+    def _data(self, i, data):
+        b = self.blocks[i]
+        if data is None:
+            return b.data
+        return data[b.data_offset: b.data_offset + b.block.n * b.f.nd].reshape(b.block.n, b.f.nd)
+
+    def local(self, x, pf, data, which: str) -> list[np.ndarray]:
+        """One local function (res or jac) of every block over all instances, original order."""
+        w = np.concatenate([x * self.xscale, pf])
+        out = []
+        for i, b in enumerate(self.blocks):
+            fn = getattr(b.f, which)
+            D = self._data(i, data)
+            nc = b.f.n_cal
+            R = np.empty((b.block.n, fn.size1_out(0) * fn.size2_out(0)))
+            for t0 in range(0, b.block.n, CHUNK):
+                t1 = min(b.block.n, t0 + CHUNK)
+                z = w[b.w_idx[t0:t1]]
+                b.f(fn, [np.ascontiguousarray(z[:, :nc]), np.ascontiguousarray(z[:, nc:]), D[t0:t1]], [R[t0:t1]])
+            out.append(R)
+        return out
+
+    def residuals(self, x, pf, data):
+        r = self.local(x, pf, data, "res")
+        pi, pm, ps = self.prior
+        w = x[pi] * self.xscale[pi]
+        return np.concatenate([a.ravel() for a in r] + [(w - pm) / ps])
+
+    def assemble(self, theta, Xs, pf, data, mode: str) -> _Parts:
+        """mode: "res" (objective), "inner" (stage derivatives), "full" (all derivatives), "info" (J^T J)."""
+        c = self.c
+        parts = _Parts(c, self.fams, mode in ("full", "info"), mode == "inner")
+        w = np.concatenate([self.x_full(theta, Xs) * self.xscale, pf])
+        for i, b in enumerate(self.blocks):
+            f, st = b.f, self.staged.get(i)
+            D = self._data(i, data)
+            W = b.w_idx
+            if st is None:
+                K, J, base, fi, plan = b.block.n, 1, 0, None, self.plans[i]
+                fn = {"full": f.rgh, "info": f.gn}.get(mode, f.res)
+                step = 1
+            else:
+                fi, sb, order = st
+                if order is not None:
+                    W, D = W[order], D[order]
+                K, J, base = sb.K, sb.J, sb.base
+                if mode == "inner":
+                    fn, plan = self.inner[i]
+                else:
+                    fn, plan = {"res": f.res, "full": f.rgh, "info": f.gn}[mode], self.plans[i]
+                step = max(1, CHUNK // K)
+            nc = f.n_cal
+            if st is None:  # the whole block at once: its entries go through one map
+                outs = [np.empty((b.block.n, fn.size1_out(k))) for k in range(fn.n_out())]
+                for t0 in range(0, b.block.n, CHUNK):
+                    t1 = min(b.block.n, t0 + CHUNK)
+                    z = w[W[t0:t1]]
+                    b.f(fn, [np.ascontiguousarray(z[:, :nc]), np.ascontiguousarray(z[:, nc:]), D[t0:t1]],
+                        [o[t0:t1] for o in outs])
+                self._scatter(parts, fn, outs, plan, mode, 0, 1, 0, None)
+                continue
+            for j0 in range(0, J, step):
+                j1 = min(J, j0 + step)
+                t0, t1 = j0 * K, j1 * K
+                z = w[W[t0:t1]]
+                outs = [np.empty((t1 - t0, fn.size1_out(k))) for k in range(fn.n_out())]
+                b.f(fn, [np.ascontiguousarray(z[:, :nc]), np.ascontiguousarray(z[:, nc:]), D[t0:t1]], outs)
+                self._scatter(parts, fn, outs, plan, mode, j0, j1, base, fi)
+        pi, pm, ps = self.prior
+        pr = (w[pi] - pm) / ps
+        parts.f += 0.5 * float(pr @ pr)
+        if parts.gc is not None and len(pi):
+            t = self.tpos[pi]
+            s = self.xscale[pi] / ps
+            np.add.at(parts.gc, t, pr * s if mode != "info" else 0.0)
+            np.add.at(parts.hcc, t * c + t, s * s)
+        return parts
+
+    def _scatter(self, parts, fn, outs, plan, mode, j0, j1, base, fi):
+        nJ = j1 - j0
+        if mode == "res":
+            parts.f += 0.5 * float(np.einsum("ij,ij->", outs[0], outs[0]))
+            return
+        if mode == "info":
+            g, h = None, outs[0]
+        else:
+            r, g, h = outs[:3] if len(outs) >= 3 else (outs[0], None, None)
+            parts.f += 0.5 * float(np.einsum("ij,ij->", r, r))
+            if h is None:
+                return
+        K = 1 if fi is None else plan.K
+        if g is not None and g.shape[1]:
+            V = g.reshape(nJ, -1)
+            if plan.gc is not None and parts.gc is not None:
+                parts.gc[plan.gc.dest] += plan.gc(V.sum(axis=0, keepdims=True))[0]
+            if plan.gs:
+                Vk = V.reshape(nJ, K, -1).sum(axis=1)
+                for d, M in plan.gs.items():
+                    parts.G[fi][base + d + j0: base + d + j1][:, M.dest] += M(Vk)
+        if not h.shape[1]:
+            return
+        V = h.reshape(nJ, -1)
+        if plan.hcc is not None and parts.hcc is not None:
+            parts.hcc[plan.hcc.dest] += plan.hcc(V.sum(axis=0, keepdims=True))[0]
+        if fi is None:
+            return
+        Vk = V.reshape(nJ, K, -1).sum(axis=1)
+        if parts.Hsc is not None:
+            for d, M in plan.hsc.items():
+                parts.Hsc[fi][base + d + j0: base + d + j1].reshape(nJ, -1)[:, M.dest] += M(V)
+        for (d, o), M in plan.hss.items():
+            parts.B[fi][o][base + d + j0: base + d + j1].reshape(nJ, -1)[:, M.dest] += M(Vk)
+        if mode == "inner" and len(outs) == 4:  # the Gauss-Newton Hessian too
+            Vk = outs[3].reshape(nJ, K, -1).sum(axis=1)
+            for (d, o), M in plan.hss.items():
+                parts.Bgn[fi][o][base + d + j0: base + d + j1].reshape(nJ, -1)[:, M.dest] += M(Vk)
+
+    # -- elimination -------------------------------------------------------------------------------
+    def _tangent(self, fi, X, pf):
+        """Basis Z (R, m, m') of the tangent space of the family's unit-norm rows at X (scaled), and
+        the constraint gradients [(positions, a (R, k))]; (None, []) without unit-norm rows."""
+        fam = self.fams[fi]
+        if not fam.unit:
+            return None, []
+        N = np.zeros((fam.R, fam.m, len(fam.unit)))
+        grads = []
+        for u, (pos, _) in enumerate(fam.unit):
+            a = 2 * X[:, pos] * fam.scale[pos] ** 2
+            N[:, pos, u] = a
+            grads.append((pos, a))
+        U = np.linalg.svd(N, full_matrices=True)[0]
+        return U[:, :, len(fam.unit):], grads
+
+    def eliminate(self, parts, Xs, pf, coupling: bool, curvature: bool, damping: float = 0.0,
+                  limit: float = np.inf, gauss_newton: bool = False):
+        """Eliminate every family: returns (dec, steps, S, g) with dec = sum G^T H^-1 G (tangent),
+        steps the Newton steps of the stage variables (scaled), and with ``coupling`` the Schur
+        complement S = Hcc - Hcs H^-1 Hsc and the reduced gradient g = gc - Hcs H^-1 G; the
+        factors are kept for the predictor (self._factors)."""
+        c = self.c
+        S = parts.hcc.reshape(c, c).copy() if coupling else None
+        g = parts.gc.copy() if coupling else None
+        dec, steps, factors = 0.0, [], []
+        prepared = []
+        for fi, fam in enumerate(self.fams):
+            B = (parts.Bgn if gauss_newton else parts.B)[fi]
+            G, B = parts.G[fi], [b.copy() for b in B] if (damping or fam.unit) else B
+            Z, grads = self._tangent(fi, Xs[fi], pf)
+            if Z is not None:
+                if curvature:
+                    for pos, a in grads:
+                        lam = -np.einsum("rk,rk->r", a, G[:, pos]) / np.einsum("rk,rk->r", a, a)
+                        B[0][:, pos, pos] += lam[:, None] * 2 * fam.scale[pos] ** 2
+                G = np.einsum("rmk,rm->rk", Z, G)
+                B = [np.einsum("rma,rmn,rnb->rab", Z[: fam.R - o], Bo, Z[o:]) for o, Bo in enumerate(B)]
+            if damping:  # Levenberg-Marquardt, relative to the mean diagonal
+                B[0] += damping * float(np.einsum("rii->", B[0])) / B[0].shape[0] / B[0].shape[1] * np.eye(B[0].shape[1])
+            F = _Factor(B)
+            y = F.lower(G[:, :, None])
+            dec += float(np.einsum("ijk,ijk->", y, y))
+            step = -F.upper(y)[:, :, 0]
+            if Z is not None:
+                step = np.einsum("rmk,rk->rm", Z, step)
+            steps.append(step)
+            prepared.append((F, y, Z))
+        if coupling and dec > limit:
+            return dec, steps, None, None
+        for fi, (F, y, Z) in enumerate(prepared):
+            Y = None
+            if coupling:
+                Hsc = parts.Hsc[fi]
+                if Z is not None:
+                    Hsc = np.einsum("rmk,rmc->rkc", Z, Hsc)
+                Y = F.lower(Hsc, inplace=True).reshape(-1, c)  # (R m', c), in Hsc's storage
+                S -= blas.dsyrk(1.0, Y.T, trans=0) if Y.flags.c_contiguous else Y.T @ Y
+                g -= Y.T @ y.reshape(-1)
+            factors.append((F, Y, Z))
+        if coupling:
+            S = np.triu(S) + np.triu(S, 1).T  # dsyrk fills the upper triangle
+        self._factors = factors
+        return dec, steps, S, g
+
+    def _move(self, Xs, steps, alpha, pf):
+        out = []
+        for fi, (X, s) in enumerate(zip(Xs, steps)):
+            Xn = X + alpha * s
+            fam = self.fams[fi]
+            for pos, fixed in fam.unit:  # back onto the unit sphere
+                v = Xn[:, pos] * fam.scale[pos]
+                rest = 1.0 - (pf[fixed - self.n] ** 2).sum(axis=1) if fixed.shape[1] else 1.0
+                Xn[:, pos] *= np.sqrt(rest / (v * v).sum(axis=1))[:, None]
+            out.append(Xn)
+        return out
+
+    def inner_solve(self, theta, Xs, pf, data):
+        """The stage variables minimising the objective at theta, from Xs: Levenberg-Marquardt
+        steps on the Gauss-Newton Hessian while the exact Hessian is not positive definite or the
+        decrement is large (near zero motion the exact Hessian is indefinite and Gauss-Newton
+        singular), then Newton steps."""
+        parts = self.assemble(theta, Xs, pf, data, "inner")
+        f, mu = parts.f, 0.0
+        for it in range(self.max_inner):
+            exact = mu == 0.0
+            try:
+                dec, steps, _, _ = self.eliminate(parts, Xs, pf, coupling=False, curvature=True, damping=mu,
+                                                  gauss_newton=not exact)
+            except np.linalg.LinAlgError:
+                mu = 1e-6 if exact else mu * 10
+                if mu > 1e6:
+                    raise np.linalg.LinAlgError("the nuisance variables are not determined by the data") from None
+                continue
+            if exact and dec <= self.inner_tol * (1.0 + abs(f)):
+                return Xs, f - 0.5 * dec, it
+            Xn = self._move(Xs, steps, 1.0, pf)
+            pn = self.assemble(theta, Xn, pf, data, "inner")
+            if pn.f <= f:
+                Xs, parts = Xn, pn
+                # Newton once the step barely changes the objective
+                mu = 0.0 if exact or f - pn.f < 1e-3 * (1.0 + abs(pn.f)) else mu / 10
+                f = pn.f
+            else:
+                mu = 1e-6 if exact else mu * 10
+        return Xs, f, self.max_inner
+
+    def predict(self, theta, pf):
+        """Stage variables at theta to first order from the last full evaluation: the implicit
+        function theorem, dm = -H_mm^-1 H_mθ dθ = -L^-T (Y dθ) with Y = L^-1 H_mθ kept."""
+        th, Xs, factors = self._anchor
+        d = theta - th
+        out = []
+        for fi, (X, (F, Y, Z)) in enumerate(zip(Xs, factors)):
+            dx = -F.upper((Y @ d).reshape(F.R, F.m, 1))[:, :, 0]
+            if Z is not None:
+                dx = np.einsum("rmk,rk->rm", Z, dx)
+            out.append(dx)
+        return self._move(Xs, out, 1.0, pf)
+
+    def reduced(self, theta, pf, data):
+        """(phi, gradient, Hessian S) of the reduced objective at theta. One full evaluation at the
+        predicted stage variables when they are close enough (Newton decrement below inner_tol);
+        else Newton iterations on the stage variables alone first."""
+        key = (theta.tobytes(), pf.tobytes(), id(data))
+        c = self._cache
+        if c is not None and c["key"] == key:
+            return c["phi"], c["g"], c["S"]
+        Xs = self.predict(theta, pf) if self._anchor is not None else self._X0
+        self._anchor = self._factors = None  # as large as the coupling: freed before the next ones
+        prev = None
+        for it in range(self.max_inner):
+            parts = self.assemble(theta, Xs, pf, data, "full")
+            limit = self.inner_tol * (1.0 + abs(parts.f))
+            if prev is not None and parts.f > prev[1]:  # the full step failed: damped Newton on the stage variables
+                Xs, _, _ = self.inner_solve(theta, prev[0], pf, data)
+                prev = None
+                continue
+            try:
+                dec, steps, S, g = self.eliminate(parts, Xs, pf, coupling=True, curvature=True, limit=limit)
+            except np.linalg.LinAlgError:
+                Xs, _, _ = self.inner_solve(theta, Xs, pf, data)
+                continue
+            if S is not None:
+                break
+            prev = (Xs, parts.f)
+            Xs = self._move(Xs, steps, 1.0, pf)
+        else:
+            raise RuntimeError("the nuisance variables did not converge")
+        Xs = self._move(Xs, steps, 1.0, pf)  # the last Newton step (its decrement is below inner_tol)
+        self._cache = {"key": key, "X": Xs, "phi": parts.f - 0.5 * dec, "g": g, "S": S, "data": data}
+        self._anchor = (theta.copy(), Xs, self._factors)
+        return self._cache["phi"], g, S
+
+    def reset(self, x0: np.ndarray, data) -> np.ndarray:
+        """Start a solve at layout-order x0 with the data vector (None: the blocks' own); returns
+        θ0. The nuisance starts at x0's rows."""
+        th0, self._X0 = self.split(x0)
+        self.data, self._cache, self._anchor, self._factors = data, None, None, None
+        return th0
+
+    def solution(self, theta, pf) -> np.ndarray:
+        """Layout-order x at θ with the nuisance at its optimum."""
+        self.reduced(theta, pf, self.data)
+        return self.x_full(theta, self._cache["X"])
+
+    def gradient(self, x, pf, data) -> np.ndarray:
+        """Gradient of the objective w.r.t. every variable (layout order, scaled) at x."""
+        th, Xs = self.split(x)
+        parts = self.assemble(th, Xs, pf, data, "full")
+        g = np.empty(self.n)
+        g[self.cal] = parts.gc
+        for f, G in zip(self.fams, parts.G):
+            g[f.X] = G
+        return g
+
+    def marginal(self, x, pf, data, g: np.ndarray | None = None):
+        """Fisher information of the calibration variables with the families eliminated at x:
+        (S (c, c), and for a layout-order gradient g the reduced gradient and g_m^T F_mm^-1 g_m)."""
+        th, Xs = self.split(x)
+        parts = self.assemble(th, Xs, pf, data, "info")
+        if g is not None:
+            parts.gc = np.asarray(g, float)[self.cal].copy()
+            parts.G = [np.asarray(g, float)[f.X] for f in self.fams]
+        else:
+            parts.gc = np.zeros(self.c)
+        try:
+            dec, _, S, gr = self.eliminate(parts, Xs, pf, coupling=True, curvature=False)
+        except np.linalg.LinAlgError:
+            raise np.linalg.LinAlgError("the nuisance variables are not determined by the data") from None
+        self._factors = None
+        return S, (gr if g is not None else None), dec

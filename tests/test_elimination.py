@@ -1,0 +1,90 @@
+"""Variable projection (``SolverOptions(elimination="motion")``, the default) against the full NLP
+(``elimination="none"``, the reference path): the same optimum and the same σ's on static and
+dynamic problems, with and without the process model, with quaternion-constrained misalignments,
+a prior, a free gain and masked samples (``test_assembly``'s cases); the reduced gradient and the
+exact reduced Hessian against finite differences of the reduced objective.
+"""
+
+import numpy as np
+import pytest
+
+from castimate.solve import Solver, SolverOptions
+
+from test_assembly import dynamic_case, static_case
+
+CASES = {"dynamic": lambda: dynamic_case(40, True), "dynamic_no_process_model": lambda: dynamic_case(40, False),
+         "static": static_case}
+
+
+def relative(a, b):
+    return float(np.abs(a - b).max() / np.abs(b).max())
+
+
+@pytest.mark.parametrize("kind", list(CASES))
+@pytest.mark.parametrize("hessian", ["exact", "gauss_newton"])
+def test_same_optimum_and_sigmas_as_the_full_nlp(kind, hessian):
+    prob = CASES[kind]()
+    # the optimum does not depend on the Hessian; the reference's Gauss-Newton path needs 72
+    # iterations on one case and stops at "acceptable", so the reference is always exact
+    ref = Solver(prob.lsq, SolverOptions(tol=1e-12, elimination="none"))
+    new = Solver(prob.lsq, SolverOptions(hessian=hessian, tol=1e-12))
+    assert ref.projection is None and new.projection is not None
+    a, b = ref.solve(), new.solve()
+    assert a.success and b.success
+    # the reference stops where IPOPT's tolerance allows; from there a Newton step changes x by
+    # about its Newton decrement's square root times the σ's: both must be converged much further
+    assert ref.newton_decrement(a.x, a.lam_g) < 1e-15 and new.newton_decrement(b.x, b.lam_g) < 1e-15
+    assert relative(b.x, a.x) < 1e-9
+    assert abs(b.cost - a.cost) < 1e-12 * a.cost
+    # σ's: the Fisher information with the nuisance eliminated, at the same point for both
+    sa, sb = np.sqrt(np.diag(ref.covariance(b.x))), np.sqrt(np.diag(b.covariance))
+    assert np.abs(sb / sa - 1).max() < 1e-6  # the static case's information has a condition number of 1e10
+    assert b.dof == a.dof and b.residual.shape == a.residual.shape
+
+
+def test_families_found():
+    """Dynamic: one family of 9 motion states per sample (block tridiagonal with the process model,
+    block diagonal without); static: the pose directions with their unit-norm constraint."""
+    fams = {k: [(f.R, f.m, f.width, len(f.unit)) for f in Solver(mk().lsq).projection.fams] for k, mk in CASES.items()}
+    assert fams == {"dynamic": [(40, 9, 2, 0)], "dynamic_no_process_model": [(40, 9, 1, 0)],
+                    "static": [(8, 3, 1, 1)]}
+
+
+@pytest.mark.parametrize("kind", list(CASES))
+def test_reduced_derivatives_match_finite_differences(kind):
+    """∇φ and ∇²φ (the Schur complement with second-order terms) of φ(θ) = min_m f(θ, m), off the
+    optimum, against central differences of φ and ∇φ."""
+    prob = CASES[kind]()
+    solver = Solver(prob.lsq)
+    P = solver.projection
+    sol = solver.solve()
+    pf = prob.lsq.layout.p0()
+    theta = P.reset(sol.x, None) + 1e-3 * np.random.default_rng(0).standard_normal(P.c)
+
+    def reduced(t):
+        P._cache = None  # noqa: SLF001 - re-evaluate: a cached θ would not see the step
+        return P.reduced(t, pf, None)
+
+    f0, g0, S0 = reduced(theta)
+    h = 1e-6
+    steps = [(reduced(theta + h * e), reduced(theta - h * e)) for e in np.eye(P.c)]
+    g_fd = np.array([(a[0] - b[0]) / (2 * h) for a, b in steps])
+    S_fd = np.array([(a[1] - b[1]) / (2 * h) for a, b in steps])
+    assert relative(g_fd, g0) < 1e-7
+    assert relative(S_fd, S0) < 1e-5
+    assert relative(S0, S0.T) < 1e-12
+
+
+def test_masked_samples_and_outside_nuisance_unchanged():
+    """Masked samples stay out of the residuals; the motion of every sample is returned."""
+    prob = dynamic_case(40, True)
+    sol = Solver(prob.lsq).solve()
+    assert sol.values["motion.omega"].shape == (40, 3)
+    assert np.isfinite(sol.x).all()
+    n_masked = (np.arange(40) % 7 == 3).sum() + (np.arange(40) % 5 == 1).sum()
+    assert sol.residual.size == 3 * (4 * 40 + 3 * 40 - n_masked) + 9 * 39
+
+
+def test_unknown_elimination_is_refused():
+    with pytest.raises(ValueError, match="elimination"):
+        Solver(dynamic_case(10).lsq, SolverOptions(elimination="schur"))
