@@ -188,11 +188,12 @@ def _evaluate(fn: ca.Function, acc, gyro, tau, dT, p):
     return f.full().T, w.full().T
 
 
-def apply_calibration(results_path, data_path, out_path, fmt: str | None = None) -> int:
+def apply_calibration(results_path, data_path, out_path, fmt: str | None = None, log=None) -> int:
     """Write the calibrated recording (body frame, SI units) and return its number of samples.
 
     The data are read with the units recorded in the results (those of the problem the
-    calibration came from), so raw counts are converted exactly as during calibration.
+    calibration came from), so raw counts are converted exactly as during calibration. ``log``
+    receives the reader's notes (dropped packets, repaired time stamps).
     """
     cal = Calibration.read(results_path)
     data_path, out_path = Path(data_path), Path(out_path)
@@ -204,6 +205,8 @@ def apply_calibration(results_path, data_path, out_path, fmt: str | None = None)
     units = read_results(results_path).get("units", {})
     rec = read_recording(fmt, data_path, acc_units=units.get("data_accelerometer"),
                          gyro_units=units.get("data_gyroscope"))
+    for note in rec.notes if log else ():
+        log(f"{data_path.name}: {note}")
     for name in cal.names:
         if name not in rec.acc:
             raise InputError(data_path, f"{name}.ax", f"the calibration has triad {name!r}; the data has {', '.join(rec.acc)}")

@@ -13,98 +13,121 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
-from .errors import CastimateError
+from .errors import EXIT_INVALID_INPUT, CastimateError, InputError
 
 
 def _log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def cmd_solve(args) -> int:
-    from .output.results import dynamic_results, static_results
-    from .io.results import write_json
-    from .spec import load_problem
-    from .output.details import write_details, write_dynamic_details
-    from .output.summary import dynamic_summary, static_summary
+def _inputs_of(spec) -> tuple:
+    """The files a problem reads: an output must never replace one of them."""
+    return (spec.path, spec.data.path, spec.data.gyro_path, spec.model.intrinsics)
 
+
+def cmd_solve(args) -> int:
+    from .io.atomic import StagedOutput
+    from .io.results import write_json
+    from .output.details import write_details, write_dynamic_details
+    from .output.results import dynamic_results, static_results
+    from .output.summary import dynamic_summary, static_summary
+    from .spec import load_problem
+
+    out = Path(args.output)
     spec = load_problem(args.problem)
     log = _log if not args.quiet else (lambda m: None)
-    out = Path(args.output)
-    if spec.kind == "dynamic_array":
-        from .kinds.dynamic import calibrate_dynamic
+    # refused up front (a file where the directory goes, an input in the way), written only on success
+    with StagedOutput(out, names=("results.json", "details.npz"), inputs=_inputs_of(spec)) as stage:
+        if spec.kind == "dynamic_array":
+            from .kinds.dynamic import calibrate_dynamic
 
-        outcome = calibrate_dynamic(spec, log=log)
-        write_dynamic_details(out / "details.npz", outcome)
-        write_json(out / "results.json", dynamic_results(outcome))
-        print(dynamic_summary(outcome))
-    else:
-        from .kinds.static import calibrate_static
+            outcome = calibrate_dynamic(spec, log=log)
+            write_dynamic_details(stage / "details.npz", outcome)
+            write_json(stage / "results.json", dynamic_results(outcome))
+            summary = dynamic_summary(outcome)
+        else:
+            from .kinds.static import calibrate_static
 
-        outcome = calibrate_static(spec, log=log)
-        write_details(out / "details.npz", outcome)
-        write_json(out / "results.json", static_results(outcome))
-        print(static_summary(outcome))
+            outcome = calibrate_static(spec, log=log)
+            write_details(stage / "details.npz", outcome)
+            write_json(stage / "results.json", static_results(outcome))
+            summary = static_summary(outcome)
+    print(summary)
     print(f"wrote {out / 'results.json'}")
     return 0
 
 
 def cmd_simulate(args) -> int:
-    from .simulate.scenarios import simulate_scenario
+    from .io.atomic import StagedOutput
+    from .simulate.scenarios import OUTPUT_FILES, simulate_scenario
 
-    files = simulate_scenario(args.scenario, args.output)
+    out = Path(args.output)
+    with StagedOutput(out, names=OUTPUT_FILES, inputs=(args.scenario,)) as stage:
+        files = simulate_scenario(args.scenario, stage)
     for k, v in files.items():
-        print(f"wrote {k}: {v}")
+        print(f"wrote {k}: {out / Path(v).name}")
     return 0
 
 
 def cmd_apply(args) -> int:
     from .calibration import apply_calibration
+    from .io.atomic import StagedOutput
 
-    n = apply_calibration(args.results, args.data, args.output, fmt=args.format)
+    with StagedOutput(args.output, directory=False, inputs=(args.results, args.data)) as staged:
+        n = apply_calibration(args.results, args.data, staged, fmt=args.format, log=_log)
     print(f"wrote {args.output}: {n} samples calibrated")
     return 0
 
 
 def cmd_report(args) -> int:
+    from .io.atomic import StagedOutput
     from .report import write_report
 
-    path = write_report(Path(args.directory))
-    print(f"wrote {path}")
+    directory = Path(args.directory)
+    if directory.exists() and not directory.is_dir():
+        raise InputError(directory, "", "expected the output directory of `castimate solve`, found a file")
+    with StagedOutput(directory / "report.html", directory=False,
+                      inputs=(directory / "results.json", directory / "details.npz")) as staged:
+        write_report(directory, staged)
+    print(f"wrote {directory / 'report.html'}")
     return 0
 
 
 def cmd_diagnose(args) -> int:
-    from .kinds.diagnose import diagnose
-    from .io.atomic import write_atomic
-    from .output.diagnosis import diagnosis_document, final_results, refined_problem
+    from .io.atomic import StagedOutput, write_atomic
     from .io.results import write_json
-    from .spec import load_problem
+    from .kinds.diagnose import diagnose
+    from .output.diagnosis import diagnosis_document, final_results, refined_problem
     from .report.diagnose import render_diagnosis
+    from .spec import load_problem
 
+    out = Path(args.output)
     spec = load_problem(args.problem)
     log = _log if not args.quiet else (lambda m: None)
-    out = Path(args.output)
-    d = diagnose(spec, log=log)
-    refined = out / f"{Path(args.problem).stem}_refined.yaml"
-    write_json(out / "diagnose.json", diagnosis_document(d))
-    write_json(out / "results.json", final_results(d))
-    write_atomic(refined, refined_problem(d, out))
-    write_atomic(out / "report.html", render_diagnosis(d))
+    names = ("diagnose.json", "results.json", f"{Path(args.problem).stem}_refined.yaml", "report.html")
+    with StagedOutput(out, names=names, inputs=_inputs_of(spec)) as stage:
+        d = diagnose(spec, log=log)
+        write_json(stage / names[0], diagnosis_document(d))
+        write_json(stage / names[1], final_results(d))
+        write_atomic(stage / names[2], refined_problem(d, out))  # paths relative to the final directory
+        write_atomic(stage / names[3], render_diagnosis(d))
     b, a = d.before, d.after
     print(f"added: {', '.join(d.added) or 'nothing'}")
     print(f"chi2/dof {b.s2:.4g} -> {a.s2:.4g}; held-out error (RMS of residual/sigma) {b.cv.rms:.4g} -> {a.cv.rms:.4g}")
-    for name in ("diagnose.json", "results.json", refined.name, "report.html"):
+    for name in names:
         print(f"wrote {out / name}")
     return 0
 
 
 def cmd_codegen(args) -> int:
     from .codegen import generate_c
+    from .io.atomic import StagedOutput
 
-    files = generate_c(args.source, args.output, window=args.window, start=args.start,
-                       motion_only=args.motion_only)
-    for name, path in files.items():
-        print(f"wrote {path}")
+    out = Path(args.output)
+    with StagedOutput(out, inputs=(args.source,)) as stage:
+        files = generate_c(args.source, stage, window=args.window, start=args.start, motion_only=args.motion_only)
+    for name in files:
+        print(f"wrote {out / name}")
     print(f"build and test with: make -C {args.output} check")
     return 0
 
@@ -159,6 +182,15 @@ def main(argv: list[str] | None = None) -> int:
         return e.exit_code
     except KeyboardInterrupt:
         return 130
+    except (MemoryError, RecursionError) as e:
+        print(f"castimate {args.verb}: error: the input is too large to process ({type(e).__name__})", file=sys.stderr)
+        return EXIT_INVALID_INPUT
+    except Exception as e:  # noqa: BLE001 - a bug, but the user gets one line, not a traceback
+        if os.environ.get("CASTIMATE_DEBUG"):
+            raise
+        print(f"castimate {args.verb}: internal error: {type(e).__name__}: {e} (a bug in castimate; please report "
+              "it with the input; CASTIMATE_DEBUG=1 shows the traceback)", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

@@ -28,10 +28,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from .errors import InputError
-from .validation import Check
+from .validation import Check, input_file, load_yaml
 from .io.units import UnitConversion, parse_units
 from .prepare.options import DetectionOptions
 from .problem.graph import SolverOptions
@@ -57,6 +56,15 @@ DEFAULT_FREE = {
     },
 }
 SATURATION = ("auto", "none")
+#: Physical ranges of the numbers of a problem file, named in the errors.
+GRAVITY_RANGE = (9.7, 9.9)  # m/s^2: the gravity anywhere on the Earth's surface
+SI = {"accelerometer": "m/s^2", "gyroscope": "rad/s"}
+SIGMA_RANGE = {"accelerometer": (1e-9, 100.0), "gyroscope": (1e-9, 10.0)}  # per-sample noise σ
+MOTION_SIGMA_MAX = 1e9
+#: Keys that only a scenario file (castimate simulate) has: a problem file with them and without data
+#: or array was given to the wrong command.
+SCENARIO_HINT_KEYS = frozenset(("seed", "triads", "poses", "geometry", "samples", "samples_per_pose", "time_series",
+                                "truth", "position_error"))
 #: Kinds whose problem builders compose the effect library (problem.effects).
 EFFECT_KINDS = (STATIC, DYNAMIC)
 
@@ -142,17 +150,12 @@ class ProblemSpec:
 def load_problem(path: str | Path) -> ProblemSpec:
     """Read and validate a problem file."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as e:
-        raise InputError(path, "", f"cannot read the problem file ({e.strerror})") from None
-    try:
-        raw = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f"line {mark.line + 1}" if mark else ""
-        raise InputError(path, where, f"not valid YAML ({getattr(e, 'problem', e)})") from None
-    return parse_problem(raw, path, hashlib.sha256(text.encode()).hexdigest())
+    raw = load_yaml(path, "problem file")
+    if isinstance(raw, dict) and "data" not in raw and "array" not in raw and SCENARIO_HINT_KEYS & set(raw):
+        raise InputError(path, "", "this is a scenario file for `castimate simulate` (it has "
+                                   f"{', '.join(sorted(map(str, SCENARIO_HINT_KEYS & set(raw))))} and no data or array); "
+                                   f"run `castimate simulate {path} -o DIR`, then `castimate solve DIR/problem.yaml`")
+    return parse_problem(raw, path, hashlib.sha256(path.read_bytes()).hexdigest())
 
 
 def parse_problem(raw: Any, path: Path, sha256: str = "") -> ProblemSpec:
@@ -187,15 +190,13 @@ def _data(c: Check, d, base: Path) -> DataSpec:
     if not isinstance(d["path"], str):
         c.fail("data.path", f"expected a file path, found {d['path']!r}")
     p = (base / d["path"]).resolve()
-    if not p.is_file():
-        c.fail("data.path", f"data file {p} does not exist")
+    input_file(p, "data file", c.source, "data.path")
     gp = None
     if "gyro_path" in d:
         if fmt != "imutk":
             c.fail("data.gyro_path", f"only the imutk format has a separate gyroscope file, format is {fmt}")
         gp = (base / str(d["gyro_path"])).resolve()
-        if not gp.is_file():
-            c.fail("data.gyro_path", f"data file {gp} does not exist")
+        input_file(gp, "data file", c.source, "data.gyro_path")
     units = c.mapping(d.get("units"), "data.units", ("accelerometer", "gyroscope"))
     acc_u = parse_units(units["accelerometer"], c.source, "data.units.accelerometer", "accelerometer") \
         if "accelerometer" in units else None
@@ -324,9 +325,9 @@ def _model(c: Check, m, array: ArraySpec, kind: str = "static_array", base: Path
         if not isinstance(m["intrinsics"], str):
             c.fail("model.intrinsics", f"expected the path of a static results.json, found {m['intrinsics']!r}")
         intrinsics = (base / m["intrinsics"]).resolve()
-        if not intrinsics.is_file():
-            c.fail("model.intrinsics", f"results file {intrinsics} does not exist")
-    gravity = c.number(m.get("gravity", 9.81), "model.gravity", positive=True)
+        input_file(intrinsics, "results file", c.source, "model.intrinsics")
+    gravity = c.number(m.get("gravity", 9.81), "model.gravity", positive=True, lo=GRAVITY_RANGE[0],
+                       hi=GRAVITY_RANGE[1], unit="m/s^2 (gravity at the Earth's surface)")
     direction = c.choice(m.get("gravity_direction", "unit_vector"), "model.gravity_direction", DIRECTIONS)
     mis = c.choice(m.get("misalignment", "small_angle"), "model.misalignment", MISALIGNMENTS)
 
@@ -399,7 +400,8 @@ def _model(c: Check, m, array: ArraySpec, kind: str = "static_array", base: Path
 
 def _motion(c: Check, m) -> MotionSpec:
     m = c.mapping(m, "motion", ("sigma_s", "sigma_omega_dot", "sigma_integration", "process_model"))
-    kw = {k: c.number(v, f"motion.{k}", positive=True) for k, v in m.items() if k != "process_model"}
+    kw = {k: c.number(v, f"motion.{k}", positive=True, hi=MOTION_SIGMA_MAX) for k, v in m.items()
+          if k != "process_model"}
     if "process_model" in m:
         if not isinstance(m["process_model"], bool):
             c.fail("motion.process_model", f"expected true or false, found {m['process_model']!r}")
@@ -417,9 +419,11 @@ def _noise(c: Check, n, array: ArraySpec) -> NoiseSpec:
             out[sensor] = None
         elif isinstance(v, dict):
             v = c.mapping(v, w, tuple(array.names), required=tuple(array.names))
-            out[sensor] = {k: c.number(x, f"{w}.{k}", positive=True) for k, x in v.items()}
+            out[sensor] = {k: c.number(x, f"{w}.{k}", positive=True, lo=SIGMA_RANGE[sensor][0],
+                                       hi=SIGMA_RANGE[sensor][1], unit=SI[sensor]) for k, x in v.items()}
         else:
-            s = c.number(v, w, positive=True)
+            s = c.number(v, w, positive=True, lo=SIGMA_RANGE[sensor][0], hi=SIGMA_RANGE[sensor][1],
+                         unit=SI[sensor])
             out[sensor] = {k: s for k in array.names}
     return NoiseSpec(**out)
 
@@ -449,6 +453,7 @@ def _solver(c: Check, s) -> SolverOptions:
                 c.fail(w, f"expected a positive integer, found {v!r}")
             if k == "print_level" and not 0 <= kw[k] <= 12:
                 c.fail(w, f"expected an integer from 0 to 12, found {v!r}")
+            kw[k] = c.number(v, w, integer=True, hi=10 ** 7)
         else:
-            kw[k] = c.number(v, w, positive=True)
+            kw[k] = c.number(v, w, positive=True, hi=1e6)
     return SolverOptions(**kw)

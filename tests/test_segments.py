@@ -381,7 +381,7 @@ def test_explicit_segments():
     ([[1.0, 5.0], [6.0, 8.0], [4.0, 7.0]], r"data\.segments\[2\]", r"overlaps data\.segments\[0\]"),
     ([[1.0, 1.05]], r"data\.segments\[0\]", "at least 10"),
     ([[1.0, 2.0], [3.0]], r"data\.segments\[1\]", r"pair \[t0, t1\]"),
-    ([[1.0, "x"]], r"data\.segments\[0\]", "expected a number"),
+    ([[1.0, "x"]], r"data\.segments\[0\]\[1\]", "expected a finite number"),
     ([], r"data\.segments", "at least one"),
     ("1-2", r"data\.segments", "list of"),
 ])
@@ -403,12 +403,13 @@ def test_options_from_mapping():
 
 
 @pytest.mark.parametrize("mapping, where, message", [
-    ({"windw": 1.0}, r"data\.detection\.windw", "unknown option.*window"),
-    ({"window": -1.0}, r"data\.detection\.window", "> 0"),
-    ({"window": True}, r"data\.detection\.window", "expected a number"),
-    ({"threshold": "high"}, r"data\.detection\.threshold", "expected a number"),
-    ({"threshold_factor": 0.5}, r"data\.detection\.threshold_factor", ">= 1"),
-    ({"floor_quantile": 0.9}, r"data\.detection\.floor_quantile", "<= 0.5"),
+    ({"windw": 1.0}, r"data\.detection\.windw", "unknown key.*window"),
+    ({"window": -1.0}, r"data\.detection\.window", "expected a positive finite number, found -1.0"),
+    ({"window": True}, r"data\.detection\.window", "expected a positive finite number, found True"),
+    ({"window": 1e300}, r"data\.detection\.window", "expected a number at most 600 s"),
+    ({"threshold": "high"}, r"data\.detection\.threshold", "expected a positive finite number"),
+    ({"threshold_factor": 0.5}, r"data\.detection\.threshold_factor", "expected a number from 1 to 1000"),
+    ({"floor_quantile": 0.9}, r"data\.detection\.floor_quantile", "expected a number at most 0.5"),
     ({"use_gyro": "yes"}, r"data\.detection\.use_gyro", "true or false"),
     ({"min_separation_deg": float("nan")}, r"data\.detection\.min_separation_deg", "finite"),
     ([1, 2], r"data\.detection", "mapping"),

@@ -111,8 +111,11 @@ def dynamic_reference(spec, window: int, start: int = 0, motion_only: bool = Fal
                          "remove data.static (joint static-plus-dynamic problems are not emitted)")
     n = inputs.data.n
     if not (1 <= window and 0 <= start and start + window <= n):
-        raise InputError(spec.path, "data", f"expected a window of 1..{n - start} samples from sample {start} "
-                         f"(the problem has {n}), found --window {window}")
+        if not 0 <= start < n:
+            raise InputError(spec.path, "--start", f"expected a first sample from 0 to {n - 1} (the problem has {n} "
+                                                   f"samples), found {start}")
+        raise InputError(spec.path, "--window", f"expected a window of 1 to {n - start} samples from sample {start} "
+                                                f"(the problem has {n}), found {window}")
     data = inputs.data.window(start, window)
     config = geometry_fixed(inputs.config) if motion_only else inputs.config
     if motion_only and config.process_model:

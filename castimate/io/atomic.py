@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import stat
 import tempfile
 from pathlib import Path
@@ -33,7 +34,10 @@ def atomic_write(path: str | os.PathLike, write: Callable[[IO[bytes]], None]) ->
         except FileNotFoundError:
             mode = 0o644
         os.chmod(tmp, mode)
-        os.replace(tmp, target)
+        try:
+            os.replace(tmp, target)
+        except OSError as exc:
+            raise InputError(target, "", f"cannot write ({exc.strerror})") from None
     except BaseException:
         try:
             os.unlink(tmp)
@@ -44,6 +48,101 @@ def atomic_write(path: str | os.PathLike, write: Callable[[IO[bytes]], None]) ->
 
 def write_atomic(path: str | os.PathLike, data: bytes | str) -> None:
     """Write bytes or text (UTF-8) to ``path`` atomically, creating its directory."""
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    check_output(path, directory=False)
+    try:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise InputError(path, "", f"cannot create the directory {Path(path).parent} ({e.strerror})") from None
     raw = data.encode() if isinstance(data, str) else data
     atomic_write(path, lambda fh: fh.write(raw))
+
+
+# ---------------------------------------------------------------------------------------------
+# Outputs staged and moved into place only on success
+# ---------------------------------------------------------------------------------------------
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return os.path.realpath(a) == os.path.realpath(b)
+
+
+def _existing_ancestor(path: Path) -> Path:
+    p = Path(os.path.abspath(path))
+    while not os.path.lexists(p):
+        p = p.parent
+    return p
+
+
+def check_output(target: str | os.PathLike, directory: bool, names: tuple[str, ...] = (),
+                 inputs: tuple = (), option: str = "-o") -> None:
+    """Refuse, before any work, an output that cannot be written or would replace an input.
+
+    ``target`` is an output directory (``directory``) holding ``names``, or an output file. Refused:
+    a file where the directory goes, a directory where a file goes, a path under a file or where
+    nothing can be created, and any output file that is one of ``inputs`` (same file, however spelt).
+    """
+    target = Path(target)
+    if directory and target.exists() and not target.is_dir():
+        raise InputError(target, option, "expected an output directory, found a file")
+    if not directory and target.is_dir():
+        raise InputError(target, option, "is a directory; expected an output file")
+    anchor = _existing_ancestor(target if directory else target.parent)
+    if not anchor.is_dir():
+        raise InputError(target, option, f"cannot be created: {anchor} is a file, not a directory")
+    if not os.access(anchor, os.W_OK | os.X_OK):
+        raise InputError(target, option, f"cannot be created: no permission to write in {anchor}")
+    slots = [target / n for n in names] if directory else [target]
+    for slot in slots:
+        if slot.is_dir():
+            raise InputError(slot, option, "is a directory; expected a file to write (remove or rename it)")
+        for inp in inputs:
+            if inp is not None and os.path.lexists(slot) and _same_file(slot, Path(inp)):
+                raise InputError(slot, option, f"is an input of this command ({inp}); refusing to overwrite an input: "
+                                               "choose another output")
+
+
+class StagedOutput:
+    """Write a command's outputs into a hidden staging directory; move them into place only on success.
+
+    ``with StagedOutput(target, directory=True, names=..., inputs=...) as stage:`` checks the target
+    first (:func:`check_output`), yields the staging directory (or, for a file target, the staged
+    file's path), and on a normal exit moves every staged file to the target (each an atomic rename,
+    after all are checked). On an exception nothing is moved and the stage is removed: a failed
+    command leaves no partial output.
+    """
+
+    def __init__(self, target: str | os.PathLike, directory: bool = True, names: tuple[str, ...] = (),
+                 inputs: tuple = (), option: str = "-o"):
+        self.target, self.directory, self.inputs, self.option = Path(target), directory, tuple(inputs), option
+        check_output(self.target, directory, names, self.inputs, option)
+        self.stage: Path | None = None
+
+    def __enter__(self) -> Path:
+        anchor = _existing_ancestor(self.target if self.directory else self.target.parent)
+        try:
+            self.stage = Path(tempfile.mkdtemp(prefix=".castimate-stage-", dir=anchor))
+        except OSError as e:
+            raise InputError(self.target, self.option, f"cannot write in {anchor} ({e.strerror})") from None
+        return self.stage if self.directory else self.stage / self.target.name
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        try:
+            if exc_type is None:
+                self._commit()
+        finally:
+            shutil.rmtree(self.stage, ignore_errors=True)
+
+    def _commit(self) -> None:
+        staged = sorted(p for p in self.stage.rglob("*") if p.is_file())
+        moves = [(p, (self.target / p.relative_to(self.stage)) if self.directory else self.target) for p in staged]
+        check_output(self.target, self.directory, tuple(str(d.relative_to(self.target)) for _, d in moves)
+                     if self.directory else (), self.inputs, self.option)
+        try:
+            for _, dest in moves:
+                dest.parent.mkdir(parents=True, exist_ok=True)
+            for src, dest in moves:
+                os.replace(src, dest)
+        except OSError as e:
+            raise InputError(self.target, self.option, f"cannot write the output ({e.strerror})") from None

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from castimate.errors import InputError
+from castimate.validation import read_input_bytes
 from castimate.io.recording import Recording
 from castimate.io.units import UnitSpec, parse_units
 
@@ -57,14 +58,11 @@ def read_imutk_table(path: str | os.PathLike) -> np.ndarray:
         non-finite values, or non-increasing time.
     """
     source = str(path)
+    raw = read_input_bytes(path)
     try:
-        text = Path(path).read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(source, "", "file not found") from None
+        text = raw.decode("utf-8")
     except UnicodeDecodeError:
         raise InputError(source, "", "expected an ASCII table (time x y z), found binary data") from None
-    except OSError as exc:
-        raise InputError(source, "", f"cannot read: {exc.strerror}") from None
 
     lines = _data_lines(text)
     if not lines:

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from castimate.errors import InputError
+from castimate.validation import read_input_bytes
 from castimate.io.recording import Recording
 from castimate.io.units import UnitSpec, parse_units
 
@@ -191,6 +192,38 @@ def _find_packet_starts(data: np.ndarray, source: str) -> tuple[np.ndarray, int,
     return starts, psize, counts
 
 
+#: A timestamp step that differs from the packet counter's count times the nominal period by more
+#: than this fraction of a period is a clock anomaly (backwards, stuck or jumping).
+CLOCK_TOLERANCE = 0.5
+
+
+def _repair_clock(dticks: np.ndarray, dcount: np.ndarray) -> tuple[np.ndarray, str]:
+    """Timestamp steps checked against the packet counter; anomalous steps replaced by the counter's.
+
+    The counter counts packets, the clock ticks; between consecutive packets the clock must advance
+    by the number of packets (1, more after dropped packets) times the sampling period. A step that
+    does not (time running backwards, which modular unwrapping would read as a 67 s wrap; a repeated
+    stamp on a new packet; a jump while no packet is missing) is replaced by counter x period, the
+    median period of the consistent steps. Returns the steps and a note ('' if none was repaired).
+    """
+    counted = dcount > 0
+    if not counted.any():
+        return dticks, ""
+    period = float(np.median(dticks[counted] / dcount[counted]))
+    expected = dcount * period
+    bad = counted & (np.abs(dticks - expected) > CLOCK_TOLERANCE * period * np.maximum(dcount, 1))
+    if not bad.any() or period <= 0:
+        return dticks, ""
+    i = int(np.flatnonzero(bad)[0])
+    signed = ((dticks[i] + (1 << 31)) % (1 << 32)) - (1 << 31)  # a step back shows as negative
+    note = (f"{int(bad.sum())} timestamp step(s) disagree with the packet counter (first after sample {i}: "
+            f"{signed / CLOCK_HZ:+.6g} s where the counter says {expected[i] / CLOCK_HZ:.6g} s); their times were "
+            f"repaired from the counter at the median period {1e3 * period / CLOCK_HZ:.6g} ms")
+    out = dticks.copy()
+    out[bad] = np.round(expected[bad]).astype(out.dtype)
+    return out, note
+
+
 def read_mimu_with_stats(
     path: str | os.PathLike,
     acc_units: UnitSpec | None = None,
@@ -222,12 +255,7 @@ def read_mimu_with_stats(
     source = str(path)
     acc_conv = parse_units(DEFAULT_ACC_UNITS if acc_units is None else acc_units, source, "acc_units", "accelerometer")
     gyro_conv = parse_units(DEFAULT_GYRO_UNITS if gyro_units is None else gyro_units, source, "gyro_units", "gyroscope")
-    try:
-        raw = Path(path).read_bytes()
-    except FileNotFoundError:
-        raise InputError(source, "", "file not found") from None
-    except OSError as exc:
-        raise InputError(source, "", f"cannot read: {exc.strerror}") from None
+    raw = read_input_bytes(path)
     if not raw:
         raise InputError(source, "", "expected an OpenShoe/MIMU packet stream, found an empty file")
     data = np.frombuffer(raw, dtype=np.uint8)
@@ -242,19 +270,23 @@ def read_mimu_with_stats(
     values = pk[:, 8 : 8 + _IMU_BYTES * n_imus].copy().view(">i2").reshape(-1, n_imus, 6)
 
     # Unwrap the timestamp: consecutive packets are far less than 2^32 ticks (67 s) apart, so
-    # the modular difference is the true one.
+    # the modular difference is the true one -- unless the clock itself misbehaved, which the
+    # packet counter shows (below).
     dticks = np.diff(ticks) % (1 << 32)
-    # A repeated timestamp is a repeated packet; keeping it would make t non-increasing.
-    keep = np.concatenate(([True], dticks != 0))
+    dcount = np.diff(counter) % (1 << 16)
+    # A repeated packet repeats both its counter and its timestamp; keeping it would make t
+    # non-increasing. (A repeated timestamp with a new counter is a stuck clock, repaired below.)
+    keep = np.concatenate(([True], (dticks != 0) | (dcount != 0)))
     duplicates = int(np.count_nonzero(~keep))
     if duplicates:
         counter, ticks, values = counter[keep], ticks[keep], values[keep]
         dticks = np.diff(ticks) % (1 << 32)
-    timestamp_wraps = int(np.count_nonzero(np.diff(ticks) < 0))
+        dcount = np.diff(counter) % (1 << 16)
+    dticks, clock_note = _repair_clock(dticks, dcount)
     elapsed = np.concatenate(([0], np.cumsum(dticks)))
+    timestamp_wraps = int((int(ticks[0]) + int(elapsed[-1])) >> 32)  # times the 32-bit clock rolled over
     t = elapsed / CLOCK_HZ
 
-    dcount = np.diff(counter) % (1 << 16)
     missing = np.where(dcount >= 1, dcount - 1, 0)
     gap_idx = np.flatnonzero(missing)
     gaps = tuple((int(i) + 1, int(missing[i])) for i in gap_idx)
@@ -278,7 +310,7 @@ def read_mimu_with_stats(
         name = f"imu{j + 1}"
         acc[name] = acc_conv.to_si(values[:, j, 0:3], source, name)
         gyro[name] = gyro_conv.to_si(values[:, j, 3:6], source, name)
-    notes = (stats.summary(), stats.details())
+    notes = (stats.summary(), stats.details()) + ((clock_note,) if clock_note else ())
     return Recording(t=t, acc=acc, gyro=gyro, source=source, notes=notes), stats
 
 

@@ -20,6 +20,7 @@ from typing import IO
 import numpy as np
 
 from castimate.errors import InputError
+from castimate.validation import input_file, read_input_bytes
 from castimate.io.atomic import atomic_write
 from castimate.io.recording import Recording
 from castimate.io.units import UnitConversion, UnitSpec, parse_units
@@ -199,14 +200,11 @@ def read_csv(
     acc_conv = _units(acc_units, "m/s^2", source, "acc_units", "accelerometer")
     gyro_conv = _units(gyro_units, "rad/s", source, "gyro_units", "gyroscope")
     temp_conv = _units(temp_units, "K", source, "temp_units", "temperature")
+    raw = read_input_bytes(path)
     try:
-        text = Path(path).read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise InputError(source, "", "file not found") from None
+        text = raw.decode("utf-8-sig")
     except UnicodeDecodeError:
         raise InputError(source, "", "expected a UTF-8 text CSV file, found binary data") from None
-    except OSError as exc:
-        raise InputError(source, "", f"cannot read: {exc.strerror}") from None
 
     lines = [
         (i + 1, line)
@@ -315,6 +313,7 @@ def read_npz(
     acc_conv = _units(acc_units, "m/s^2", source, "acc_units", "accelerometer")
     gyro_conv = _units(gyro_units, "rad/s", source, "gyro_units", "gyroscope")
     temp_conv = _units(temp_units, "K", source, "temp_units", "temperature")
+    input_file(path)
     try:
         archive = np.load(path, allow_pickle=False)
     except FileNotFoundError:

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ..validation import Check, read_input_text, shown
 from .units import parse_units
 from .atomic import write_atomic
 
@@ -40,9 +41,9 @@ def load_results_json(path: str | Path) -> dict:
     """A results.json parsed, with its format checked (the status is not enforced here)."""
     path = Path(path)
     try:
-        doc = json.loads(path.read_text())
-    except OSError as e:
-        raise InputError(path, "", f"cannot read ({e.strerror})") from None
+        doc = json.loads(read_input_text(path, "results file", MAX_RESULTS_BYTES))
+    except RecursionError:
+        raise InputError(path, "", "not valid JSON (nested too deeply)") from None
     except json.JSONDecodeError as e:
         raise InputError(path, f"line {e.lineno}", f"not valid JSON ({e.msg})") from None
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
@@ -51,12 +52,24 @@ def load_results_json(path: str | Path) -> dict:
 
 
 def read_results(path: str | Path) -> dict:
-    """Read and check a results.json (format, successful status, T and b of every triad)."""
+    """Read and check a results.json (format, successful status, T and b of every triad, the rest of
+    its structure: :func:`check_results`)."""
+    return check_results(load_results_json(path), path, require_success=True)
+
+
+def check_results(doc: dict, path: str | Path, require_success: bool = True) -> dict:
+    """The structure of a parsed results.json that apply, report, codegen and intrinsics rely on.
+
+    ``require_success``: refuse a calibration that did not converge; else only check that the status
+    says whether it did. Every error names the key path.
+    """
     path = Path(path)
-    doc = load_results_json(path)
     status = doc.get("status")
-    if not isinstance(status, dict) or status.get("success") is not True:
+    if require_success and (not isinstance(status, dict) or status.get("success") is not True):
         raise InputError(path, "status.success", "the calibration did not converge; refusing to use it")
+    if not isinstance(status, dict) or not isinstance(status.get("success"), bool):
+        raise InputError(path, "status.success", "expected true or false (did the solver converge?), found "
+                                                 f"{shown(status.get('success') if isinstance(status, dict) else status)}")
     triads = doc.get("triads")
     if not isinstance(triads, dict) or not triads:
         raise InputError(path, "triads", f"expected a non-empty mapping of triads, found {triads!r}")
@@ -88,4 +101,63 @@ def read_results(path: str | Path) -> dict:
                 raise InputError(path, w, f"expected finite numbers, found T={T.tolist()} and b={b.tolist()}")
             if np.linalg.cond(T) > 1e12:
                 raise InputError(path, f"{w}.T", f"expected an invertible matrix, found {T.tolist()}")
+    _check_structure(Check(path), doc)
     return doc
+
+
+#: Largest results.json read, bytes.
+MAX_RESULTS_BYTES = 64 << 20
+
+
+def _numbers(c: Check, v, where: str, shape: tuple[int, ...] | None = None, nullable: bool = False) -> np.ndarray:
+    """A number or nested lists of finite numbers (``nullable``: null read as NaN), of ``shape`` if given."""
+    try:
+        a = np.array(v, dtype=object)
+    except (ValueError, TypeError):
+        a = None
+    if a is None or (shape is not None and a.shape != shape) or any(isinstance(x, list) for x in a.flat):
+        c.fail(where, f"expected {'a number' if shape == () else 'numbers of shape ' + str(shape) if shape else 'numbers'}"
+                      f", found {shown(v)}")
+    out = np.empty(a.shape)
+    for idx, x in np.ndenumerate(a):
+        if x is None and nullable:
+            out[idx] = np.nan
+        elif isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(float(x)):
+            out[idx] = float(x)
+        else:
+            c.fail(where, f"expected {'a number' if a.shape == () else 'numbers'}, found {shown(v)}")
+    return out
+
+
+def _check_structure(c: Check, doc: dict) -> None:
+    """Beyond T and b: the nominal rotations, positions, parameter groups, residuals and effects."""
+    for name, t in doc["triads"].items():
+        w = f"triads.{name}"
+        if "R_nominal" in t:
+            _numbers(c, t["R_nominal"], f"{w}.R_nominal", (3, 3))
+        elif "gyroscope" in t:
+            c.fail(f"{w}.R_nominal", "missing; expected the nominal rotation (3x3) that the gyroscope compensation uses")
+        for key in ("position", "position_std", "position_std_scaled", "nominal_position"):
+            if t.get(key) is not None:
+                _numbers(c, t[key], f"{w}.{key}", (3,), nullable=True)
+        for key, p in c.mapping(t.get("parameters"), f"{w}.parameters", None).items():
+            pw = f"{w}.parameters.{key}"
+            p = c.mapping(p, pw, None, required=("value",))
+            value = _numbers(c, p["value"], f"{pw}.value")
+            comps = p.get("components")
+            if comps is not None and (not isinstance(comps, list) or len(comps) != value.size):
+                c.fail(f"{pw}.value", f"expected one value per component ({shown(comps)}), found {shown(p['value'])}")
+            if p.get("std") is not None:
+                _numbers(c, p["std"], f"{pw}.std", value.shape, nullable=True)
+    res = c.mapping(doc.get("residuals"), "residuals", None)
+    for key in ("chi2", "dof", "chi2_per_dof"):
+        if res.get(key) is not None:
+            _numbers(c, res[key], f"residuals.{key}", ())
+    for key in ("rms", "gyro_rms"):
+        for name, v in c.mapping(res.get(key), f"residuals.{key}", None).items():
+            _numbers(c, v, f"residuals.{key}.{name}", (3,), nullable=True)
+    if doc.get("effects") is not None:
+        eff = c.mapping(doc["effects"], "effects", None, required=("included",))
+        if not isinstance(eff["included"], list) or not all(isinstance(x, str) for x in eff["included"]):
+            c.fail("effects.included", f"expected a list of effect names, found {shown(eff['included'])}")
+        c.mapping(eff.get("regressors"), "effects.regressors", None)

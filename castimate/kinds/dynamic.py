@@ -14,7 +14,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from . import Log, quiet
-from .static import check_temperature, load_recording
+from .static import check_plausible, check_temperature, declared, load_recording
 from ..errors import InputError, NotConvergedError
 from ..io.readers import read_recording
 from ..io.recording import Recording
@@ -30,6 +30,10 @@ from ..prepare.detect import detect_static
 from ..problem.graph import Solution
 from ..solve.ipopt import Solver
 from ..prepare.masks import saturation_mask
+from ..prepare.plausibility import check_dynamic_information
+
+#: A sensor with more than this fraction of its samples masked as saturated is refused.
+MAX_MASKED = 0.5
 
 ACC_GROUPS = ("gain", "bias", "nonorthogonality", "misalignment")
 GYRO_GROUPS = ("gain", "bias", "misalignment")
@@ -249,6 +253,7 @@ def load_dynamic(spec: ProblemSpec, log: Log = quiet) -> DynamicInput:
     log(f"reading {spec.data.path.name} ({spec.data.format})")
     full = read_full(spec)
     rec = load_recording(spec)
+    check_plausible(spec, rec, "dynamic", log)
     acc_sigma, gyro_sigma = noise_from_static(spec, full, log)
     names = spec.array.names
     sat, acc_valid, gyro_valid = {}, {}, {}
@@ -260,6 +265,14 @@ def load_dynamic(spec: ProblemSpec, log: Log = quiet) -> DynamicInput:
             m = saturation_mask(rec.gyro[n], spec.data.saturation["gyroscope"])
             gyro_valid[n] = ~m
             sat[f"{n}.gyroscope"] = int(m.sum())
+    for key, count in sat.items():
+        if count > MAX_MASKED * len(rec.t):
+            name, sensor = key.split(".")
+            level = spec.data.saturation[sensor]
+            raise InputError(spec.path, f"data.saturation.{sensor}",
+                             f"{level!r} masks {count} of {len(rec.t)} samples of {name}'s {sensor} (columns "
+                             f"{', '.join(f'{name}.{a}' for a in (('ax', 'ay', 'az') if sensor == 'accelerometer' else ('gx', 'gy', 'gz')))}"
+                             f"); too few are left to fit: give a level above the readings, or auto or none")
     masked = {k: v for k, v in sat.items() if v}
     log(f"{len(rec.t)} samples; saturated samples masked out of the likelihood: "
         + (", ".join(f"{k} {v}" for k, v in masked.items()) if masked else "none"))
@@ -281,7 +294,23 @@ def dynamic_inputs(spec: ProblemSpec, log: Log = quiet, loaded: DynamicInput | N
     check_temperature(spec, set(data.temp))
     nominal = {t.name: (t.position - next(x for x in config.triads if x.name == config.reference).position)
                if t.position is not None else np.zeros(3) for t in config.triads}
+    check_information(spec, data, nominal, log)
     return DynamicInputs(config, data, sat, nominal, static_problem)
+
+
+def check_information(spec: ProblemSpec, data: DynamicData, nominal: dict[str, np.ndarray], log: Log) -> None:
+    """Refuse data that cannot determine the motion or the free positions, before solving."""
+    ref = spec.array.reference
+    free = [n for n in spec.array.names if n != ref and any(spec.model.settings[n, "position", "position"].free)]
+    gyros = [t.name for t in spec.array.triads if t.gyroscope is not False and t.name in data.gyro]
+    if free and not gyros and not (spec.motion and spec.motion.process_model):
+        raise InputError(spec.path, "motion.process_model",
+                         "is false and no triad has a gyroscope: the accelerometers alone cannot determine the motion "
+                         "(the angular rate enters squared) while positions are free; set motion.process_model: true, "
+                         "use the gyroscopes, or fix model.position")
+    sigma = float(np.mean(data.acc_sigma[ref]))
+    rec = Recording(data.t, {}, {ref: data.gyro[ref]} if ref in data.gyro else {})
+    check_dynamic_information(rec, ref, bool(free), np.stack(list(nominal.values())), sigma, declared(spec), log)
 
 
 def calibrate_dynamic(spec: ProblemSpec, log: Log = quiet, max_restarts: int = 2,

@@ -24,6 +24,8 @@ from ..prepare.detect import Detection, detect_static, explicit_segments
 from ..prepare.poses import PoseAverages, average_poses, pose_averages_from_means
 from ..problem.graph import Solution
 from ..solve.ipopt import Solver
+from ..prepare.plausibility import (Declared, check_accelerometer_units, check_channels, check_gyroscope_noise,
+                                    check_gyroscope_units)
 
 
 
@@ -68,6 +70,12 @@ def pose_averages(spec: ProblemSpec, rec: Recording) -> tuple[PoseAverages, Dete
         return avg, None
     det = explicit_segments(rec, seg, spec.path, "data.segments") if isinstance(seg, tuple) \
         else detect_static(rec, spec.data.detection, triads=names)
+    if det.n_poses == 0:
+        raise InputError(spec.path, "data.segments",
+                         f"found no static pose in {spec.data.path.name} ({rec.t[0]:.6g} s to {rec.t[-1]:.6g} s, "
+                         f"{len(det.rejected)} candidate(s) rejected): the array never rests for "
+                         f"{spec.data.detection.min_duration:g} s (data.detection.min_duration) with a steady signal; "
+                         "check data.time_range, or give the poses as data.segments: [[t0, t1], ...]")
     avg = average_poses(rec, det, triads=names)
     sqn = np.sqrt(avg.n)[:, None]
     if spec.noise.accelerometer:
@@ -225,15 +233,35 @@ class StaticData:
     detection: Detection | None
 
 
+def declared(spec: ProblemSpec) -> Declared:
+    """The problem's declared units and files, for the plausibility checks' messages."""
+    d = spec.data
+    return Declared(spec.path, d.path, d.acc_units.describe() if d.acc_units else f"the {d.format} default",
+                    d.gyro_units.describe() if d.gyro_units else f"the {d.format} default")
+
+
+def check_plausible(spec: ProblemSpec, rec: Recording, kind: str, log: Log) -> None:
+    """Dead channels and the declared units against physics (castimate.prepare.plausibility)."""
+    names = spec.array.names
+    gyro_names = [t.name for t in spec.array.triads if t.gyroscope is not False]
+    used = Recording(rec.t, {n: rec.acc[n] for n in names}, {n: rec.gyro[n] for n in gyro_names if n in rec.gyro},
+                     source=rec.source)
+    check_channels(used, names, declared(spec), clipping=kind == "static" and spec.data.segments != "rows")
+    check_accelerometer_units(used, names, declared(spec), spec.model.gravity, kind, log)
+    check_gyroscope_units(used, gyro_names, declared(spec))
+
+
 def load_static(spec: ProblemSpec, log: Log = quiet) -> StaticData:
-    """Read the recording and average its static poses."""
+    """Read the recording, check it against physics and average its static poses."""
     log(f"reading {spec.data.path.name} ({spec.data.format})")
     rec = load_recording(spec)
     for note in rec.notes:
         log(f"  {note}")
+    check_plausible(spec, rec, "static", log)
     avg, det = pose_averages(spec, rec)
     if det is not None:
         log(det.summary())
+        check_gyroscope_noise({n: float(np.max(s)) for n, s in avg.gyro_sigma_sample.items()}, declared(spec))
     return StaticData(rec, avg, det)
 
 

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import InputError
+
 from ..io.atomic import write_atomic
 
 
@@ -55,3 +57,45 @@ def write_dynamic_details(path: Path, outcome) -> None:
     buf = io.BytesIO()
     np.savez_compressed(buf, **arrays)
     write_atomic(path, buf.getvalue())
+
+
+#: The arrays of details.npz by kind, with symbolic dimensions (M triads, P poses, N samples, G triads
+#: with gyroscopes) bound from the first array that has them and checked against the others.
+DETAILS_SHAPES = {
+    "static_array": {"triads": ("M",), "t_start": ("P",), "t_end": ("P",), "n": ("P",),
+                     "acc_mean": ("M", "P", 3), "acc_sigma": ("M", "P", 3), "residual_acc": ("M", "P", 3),
+                     "norm_error_before": ("M", "P"), "norm_error_after": ("M", "P"), "gyro_triads": ("G",),
+                     "residual_gyro": ("G", "P", 3), "consistency_before": ("P",), "consistency_after": ("P",)},
+    "dynamic_array": {"triads": ("M",), "t": ("N",), "omega": ("N", 3), "omega_dot": ("N", 3), "s": ("N", 3),
+                      "residual_acc": ("M", "N", 3), "acc_sigma": ("M", 3), "position": ("M", 3),
+                      "position_std": ("M", 3), "nominal_position": ("M", 3), "gyro_triads": ("G",),
+                      "residual_gyro": ("G", "N", 3)},
+}
+#: Arrays of text (triad names); all others are numbers.
+DETAILS_NAMES = ("triads", "gyro_triads")
+
+
+def check_details(arrays: dict[str, np.ndarray], kind: str, triads: list[str], path: Path,
+                  required: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """details.npz's arrays: the required ones present, numbers (names: text), shapes consistent with each
+    other and with the triads of results.json. Raises InputError naming the array."""
+    dims: dict[str, int] = {"M": len(triads)}
+    for key, shape in DETAILS_SHAPES[kind].items():
+        if key not in arrays:
+            if key in required:
+                raise InputError(path, key, "array missing; re-run `castimate solve` to regenerate details.npz")
+            continue
+        a = arrays[key]
+        text = key in DETAILS_NAMES
+        if (a.dtype.kind in "US") != text or (not text and a.dtype.kind not in "biuf"):
+            raise InputError(path, key, f"expected {'names' if text else 'numbers'}, found an array of dtype {a.dtype}")
+        if a.ndim != len(shape) or any(isinstance(d, int) and a.shape[i] != d for i, d in enumerate(shape)):
+            raise InputError(path, key, f"expected shape ({', '.join(map(str, shape))}), found {a.shape}")
+        for i, d in enumerate(shape):
+            if isinstance(d, str) and dims.setdefault(d, a.shape[i]) != a.shape[i]:
+                raise InputError(path, key, f"expected {dims[d]} along axis {i} ({d}: "
+                                            f"{'triads' if d == 'M' else 'the other arrays'}), found shape {a.shape}")
+    if "triads" in arrays and [str(x) for x in arrays["triads"]] != list(triads):
+        raise InputError(path, "triads", f"expected the triads of results.json ({', '.join(triads)}), found "
+                                         f"{', '.join(map(str, arrays['triads']))}")
+    return arrays

@@ -64,7 +64,8 @@ import numpy as np
 
 from castimate.errors import InputError
 from castimate.io.recording import Recording
-from .options import DetectionOptions, check_number
+from castimate.validation import Check
+from .options import DetectionOptions
 
 __all__ = [
     "DetectionOptions",
@@ -520,11 +521,7 @@ def explicit_segments(rec: Recording, segments_s: Any, source: object = "",
         w = f"{where}[{i}]"
         if isinstance(seg, (str, bytes)) or not isinstance(seg, (Sequence, np.ndarray)) or len(seg) != 2:
             raise InputError(src, w, f"expected a pair [t0, t1] in seconds, found {seg!r}")
-        try:
-            t0 = check_number(seg[0], positive=False)
-            t1 = check_number(seg[1], positive=False)
-        except ValueError as e:
-            raise InputError(src, w, str(e)) from None
+        t0, t1 = Check(src).number(seg[0], f"{w}[0]"), Check(src).number(seg[1], f"{w}[1]")
         if not t0 < t1:
             raise InputError(src, w, f"expected t0 < t1, found [{t0:g}, {t1:g}]")
         if t0 < t[0] - tol or t1 > t[-1] + tol:

@@ -3,67 +3,47 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, fields
 from typing import Any, Mapping
 
 import numpy as np
 
-from castimate.errors import InputError
+from castimate.validation import Check
 
 
 # --------------------------------------------------------------------------------------------
 # Options
 # --------------------------------------------------------------------------------------------
 
-def check_number(value: Any, *, positive: bool = True, nonneg: bool = False,
-                  lo: float | None = None, hi: float | None = None) -> float:
-    """Return ``value`` as a finite float or raise ValueError with a message."""
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise ValueError(f"expected a number, found {value!r}")
-    x = float(value)
-    if not math.isfinite(x):
-        raise ValueError(f"expected a finite number, found {value!r}")
-    if positive and x <= 0:
-        raise ValueError(f"expected a number > 0, found {value!r}")
-    if nonneg and x < 0:
-        raise ValueError(f"expected a number >= 0, found {value!r}")
-    if lo is not None and x < lo:
-        raise ValueError(f"expected a number >= {lo}, found {value!r}")
-    if hi is not None and x > hi:
-        raise ValueError(f"expected a number <= {hi}, found {value!r}")
-    return x
-
-
-def _optional(check):
-    def f(value):
-        if value is None or (isinstance(value, str) and value.strip().lower() in ("auto", "none")):
-            return None
-        return check(value)
-    return f
-
-
-def _check_bool(value: Any) -> bool:
-    if not isinstance(value, (bool, np.bool_)):
-        raise ValueError(f"expected true or false, found {value!r}")
-    return bool(value)
-
-
-_VALIDATORS = {
-    "window": lambda v: check_number(v),
-    "min_duration": lambda v: check_number(v, positive=False, nonneg=True),
-    "trim": lambda v: check_number(v, positive=False, nonneg=True),
-    "threshold": _optional(lambda v: check_number(v)),
-    "gyro_threshold": _optional(lambda v: check_number(v)),
-    "threshold_factor": lambda v: check_number(v, positive=False, lo=1.0),
-    "floor_quantile": lambda v: check_number(v, hi=0.5),
-    "use_gyro": _check_bool,
-    "min_separation_deg": lambda v: check_number(v, positive=False, nonneg=True, hi=180.0),
-    "merge_gap": lambda v: check_number(v, positive=False, nonneg=True),
-    "max_drift": _optional(lambda v: check_number(v)),
-    "drift_sigmas": lambda v: check_number(v),
-    "max_gyro": _optional(lambda v: check_number(v)),
+#: Options that may be "auto" (or none / null): chosen from the data, or the test disabled.
+_OPTIONAL = ("threshold", "gyro_threshold", "max_drift", "max_gyro")
+#: The physical range of every numeric option (Check.number bounds), named in the errors.
+_BOUNDS: dict[str, dict] = {
+    "window": dict(positive=True, hi=600.0, unit="s"),
+    "min_duration": dict(lo=0.0, hi=1e5, unit="s"),
+    "trim": dict(lo=0.0, hi=1e4, unit="s"),
+    "threshold": dict(positive=True, hi=1e3, unit="m/s^2"),
+    "gyro_threshold": dict(positive=True, hi=100.0, unit="rad/s"),
+    "threshold_factor": dict(lo=1.0, hi=1e3),
+    "floor_quantile": dict(positive=True, hi=0.5),
+    "min_separation_deg": dict(lo=0.0, hi=180.0, unit="deg"),
+    "merge_gap": dict(lo=0.0, hi=1e5, unit="s"),
+    "max_drift": dict(positive=True, hi=1e3, unit="m/s^2"),
+    "drift_sigmas": dict(positive=True, hi=1e6),
+    "max_gyro": dict(positive=True, hi=100.0, unit="rad/s"),
 }
+OPTION_NAMES = ("window", "min_duration", "trim", "threshold", "gyro_threshold", "threshold_factor",
+                "floor_quantile", "use_gyro", "min_separation_deg", "merge_gap", "max_drift", "drift_sigmas",
+                "max_gyro")
+
+
+def _option(c: Check, key: str, value: Any, where: str) -> Any:
+    """One detection option validated (Check style: the key path named)."""
+    if key == "use_gyro":
+        return c.flag(bool(value) if isinstance(value, np.bool_) else value, where)
+    if key in _OPTIONAL and (value is None or (isinstance(value, str) and value.strip().lower() in ("auto", "none"))):
+        return None
+    return c.number(value, where, **_BOUNDS[key])
 
 
 @dataclass(frozen=True)
@@ -128,12 +108,9 @@ class DetectionOptions:
     max_gyro: float | None = None
 
     def __post_init__(self):
+        c = Check("DetectionOptions")
         for f in fields(self):
-            try:
-                value = _VALIDATORS[f.name](getattr(self, f.name))
-            except ValueError as e:
-                raise InputError("DetectionOptions", f.name, str(e)) from None
-            object.__setattr__(self, f.name, value)
+            object.__setattr__(self, f.name, _option(c, f.name, getattr(self, f.name), f.name))
 
     @classmethod
     def from_mapping(cls, d: Mapping[str, Any] | None, source: object = "",
@@ -146,17 +123,6 @@ class DetectionOptions:
             On a key that is not an option (naming ``where.key`` and the valid keys) or a value
             of the wrong type or range (naming ``where.key``).
         """
-        if d is None:
-            return cls()
-        if not isinstance(d, Mapping):
-            raise InputError(source, where, f"expected a mapping of detection options, found {d!r}")
-        kwargs = {}
-        for key, value in d.items():
-            if key not in _VALIDATORS:
-                raise InputError(source, f"{where}.{key}" if where else str(key),
-                                 f"unknown option; expected one of {', '.join(_VALIDATORS)}")
-            try:
-                kwargs[key] = _VALIDATORS[key](value)
-            except ValueError as e:
-                raise InputError(source, f"{where}.{key}" if where else str(key), str(e)) from None
-        return cls(**kwargs)
+        c = Check(source)
+        d = c.mapping(dict(d) if isinstance(d, Mapping) else d, where, OPTION_NAMES)
+        return cls(**{key: _option(c, key, value, f"{where}.{key}" if where else str(key)) for key, value in d.items()})

@@ -11,14 +11,17 @@ from .page import load_details, load_results
 from .static import REQUIRED_DETAILS, render_report
 
 
-def write_report(directory: Path) -> Path:
-    """Write ``DIR/report.html`` for a solved directory; return its path. Raises InputError."""
+def write_report(directory: Path, path: Path | None = None) -> Path:
+    """Write the report of a solved directory to ``path`` (default ``DIR/report.html``); return the
+    path. Raises InputError."""
     directory = Path(directory)
+    if directory.exists() and not directory.is_dir():
+        raise InputError(directory, "", "expected the output directory of `castimate solve`, found a file")
     if not directory.is_dir():
         raise InputError(directory, "", "no such directory; expected the output directory of `castimate solve`")
     results = load_results(directory)
     dynamic = results.get("kind") == "dynamic_array"
-    details = load_details(directory, REQUIRED_DYNAMIC_DETAILS if dynamic else REQUIRED_DETAILS)
-    path = directory / "report.html"
+    details = load_details(directory, REQUIRED_DYNAMIC_DETAILS if dynamic else REQUIRED_DETAILS, results)
+    path = directory / "report.html" if path is None else Path(path)
     write_atomic(path, (render_dynamic_report if dynamic else render_report)(results, details))
     return path

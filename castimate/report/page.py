@@ -15,7 +15,9 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
-from ..io.results import load_results_json
+from ..io.results import check_results, load_results_json
+from ..output.details import check_details
+from ..validation import input_file
 
 DEG = 180 / np.pi  # degrees per radian: every angle on a page is shown in degrees
 
@@ -55,27 +57,27 @@ UNIT_DISPLAY = {"-": "–", "m/s^2": "m/s²", "rad": "deg", "rad/s": "rad/s", ""
 # ---------------------------------------------------------------------------------------------
 
 def load_results(directory: Path) -> dict:
-    """results.json of a solved directory (format checked; the status is reported, not enforced)."""
+    """results.json of a solved directory (structure checked; the status is reported, not enforced)."""
     path = directory / "results.json"
-    if not path.is_file():
-        raise InputError(path, "", "not found; expected the output directory of `castimate solve PROBLEM.yaml -o DIR`")
-    return load_results_json(path)
+    input_file(path, "results file")
+    doc = check_results(load_results_json(path), path, require_success=False)
+    for name, t in doc["triads"].items():
+        if "parameters" not in t:
+            raise InputError(path, f"triads.{name}.parameters", "missing; expected the estimated parameter groups")
+    return doc
 
 
-def load_details(directory: Path, required: tuple[str, ...]) -> dict[str, np.ndarray]:
-    """details.npz of a solved directory, as a dict of arrays (the *required* arrays checked)."""
+def load_details(directory: Path, required: tuple[str, ...], results: dict) -> dict[str, np.ndarray]:
+    """details.npz of a solved directory, as a dict of arrays checked against results.json
+    (:func:`castimate.output.details.check_details`)."""
     path = directory / "details.npz"
-    if not path.is_file():
-        raise InputError(path, "", "not found; expected the output directory of `castimate solve PROBLEM.yaml -o DIR`")
+    input_file(path, "details file")
     try:
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
     except (OSError, ValueError, zipfile.BadZipFile) as e:
         raise InputError(path, "", f"not a readable .npz file ({e})") from None
-    for k in required:
-        if k not in arrays:
-            raise InputError(path, k, "array missing; re-run `castimate solve` to regenerate details.npz")
-    return arrays
+    return check_details(arrays, results["kind"], list(results["triads"]), path, required)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -13,10 +13,21 @@ from ..io.readers import write_csv
 from ..io.recording import Recording
 from ..io.atomic import write_atomic
 from ..io.results import write_json
-from ..validation import Check
+from ..validation import Check, load_yaml, shown
 from ..problem.effects import BY_KEY
 from .effects import REALISTIC_DYNAMIC_EFFECTS, REALISTIC_EFFECTS, random_coefficients, random_effects
 from .static import StaticTruthScale, pose_directions, random_static_truth, static_pose_means, static_time_series
+
+#: Bounds of a scenario's size: the simulation must fit in memory (MAX_VALUES float64 readings,
+#: about 0.3 GB with the copies made on the way).
+MAX_TRIADS = 1000
+MAX_POSES = 10_000
+MAX_SAMPLES = 10 ** 6
+MAX_VALUES = 4 * 10 ** 7
+GRAVITY_RANGE = (9.7, 9.9)  # m/s^2: the gravity anywhere on the Earth's surface
+
+#: The files ``castimate simulate`` writes into its output directory.
+OUTPUT_FILES = ("data.csv", "truth.json", "problem.yaml")
 
 SCENARIO_KEYS = ("kind", "seed", "gravity", "triads", "reference", "poses", "noise", "samples_per_pose",
                  "truth", "gyroscope", "time_series", "rate", "pose_duration", "transition", "effects", "temperature",
@@ -33,15 +44,13 @@ def _flag(c: Check, s: dict, key: str) -> bool:
 def simulate_scenario(path: str | Path, out: str | Path) -> dict[str, Path]:
     """Read a scenario file, simulate it and write ``data.csv``, ``truth.json`` and ``problem.yaml``."""
     path, out = Path(path), Path(out)
-    try:
-        raw = yaml.safe_load(path.read_text())
-    except OSError as e:
-        raise InputError(path, "", f"cannot read the scenario file ({e.strerror})") from None
-    except yaml.YAMLError as e:
-        raise InputError(path, "", f"not valid YAML ({e})") from None
+    raw = load_yaml(path, "scenario file")
     c = Check(path)
     if not isinstance(raw, dict):
-        c.fail("", f"expected a mapping, found {type(raw).__name__} {raw!r}")
+        c.fail("", f"expected a mapping, found {type(raw).__name__} {shown(raw)}")
+    if "data" in raw or "array" in raw:
+        c.fail("", f"this is a problem file (it has {' and '.join(k for k in ('data', 'array') if k in raw)}), not a "
+                   f"scenario: solve it with `castimate solve {path} -o DIR`")
     if "kind" not in raw:
         c.fail("(top level)", "missing required key 'kind'")
     kind = c.choice(raw["kind"], "kind", ("static_array", "dynamic_array"))
@@ -50,8 +59,15 @@ def simulate_scenario(path: str | Path, out: str | Path) -> dict[str, Path]:
     return _static_scenario(c, raw, path, out)
 
 
+def _check_size(c: Check, samples: float, channels: int, what: str) -> None:
+    """Refuse a simulation that would not fit in memory, before allocating it."""
+    if samples * channels > MAX_VALUES:
+        c.fail("", f"expected at most {MAX_VALUES:.0e} simulated readings, found {samples:.3g} samples ({what}) x "
+                   f"{channels} channels; simulate fewer samples or triads")
+
+
 def _seed(c: Check, s: dict) -> np.random.Generator:
-    seed = c.number(s.get("seed", 0), "seed", integer=True)
+    seed = c.number(s.get("seed", 0), "seed", integer=True, hi=2 ** 63)
     if seed < 0:
         c.fail("seed", f"expected a non-negative integer, found {seed}")
     return np.random.default_rng(seed)
@@ -65,7 +81,7 @@ def _effects(c: Check, s: dict, gyro: bool, realistic: dict[str, float] = REALIS
     for k, v in e.items():
         if k.startswith("gyroscope.") and not gyro:
             c.fail(f"effects.{k}", "a gyroscope effect needs gyroscope: true")
-        out[k] = realistic[k] if v == "realistic" else c.number(v, f"effects.{k}")
+        out[k] = realistic[k] if v == "realistic" else c.number(v, f"effects.{k}", hi=1e3)
         if out[k] < 0:
             c.fail(f"effects.{k}", f"expected a magnitude >= 0 or realistic, found {v}")
     return out
@@ -73,11 +89,11 @@ def _effects(c: Check, s: dict, gyro: bool, realistic: dict[str, float] = REALIS
 
 def _static_scenario(c: Check, raw: dict, path: Path, out: Path) -> dict[str, Path]:
     s = c.mapping(raw, "", SCENARIO_KEYS, required=("kind",))
-    seed = c.number(s.get("seed", 0), "seed", integer=True)
+    seed = c.number(s.get("seed", 0), "seed", integer=True, hi=2 ** 63)
     if seed < 0:
         c.fail("seed", f"expected a non-negative integer, found {seed}")
     rng = np.random.default_rng(seed)
-    g = c.number(s.get("gravity", 9.81), "gravity", positive=True)
+    g = c.number(s.get("gravity", 9.81), "gravity", positive=True, lo=GRAVITY_RANGE[0], hi=GRAVITY_RANGE[1], unit="m/s^2")
     tr = s.get("triads", 14)
     if isinstance(tr, list):
         if not tr:
@@ -90,21 +106,21 @@ def _static_scenario(c: Check, raw: dict, path: Path, out: Path) -> dict[str, Pa
                 c.fail(f"triads[{i}]", f"duplicate triad name {n!r}")
             names.append(n)
     else:
-        names = [f"imu{i + 1}" for i in range(c.number(tr, "triads", positive=True, integer=True))]
+        names = [f"imu{i + 1}" for i in range(c.number(tr, "triads", positive=True, integer=True, hi=MAX_TRIADS))]
     ref = s.get("reference", names[0])
     if ref not in names:
         c.fail("reference", f"unknown triad {ref!r}; triads are {', '.join(names)}")
-    P = c.number(s.get("poses", 20), "poses", positive=True, integer=True)
+    P = c.number(s.get("poses", 20), "poses", positive=True, integer=True, hi=MAX_POSES)
     noise = c.mapping(s.get("noise"), "noise", ("accelerometer", "gyroscope"))
-    sigma = c.number(noise.get("accelerometer", 0.01), "noise.accelerometer", positive=True)
+    sigma = c.number(noise.get("accelerometer", 0.01), "noise.accelerometer", positive=True, hi=100.0, unit="m/s^2")
     gyro = _flag(c, s, "gyroscope")
-    gsigma = c.number(noise.get("gyroscope", 0.002), "noise.gyroscope", positive=True) if gyro else None
+    gsigma = c.number(noise.get("gyroscope", 0.002), "noise.gyroscope", positive=True, hi=10.0, unit="rad/s") if gyro else None
     tsec = c.mapping(s.get("truth"), "truth", tuple(StaticTruthScale.__dataclass_fields__))
-    scale = StaticTruthScale(**{k: c.number(v, f"truth.{k}") for k, v in tsec.items()})
+    scale = StaticTruthScale(**{k: c.number(v, f"truth.{k}", hi=1e3) for k, v in tsec.items()})
     for k, v in vars(scale).items():
         if v < 0:
             c.fail(f"truth.{k}", f"expected a standard deviation >= 0, found {v}")
-    n_samp = c.number(s.get("samples_per_pose", 1000), "samples_per_pose", positive=True, integer=True)
+    n_samp = c.number(s.get("samples_per_pose", 1000), "samples_per_pose", positive=True, integer=True, hi=10 ** 9)
 
     truth = random_static_truth(names, ref, rng, g, scale, gyroscope=gyro)
     U = pose_directions(P, rng)
@@ -123,21 +139,23 @@ def _static_scenario(c: Check, raw: dict, path: Path, out: Path) -> dict[str, Pa
         if effects or "temperature" in s:
             c.fail("effects" if effects else "temperature", "effects and temperature are simulated for pose means "
                                                             "(time_series: false)")
-        rate = c.number(s.get("rate", 100.0), "rate", positive=True)
-        rec, intervals = static_time_series(truth, U, sigma, rng, rate=rate,
-                                            pose_duration=c.number(s.get("pose_duration", 10.0), "pose_duration", positive=True),
-                                            transition=c.number(s.get("transition", 3.0), "transition", positive=True),
+        rate = c.number(s.get("rate", 100.0), "rate", positive=True, hi=1e5, unit="Hz")
+        dur = c.number(s.get("pose_duration", 10.0), "pose_duration", positive=True, hi=1e5, unit="s")
+        trans = c.number(s.get("transition", 3.0), "transition", positive=True, hi=1e5, unit="s")
+        _check_size(c, P * (dur + trans) * rate, len(names) * (6 if gyro else 3), "poses x (pose_duration + "
+                    "transition) x rate")
+        rec, intervals = static_time_series(truth, U, sigma, rng, rate=rate, pose_duration=dur, transition=trans,
                                             gyro_sigma=gsigma)
         problem["data"]["segments"] = "auto"
         problem["noise"] = {"accelerometer": "auto"}
     else:
         # one row per pose, pose_interval seconds apart; τ = -1 at the first pose, +1 at the last
-        t = np.arange(P) * c.number(s.get("pose_interval", 1.0), "pose_interval", positive=True)
+        t = np.arange(P) * c.number(s.get("pose_interval", 1.0), "pose_interval", positive=True, hi=1e6, unit="s")
         tau = 2 * t / max(t[-1], 1e-9) - 1
         temp = {}
         if "temperature" in s:
-            mean = c.number(tsec.get("mean", 298.15), "temperature.mean", positive=True)
-            amp = c.number(tsec.get("amplitude", 5.0), "temperature.amplitude")
+            mean = c.number(tsec.get("mean", 298.15), "temperature.mean", positive=True, lo=150.0, hi=450.0, unit="K")
+            amp = c.number(tsec.get("amplitude", 5.0), "temperature.amplitude", lo=-100.0, hi=100.0, unit="K")
             # a warm-up and cool-down that no quadratic in time follows
             temp = {n: mean + rng.standard_normal() + amp * np.sin(0.75 * np.pi * (tau + 1)) for n in names}
         acc, gy = static_pose_means(truth, U, sigma, n_samp, rng, gsigma, tau, temp or None)
@@ -175,14 +193,14 @@ def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path) -> dict[str, P
     s = c.mapping(raw, "", DYNAMIC_KEYS, required=("kind", "geometry"))
     rng = _seed(c, s)
     geometry = c.choice(s["geometry"], "geometry", ("carlsson", "schopp"))
-    N = c.number(s.get("samples", 1000), "samples", positive=True, integer=True)
-    rate = c.number(s.get("rate", 100.0), "rate", positive=True)
-    w_max = np.radians(c.number(s.get("max_omega", 2000.0), "max_omega", positive=True))
-    wd_max = np.radians(c.number(s.get("max_omega_dot", 2000.0), "max_omega_dot", positive=True))
+    N = c.number(s.get("samples", 1000), "samples", positive=True, integer=True, hi=MAX_SAMPLES)
+    rate = c.number(s.get("rate", 100.0), "rate", positive=True, hi=1e5, unit="Hz")
+    w_max = np.radians(c.number(s.get("max_omega", 2000.0), "max_omega", positive=True, hi=1e4, unit="deg/s"))
+    wd_max = np.radians(c.number(s.get("max_omega_dot", 2000.0), "max_omega_dot", positive=True, hi=1e6, unit="deg/s^2"))
     noise = c.mapping(s.get("noise"), "noise", ("accelerometer", "gyroscope"))
-    acc_sigma = c.number(noise.get("accelerometer", 0.04), "noise.accelerometer", positive=True)
-    gyro_sigma = np.radians(c.number(noise.get("gyroscope", 0.06), "noise.gyroscope", positive=True))
-    pos_err = c.number(s.get("position_error", 1e-3), "position_error")
+    acc_sigma = c.number(noise.get("accelerometer", 0.04), "noise.accelerometer", positive=True, hi=100.0, unit="m/s^2")
+    gyro_sigma = np.radians(c.number(noise.get("gyroscope", 0.06), "noise.gyroscope", positive=True, hi=500.0, unit="deg/s"))
+    pos_err = c.number(s.get("position_error", 1e-3), "position_error", lo=0.0, hi=1.0, unit="m")
     if geometry == "carlsson":
         names, nominal, true, R = carlsson_geometry(rng, pos_err, reference="imu1")
         true_R = R
@@ -195,16 +213,17 @@ def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path) -> dict[str, P
             names, nominal, true = [names[i] for i in keep], nominal[keep], true[keep]
     else:
         names, nominal, true, R, true_R = schopp_geometry(
-            rng, pos_err, orientation_error_deg=c.number(s.get("orientation_error", 0.0), "orientation_error"),
+            rng, pos_err, orientation_error_deg=c.number(s.get("orientation_error", 0.0), "orientation_error", lo=0.0, hi=180.0, unit="deg"),
             reference="acc1")
         gyro = _flag(c, s, "gyroscope") if "gyroscope" in s else False
-    motion = smooth_random_motion(N, rate, w_max, wd_max, rng, linear_accel=c.number(s.get("linear_accel", 2.0), "linear_accel"))
+    motion = smooth_random_motion(N, rate, w_max, wd_max, rng, linear_accel=c.number(s.get("linear_accel", 2.0), "linear_accel", lo=0.0, hi=1e3, unit="m/s^2"))
     if _flag(c, s, "euler_consistent") if "euler_consistent" in s else True:
         motion = euler_consistent(motion)
     K = len(names)
+    _check_size(c, N, K * (6 if gyro else 3), "samples")
     sat = s.get("saturation")
     gyro_model = {"T_g": np.stack([true_R[n] for n in names]), "b_g": np.zeros((K, 3)), "sigma": gyro_sigma,
-                  "saturation": np.radians(c.number(sat, "saturation", positive=True)) if sat is not None else None} \
+                  "saturation": np.radians(c.number(sat, "saturation", positive=True, hi=1e5, unit="deg/s")) if sat is not None else None} \
         if gyro else None
     origin = true[0]
     effects = {}

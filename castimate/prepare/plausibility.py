@@ -1,0 +1,218 @@
+"""Physical plausibility of a recording against what the problem file declares.
+
+Unit mistakes and dead sensors do not stop a least-squares fit: it converges to a wrong answer, or
+fails with an undetermined direction that names no cause. These checks look at the raw data first and
+refuse, with the numbers and the fix, where the evidence is conclusive; they warn where it is not.
+
+- Accelerometer units: every triad of an array at rest or twisted by hand reads the gravity norm
+  most of the time, so the 5 % quantile of the per-sample norm is near g (0.9-1.1 g on the bundled
+  static and dynamic recordings, real and simulated). Near 1/9.81 of it the data are in g declared
+  as m/s^2; near 9.81 times it, the reverse.
+- Gyroscope units: no MEMS gyroscope measures beyond about +-70 rad/s (4000 deg/s), and none has a
+  white noise at rest of 0.05 rad/s (3 deg/s) per sample; data in deg/s declared as rad/s exceed both.
+- Dead channels: an axis that reads one value in every sample (stuck, disconnected, all zeros), or
+  an accelerometer axis of a static recording that sits at its extreme in many samples (clipped at
+  an ADC rail), is named by its data column.
+- Information of a dynamic segment: the relative positions of the triads are seen through
+  W = [w_dot]x + [w]x^2 (Carlsson 2017, eq. 3). From the gyroscope's angular rate, a position error
+  is predicted before solving: the Fisher bound from the noise, or, larger on weak motion, a residual
+  intrinsics error of 2 mg divided by the RMS excitation |W| (systematic errors do not average out).
+  The static phase of the MIMU4444 sessions (|W| about 3.5 s^-2) predicts 6 mm on its 19 mm board;
+  the hand-twisted phase (about 1500 s^-2) 13 µm.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from ..errors import InputError
+from ..io.recording import Recording
+
+#: Standard gravity, m/s^2.
+G0 = 9.80665
+#: Quantile of the per-sample accelerometer norm compared with g.
+NORM_QUANTILE = 0.05
+#: Conclusive ratio of that quantile to g: outside, the declared units are wrong.
+NORM_REFUSE = (0.3, 4.0)
+#: Ratio outside which a warning is given (static, dynamic).
+NORM_WARN = {"static": (0.8, 1.25), "dynamic": (0.7, 2.5)}
+#: Largest angular rate of any MEMS gyroscope, rad/s (+-4000 deg/s).
+MAX_RATE = 70.0
+#: Largest white noise at rest of any MEMS gyroscope, rad/s per sample.
+MAX_GYRO_NOISE_AT_REST = 0.05
+#: An accelerometer axis at its extreme in more than this fraction of the samples is clipped.
+CLIPPED_FRACTION = 0.02
+#: A residual error of the intrinsics (biases, misalignments) that data do not average out, m/s^2 (2 mg).
+MODEL_ERROR = 0.02
+#: A dynamic segment is refused when the predicted position error exceeds this fraction of the array size.
+POSITION_ERROR_REFUSE = 0.1
+#: ... and gives a warning above this fraction.
+POSITION_ERROR_WARN = 0.01
+
+Log = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class Declared:
+    """Where the units and data came from, for the messages."""
+
+    problem: object  # the problem file
+    data: object  # the data file
+    acc_units: str = "m/s^2"  # a description of the declared conversion
+    gyro_units: str = "rad/s"
+
+
+def _columns(name: str, sensor: str) -> list[str]:
+    return [f"{name}.{a}" for a in (("ax", "ay", "az") if sensor == "accelerometer" else ("gx", "gy", "gz"))]
+
+
+def check_channels(rec: Recording, names: list[str], declared: Declared, clipping: bool) -> None:
+    """Refuse stuck, all-zero and (with ``clipping``) clipped channels, naming the data column."""
+    for name in names:
+        for sensor, group in (("accelerometer", rec.acc), ("gyroscope", rec.gyro)):
+            if name not in group or len(rec.t) < 2:
+                continue
+            y = group[name]
+            cols = _columns(name, sensor)
+            if np.all(y == 0):
+                raise InputError(declared.data, f"{cols[0]}, {cols[1]}, {cols[2]}",
+                                 f"triad {name!r} reads 0 on every {sensor} axis in all {len(y)} samples: a dead or "
+                                 "disconnected sensor; leave it out of array.triads"
+                                 + (" or set its gyroscope: false" if sensor == "gyroscope" else ""))
+            for i, col in enumerate(cols):
+                a = y[:, i]
+                if np.all(a == a[0]):
+                    raise InputError(declared.data, col,
+                                     f"reads the constant {a[0]:.6g} in all {len(a)} samples: a stuck or disconnected "
+                                     f"{sensor} axis; leave triad {name!r} out of array.triads"
+                                     + (" or set its gyroscope: false" if sensor == "gyroscope" else ""))
+                if clipping and sensor == "accelerometer":
+                    for label, v in (("maximum", a.max()), ("minimum", a.min())):
+                        frac = np.count_nonzero(a == v) / len(a)
+                        if frac > CLIPPED_FRACTION:
+                            raise InputError(declared.data, col,
+                                             f"sits at its {label} {v:.6g} m/s^2 in {100 * frac:.1f} % of the samples: "
+                                             "clipped at an ADC rail, so the static poses there are wrong; record with "
+                                             "a larger range or leave the triad out")
+
+
+def check_accelerometer_units(rec: Recording, names: list[str], declared: Declared, gravity: float,
+                              kind: str, log: Log) -> None:
+    """The gravity norm against the declared accelerometer units (see the module docstring)."""
+    q = {n: float(np.quantile(np.linalg.norm(rec.acc[n], axis=1), NORM_QUANTILE)) for n in names if n in rec.acc}
+    if not q:
+        return
+    name = min(q, key=lambda n: abs(np.log(max(q[n], 1e-300) / gravity)))  # the most plausible triad
+    r = q[name] / gravity
+    what = (f"the {100 * NORM_QUANTILE:g} % quantile of the raw accelerometer norm is {q[name]:.4g} m/s^2 "
+            f"({name}, after the declared conversion {declared.acc_units}), where an array at rest or twisted "
+            f"by hand reads about g = {gravity:g} m/s^2")
+    if not NORM_REFUSE[0] <= r <= NORM_REFUSE[1]:
+        if abs(np.log(r * G0)) < 0.35:
+            fix = "the data look like they are in g: declare data.units.accelerometer: g"
+        elif abs(np.log(r / G0)) < 0.35:
+            fix = "the data look like they are already in m/s^2: declare data.units.accelerometer: m/s^2"
+        else:
+            fix = f"the declared scale is off by a factor {1 / r:.4g}: check data.units.accelerometer"
+        raise InputError(declared.problem, "data.units.accelerometer", f"{what}; {fix}")
+    lo, hi = NORM_WARN[kind]
+    if not lo <= r <= hi:
+        log(f"warning: {what} ({r:.3g} g); check data.units.accelerometer")
+
+
+def check_gyroscope_units(rec: Recording, names: list[str], declared: Declared) -> None:
+    """No angular rate beyond any MEMS gyroscope's range."""
+    peaks = {n: float(np.abs(rec.gyro[n]).max()) for n in names if n in rec.gyro}
+    if not peaks:
+        return
+    name = max(peaks, key=peaks.get)
+    if peaks[name] > MAX_RATE:
+        raise InputError(declared.problem, "data.units.gyroscope",
+                         f"the gyroscope of {name} reads up to {peaks[name]:.4g} rad/s after the declared conversion "
+                         f"{declared.gyro_units}, beyond the range of any MEMS gyroscope ({MAX_RATE:g} rad/s = "
+                         f"{np.degrees(MAX_RATE):.0f} deg/s)" + _gyro_fix(peaks[name]))
+
+
+def _gyro_fix(value: float) -> str:
+    if value / np.degrees(1.0) <= MAX_RATE:
+        return ": the data look like deg/s; declare data.units.gyroscope: deg/s"
+    return ": check data.units.gyroscope"
+
+
+def check_gyroscope_noise(sigma: dict[str, float], declared: Declared) -> None:
+    """The per-sample white noise of the gyroscopes at rest (from the static poses)."""
+    if not sigma:
+        return
+    name = max(sigma, key=sigma.get)
+    if sigma[name] > MAX_GYRO_NOISE_AT_REST:
+        raise InputError(declared.problem, "data.units.gyroscope",
+                         f"the gyroscope of {name} has a noise of {sigma[name]:.4g} rad/s per sample at rest after the "
+                         f"declared conversion {declared.gyro_units}; MEMS gyroscopes have less than "
+                         f"{MAX_GYRO_NOISE_AT_REST:g} rad/s" + _noise_fix(sigma[name]))
+
+
+def _noise_fix(value: float) -> str:
+    if value / np.degrees(1.0) <= MAX_GYRO_NOISE_AT_REST:
+        return ": the data look like deg/s; declare data.units.gyroscope: deg/s"
+    return ": check data.units.gyroscope"
+
+
+def angular_excitation(omega: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """W_n = [w_dot_n]x + [w_n]x^2 (N, 3, 3), s^-2, from a gyroscope's rate (its median removed as the
+    bias, smoothed over 0.05 s so that differentiating its noise adds little)."""
+    dt = float(np.median(np.diff(t)))
+    k = max(1, int(round(0.05 / dt))) if dt > 0 else 1
+    kernel = np.ones(k) / k
+    w = np.column_stack([np.convolve(omega[:, i] - np.median(omega[:, i]), kernel, mode="same") for i in range(3)])
+    wd = np.gradient(w, t, axis=0)
+
+    def cross(v):
+        z = np.zeros(len(v))
+        return np.stack([np.stack([z, -v[:, 2], v[:, 1]], -1), np.stack([v[:, 2], z, -v[:, 0]], -1),
+                         np.stack([-v[:, 1], v[:, 0], z], -1)], 1)
+
+    Wx = cross(w)
+    return cross(wd) + Wx @ Wx
+
+
+def position_error(omega: np.ndarray, t: np.ndarray, acc_sigma: float) -> tuple[float, float, float]:
+    """Predicted error (m) of a triad's position relative to the reference, from the angular rate (N, 3).
+
+    Returns (error, σ from the noise, RMS |W|). The noise part is the Fisher bound: the difference of
+    two triads' readings has noise √2 σ_a, so the information is sum_n W_n^T W_n / (2 σ_a^2). The
+    systematic part is MODEL_ERROR / RMS |W|: an error of the intrinsics that no amount of data
+    averages out moves a position by that much.
+    """
+    if len(t) < 5:
+        return np.inf, np.inf, 0.0
+    W = angular_excitation(omega, t)
+    rms = float(np.sqrt(np.mean(np.sum(W ** 2, axis=(1, 2)))))
+    info = np.einsum("nij,nik->jk", W, W) / (2 * acc_sigma ** 2)
+    try:
+        sd = float(np.sqrt(max(np.max(np.diag(np.linalg.inv(info))), 0.0)))
+    except np.linalg.LinAlgError:
+        sd = np.inf
+    return max(sd, MODEL_ERROR / rms if rms > 0 else np.inf), sd, rms
+
+
+def check_dynamic_information(rec: Recording, reference: str, free_position: bool, nominal: np.ndarray | None,
+                              acc_sigma: float, declared: Declared, log: Log) -> None:
+    """Refuse a dynamic segment whose angular motion cannot determine the free positions."""
+    if not free_position or reference not in rec.gyro or nominal is None or len(nominal) < 2:
+        return
+    size = float(np.max(np.linalg.norm(nominal[:, None] - nominal[None], axis=-1)))
+    if size <= 0:
+        return
+    err, sd, rms = position_error(rec.gyro[reference], rec.t, acc_sigma)
+    what = (f"the angular motion in {declared.data} ({len(rec.t)} samples, RMS |[w_dot]x + [w]x^2| = {rms:.3g} s^-2) "
+            f"predicts a position error of {1e3 * err:.3g} mm (noise σ {1e3 * sd:.3g} mm; {MODEL_ERROR:g} m/s^2 of "
+            f"residual intrinsics error divided by the excitation) on an array of {1e3 * size:.3g} mm")
+    if err > POSITION_ERROR_REFUSE * size:
+        raise InputError(declared.problem, "data.time_range",
+                         f"{what}: too little angular motion to determine the positions (a static phase?); give "
+                         "the time range where the array is twisted by hand, or fix model.position")
+    if err > POSITION_ERROR_WARN * size:
+        log(f"warning: {what}; the positions will be poorly determined")

@@ -1,0 +1,1183 @@
+"""Adversarial inputs through the command line: no traceback, no silent wrong answer, no touched input.
+
+Every case runs ``castimate.cli.main([...])`` in a forked child (memory and time limited, so that a
+case which would read a device forever or allocate without bound ends as a failure, not a hang)
+and asserts:
+
+- the exit code (0 success, 2 invalid input, 3 not converged);
+- for a refusal, ONE line ``castimate <verb>: error: ...`` naming the right file, key or column;
+- every input file byte-identical afterwards, and no partial output (a refused run leaves the case
+  directory exactly as it was, hidden temporary files included).
+
+The data are tiny sessions simulated once per run (``castimate simulate``) and written in every
+reader's format (csv, npz, the MIMU packet stream, imu_tk tables). :func:`outcome` classifies a run
+as clean / vague / traceback / wrong success / touched input; ``python tests/test_adversarial.py``
+prints the table per issue class.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import resource
+import shutil
+import signal
+import sys
+import traceback
+from collections import Counter
+from contextlib import redirect_stderr, redirect_stdout
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pytest
+import yaml
+
+from castimate.cli import main
+from castimate.io.readers import read_csv, write_npz
+from castimate.io.recording import Recording
+
+# ============================================================================ running a case
+
+
+def _vm_bytes() -> int:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmSize:"):
+            return int(line.split()[1]) * 1024
+    return 0
+
+
+def run_cli(argv: list[str], timeout: int = 60, extra_memory: int = 3 << 30) -> dict:
+    """``main(argv)`` in a forked child: {'rc', 'stdout', 'stderr', 'exception', 'killed'}."""
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # child
+        os.close(r)
+        out, err = io.StringIO(), io.StringIO()
+        res = {"rc": None, "exception": None, "killed": None}
+        try:
+            lim = _vm_bytes() + extra_memory
+            resource.setrlimit(resource.RLIMIT_AS, (lim, lim))
+            signal.alarm(timeout)
+            with redirect_stdout(out), redirect_stderr(err):
+                try:
+                    res["rc"] = main(argv)
+                except SystemExit as e:
+                    res["rc"] = e.code if isinstance(e.code, int) else 1
+                except BaseException:  # noqa: BLE001 - anything escaping main is the finding
+                    res["exception"] = traceback.format_exc()
+        except BaseException:  # noqa: BLE001
+            res["exception"] = traceback.format_exc()
+        res["stdout"], res["stderr"] = out.getvalue(), err.getvalue()
+        data = json.dumps(res).encode()
+        with os.fdopen(w, "wb") as fh:
+            fh.write(data)
+        os._exit(0)
+    os.close(w)
+    with os.fdopen(r, "rb") as fh:
+        data = fh.read()
+    _, status = os.waitpid(pid, 0)
+    if not data:
+        sig = os.WTERMSIG(status) if os.WIFSIGNALED(status) else None
+        return {"rc": None, "stdout": "", "stderr": "", "exception": None,
+                "killed": f"signal {sig}" + (" (time limit)" if sig == signal.SIGALRM else "")}
+    return json.loads(data)
+
+
+def snapshot(*roots: Path) -> dict[str, str]:
+    """Path -> sha256 of every file (hidden ones too) under the roots; directories as 'dir'."""
+    out = {}
+    for root in roots:
+        if not root.exists():
+            continue
+        items = [root] if root.is_file() else [root, *sorted(root.rglob("*"))]
+        for p in items:
+            if p.is_symlink():
+                out[str(p)] = "link:" + os.readlink(p)
+            elif p.is_file():
+                out[str(p)] = hashlib.sha256(p.read_bytes()).hexdigest()
+            elif p.is_dir():
+                out[str(p)] = "dir"
+            else:
+                out[str(p)] = "special"
+    return out
+
+
+@dataclass
+class Spec:
+    """What a case runs and expects."""
+
+    argv: list[str]
+    rc: int = 2
+    names: tuple[str, ...] = ()  # fragments the error line must contain (file, key, column, ...)
+    output: Path | None = None  # where a successful run writes (new files allowed only under it)
+    check: Callable[[dict], str | None] | None = None  # extra check of a success: a failure reason or None
+
+
+@dataclass
+class Case:
+    id: str
+    klass: str  # the issue's class: traceback, silent, touched, vague, cli
+    build: Callable[[Path, Path], Spec]  # (base dir, case dir) -> Spec
+    marks: tuple = field(default_factory=tuple)
+
+
+OUTCOMES = ("clean", "vague", "traceback", "wrong success", "touched input")
+
+
+def outcome(spec: Spec, res: dict, before: dict, after: dict, tmp: Path | None = None) -> tuple[str, str]:
+    """Classify a run; return (outcome, explanation). Fragments are matched with ``tmp`` (the case's
+    directory, whose name holds the case id) replaced by ``<tmp>``."""
+    if res["killed"]:
+        return "traceback", f"child killed: {res['killed']}"
+    if res["exception"]:
+        return "traceback", res["exception"].strip().splitlines()[-1]
+    if "Traceback" in res["stderr"]:
+        return "traceback", res["stderr"][-300:]
+    changed = [p for p in before if after.get(p) != before[p]]
+    if changed:
+        return "touched input", f"changed or removed: {changed}"
+    new = [p for p in after if p not in before]
+    if res["rc"] != 0 and new:
+        return "touched input", f"partial output left: {new}"
+    if res["rc"] == 0 and spec.output is not None:
+        stray = [p for p in new if not (p == str(spec.output) or p.startswith(str(spec.output) + os.sep))]
+        if stray:
+            return "touched input", f"wrote outside the output: {stray}"
+    err_lines = [ln for ln in res["stderr"].splitlines() if ln.strip()]
+    if spec.rc != 0:
+        if res["rc"] == 0:
+            return "wrong success", "exit 0; expected a refusal"
+        last = err_lines[-1] if err_lines else ""
+        if res["rc"] != spec.rc:
+            return "vague", f"exit {res['rc']} (expected {spec.rc}): {last}"
+        if not (last.startswith("castimate ") and ": error: " in last) and not last.startswith("usage:") \
+                and "error:" not in last:
+            return "vague", f"no one-line error: {last!r}"
+        blank = (lambda x: x.replace(str(tmp), "<tmp>")) if tmp else (lambda x: x)
+        missing = [n for n in spec.names if blank(n).lower() not in blank(last).lower()]
+        if missing:
+            return "vague", f"does not name {missing}: {last}"
+        return "clean", last
+    if res["rc"] != 0:
+        return "vague" if res["rc"] in (2, 3) else "traceback", \
+            f"exit {res['rc']}, expected success: {err_lines[-1] if err_lines else ''}"
+    if spec.check is not None:
+        why = spec.check(res)
+        if why:
+            return "wrong success", why
+    return "clean", "ok"
+
+
+# ============================================================================ base data
+
+G = 9.80665
+ACC_COUNTS = 2048 / G  # MIMU default: raw * 9.80665 / 2048 m/s^2
+GYRO_COUNTS = 16.4 * 180 / np.pi  # raw / 16.4 deg/s
+IMUTK_ACC = {"unit": "counts", "offset": 32768, "scale": 0.0024154589}
+IMUTK_GYRO = {"unit": "counts", "offset": 32768, "scale": 0.00020964361}
+
+
+def write_yaml(path: Path, doc) -> Path:
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return path
+
+
+def mimu_stream(ticks: np.ndarray, counter: np.ndarray, values: np.ndarray, ack: bytes = b"\x00\x01\x02\x03") -> bytes:
+    """An OpenShoe/MIMU packet stream: values (M, n_imus, 6) int16, ticks uint32, counter uint16."""
+    n = values.shape[1]
+    psize = 4 + 12 * n
+    out = bytearray(ack)
+    for k in range(len(ticks)):
+        body = bytes([0xAA]) + int(counter[k] % 65536).to_bytes(2, "big") + bytes([psize]) \
+            + int(ticks[k] % (1 << 32)).to_bytes(4, "big") + values[k].astype(">i2").tobytes()
+        out += body + (sum(body) & 0xFFFF).to_bytes(2, "big")
+    return bytes(out)
+
+
+def mimu_values(rec: Recording, names: list[str]) -> np.ndarray:
+    v = np.stack([np.hstack([rec.acc[n] * ACC_COUNTS, rec.gyro[n] * GYRO_COUNTS]) for n in names], axis=1)
+    return np.round(v).astype(np.int16)
+
+
+def imutk_table(t: np.ndarray, xyz: np.ndarray, scale: float, offset: float = 32768) -> str:
+    counts = xyz / scale + offset
+    return "\n".join(f"{a:.7e}   {b:.7e}   {c:.7e}   {d:.7e}" for a, b, c, d in np.column_stack([t, counts])) + "\n"
+
+
+def static_problem(data: str, fmt: str, names: list[str], **extra) -> dict:
+    doc = {"kind": "static_array", "data": {"path": data, "format": fmt, "segments": "auto"},
+           "array": {"reference": names[0], "triads": [{"name": n} for n in names]},
+           "model": {"gravity": 9.81}, "noise": {"accelerometer": "auto"}}
+    for k, v in extra.items():
+        doc[k] = v
+    return doc
+
+
+def cli(*argv) -> None:
+    res = run_cli([str(a) for a in argv])
+    assert res["rc"] == 0, res
+
+
+@pytest.fixture(scope="session")
+def base(tmp_path_factory) -> Path:
+    """Tiny simulated sessions in every format, solved once; read-only for the cases."""
+    return build_base(tmp_path_factory.mktemp("base"))
+
+
+def build_base(b: Path) -> Path:
+    # static time series: 3 triads with gyroscopes, 12 poses of 4 s at 50 Hz (~3000 rows)
+    (b / "static").mkdir()
+    (b / "static.yaml").write_text("kind: static_array\ntriads: 3\nposes: 12\nseed: 1\ntime_series: true\n"
+                                   "rate: 50\npose_duration: 4\ntransition: 1\ngyroscope: true\n")
+    cli("simulate", b / "static.yaml", "-o", b / "static")
+    # one row per pose: the fastest static solve
+    (b / "rows.yaml").write_text("kind: static_array\ntriads: 3\nposes: 20\nseed: 2\n")
+    cli("simulate", b / "rows.yaml", "-o", b / "rows")
+    cli("solve", b / "rows" / "problem.yaml", "-o", b / "rows_solved", "-q")
+    cli("solve", b / "static" / "problem.yaml", "-o", b / "static_solved", "-q")
+    # dynamic: 4 IMUs of the Carlsson board with gyroscopes, 200 samples
+    (b / "dyn.yaml").write_text("kind: dynamic_array\ngeometry: carlsson\nimus: 4\nsamples: 200\nseed: 3\n")
+    cli("simulate", b / "dyn.yaml", "-o", b / "dyn")
+    cli("solve", b / "dyn" / "problem.yaml", "-o", b / "dyn_solved", "-q")
+
+    rec = read_csv(b / "static" / "data.csv")
+    names = rec.triads
+    # npz
+    write_npz(b / "static.npz", rec)
+    write_yaml(b / "npz.yaml", static_problem("static.npz", "npz", names))
+    # MIMU packet stream: 2 IMUs; the timestamp starts 10 samples before a 2^32 wrap (a genuine wrap)
+    n = len(rec.t)
+    dt_ticks = round(64e6 / 50)
+    ticks = (1 << 32) - 10 * dt_ticks + dt_ticks * np.arange(n, dtype=np.int64)
+    counter = 65530 + np.arange(n)
+    (b / "mimu.bin").write_bytes(mimu_stream(ticks, counter, mimu_values(rec, names[:2])))
+    write_yaml(b / "mimu.yaml", static_problem("mimu.bin", "mimu", ["imu1", "imu2"]))
+    cli("solve", b / "mimu.yaml", "-o", b / "mimu_solved", "-q")
+    np.save(b / "mimu_parts.npy", np.column_stack([ticks, counter]))
+    # imu_tk tables: imu1 in counts
+    (b / "acc.mat").write_text(imutk_table(rec.t, rec.acc["imu1"], IMUTK_ACC["scale"]))
+    (b / "gyro.mat").write_text(imutk_table(rec.t, rec.gyro["imu1"], IMUTK_GYRO["scale"]))
+    doc = static_problem("acc.mat", "imutk", ["imu"])
+    doc["data"].update(gyro_path="gyro.mat", units={"accelerometer": IMUTK_ACC, "gyroscope": IMUTK_GYRO})
+    write_yaml(b / "imutk.yaml", doc)
+    for p in b.rglob("*"):
+        if p.is_file():
+            p.chmod(0o444)
+    return b
+
+
+def copy(src: Path, dst_dir: Path, name: str | None = None) -> Path:
+    dst = dst_dir / (name or src.name)
+    shutil.copyfile(src, dst)
+    return dst
+
+
+def load_rec(base: Path) -> Recording:
+    return read_csv(base / "static" / "data.csv")
+
+
+def with_data(base: Path, tmp: Path, rec: Recording, fmt: str = "csv", problem: dict | None = None,
+              name: str = "data") -> Path:
+    """Write rec (csv or npz) and a static problem for it into tmp; return the problem path."""
+    from castimate.io.readers import write_csv
+
+    path = tmp / f"{name}.{fmt}"
+    (write_csv if fmt == "csv" else write_npz)(path, rec)
+    doc = problem or static_problem(path.name, fmt, rec.triads)
+    doc["data"]["path"] = path.name
+    return write_yaml(tmp / "problem.yaml", doc)
+
+
+def edited(rec: Recording, **kw) -> Recording:
+    d = dict(t=rec.t, acc=dict(rec.acc), gyro=dict(rec.gyro), temp=dict(rec.temp), source=rec.source)
+    d.update(kw)
+    return Recording(**d)
+
+
+def problem_doc(base: Path, which: str = "static") -> dict:
+    doc = yaml.safe_load((base / which / "problem.yaml").read_text())
+    return doc
+
+
+def problem_in(base: Path, tmp: Path, which: str, edit: Callable[[dict], None] | None = None,
+               text: str | None = None) -> Path:
+    """A copy of base/<which>/problem.yaml in tmp with data.path pointing at base's data."""
+    doc = problem_doc(base, which)
+    doc["data"]["path"] = str(base / which / "data.csv")
+    if edit:
+        edit(doc)
+    p = tmp / "problem.yaml"
+    if text is not None:
+        p.write_text(text)
+    else:
+        write_yaml(p, doc)
+    return p
+
+
+def results_doc(base: Path, which: str = "rows_solved") -> dict:
+    return json.loads((base / which / "results.json").read_text())
+
+
+def solved_copy(base: Path, tmp: Path, which: str = "rows_solved", results=None, details=None) -> Path:
+    """A copy of a solved directory, with results.json / details.npz edited."""
+    d = tmp / "solved"
+    d.mkdir()
+    if results is not None:
+        doc = results_doc(base, which)
+        results(doc)
+        (d / "results.json").write_text(json.dumps(doc))
+    else:
+        copy(base / which / "results.json", d)
+    with np.load(base / which / "details.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    if details is not None:
+        details(arrays)
+    np.savez(d / "details.npz", **arrays)
+    return d
+
+
+# ============================================================================ the cases
+
+CASES: list[Case] = []
+
+
+def case(klass: str, *marks):
+    def deco(fn):
+        CASES.append(Case(fn.__name__, klass, fn, marks))
+        return fn
+    return deco
+
+
+# ---------------------------------------------------------------- tracebacks
+
+
+@case("traceback")
+def no_static_pose_one_long_rest(base, tmp):
+    """The array never moves: one rest, noise only (no pose directions to fit)."""
+    rec = load_rec(base)
+    rng = np.random.default_rng(5)
+    rest = {n: a[:1] + 0.02 * rng.standard_normal((len(rec.t), 3)) for n, a in rec.acc.items()}
+    grest = {n: a[:1] + 0.002 * rng.standard_normal((len(rec.t), 3)) for n, a in rec.gyro.items()}
+    p = with_data(base, tmp, edited(rec, acc=rest, gyro=grest))
+    return Spec(["solve", str(p), "-o", str(tmp / "out")], 2, ("problem.yaml", "pose"))
+
+
+@case("traceback")
+def no_static_pose_continuous_motion(base, tmp):
+    p = tmp / "problem.yaml"
+    doc = static_problem(str(base / "dyn" / "data.csv"), "csv", ["imu1", "imu11", "imu22", "imu32"])
+    write_yaml(p, doc)
+    return Spec(["solve", str(p), "-o", str(tmp / "out")], 2, ("pose",))
+
+
+@case("traceback")
+def dynamic_motion_undetermined_no_gyro_no_process_model(base, tmp):
+    def edit(d):
+        for t in d["array"]["triads"]:
+            t["gyroscope"] = False
+        d["motion"] = {"process_model": False}
+    p = problem_in(base, tmp, "dyn", edit)
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("problem.yaml", "motion.process_model"))
+
+
+def _out_file(verb_argv):
+    def build(base, tmp):
+        (tmp / "taken").write_text("not a directory\n")
+        argv, names = verb_argv(base, tmp, tmp / "taken")
+        return Spec(argv, 2, names)
+    return build
+
+
+def _solve_argv(base, tmp, out):
+    return ["solve", str(base / "rows" / "problem.yaml"), "-o", str(out), "-q"], (str(out),)
+
+
+def _simulate_argv(base, tmp, out):
+    return ["simulate", str(base / "rows.yaml"), "-o", str(out)], (str(out),)
+
+
+def _diagnose_argv(base, tmp, out):
+    return ["diagnose", str(base / "rows" / "problem.yaml"), "-o", str(out), "-q"], (str(out),)
+
+
+def _codegen_argv(base, tmp, out):
+    return ["codegen", str(base / "rows_solved" / "results.json"), "-o", str(out)], (str(out),)
+
+
+def _apply_argv(base, tmp, out):
+    return ["apply", str(base / "static_solved" / "results.json"), str(base / "static" / "data.csv"),
+            "-o", str(out)], (str(out),)
+
+
+OUTPUT_VERBS = {"solve": _solve_argv, "simulate": _simulate_argv, "diagnose": _diagnose_argv,
+                "codegen": _codegen_argv}
+
+for _verb, _argv in OUTPUT_VERBS.items():
+    def _file_as_dir(base, tmp, _argv=_argv):
+        (tmp / "taken").write_text("a file\n")
+        argv, names = _argv(base, tmp, tmp / "taken")
+        return Spec(argv, 2, names + ("directory",))
+
+    def _under_file(base, tmp, _argv=_argv):
+        (tmp / "taken").write_text("a file\n")
+        out = tmp / "taken" / "sub"
+        argv, names = _argv(base, tmp, out)
+        return Spec(argv, 2, (str(tmp / "taken"),))
+
+    CASES.append(Case(f"{_verb}_output_is_a_file", "traceback", _file_as_dir))
+    CASES.append(Case(f"{_verb}_output_not_creatable", "traceback", _under_file))
+
+
+@case("traceback")
+def solve_output_file_slot_is_a_directory(base, tmp):
+    out = tmp / "out"
+    (out / "results.json").mkdir(parents=True)
+    return Spec(["solve", str(base / "rows" / "problem.yaml"), "-o", str(out), "-q"], 2,
+                (str(out / "results.json"), "directory"))
+
+
+@case("traceback")
+def report_output_slot_is_a_directory(base, tmp):
+    d = solved_copy(base, tmp)
+    (d / "report.html").mkdir()
+    return Spec(["report", str(d)], 2, (str(d / "report.html"), "directory"))
+
+
+@case("traceback")
+def apply_output_is_a_directory(base, tmp):
+    (tmp / "out.csv").mkdir()
+    argv, _ = _apply_argv(base, tmp, tmp / "out.csv")
+    return Spec(argv, 2, (str(tmp / "out.csv"), "directory"))
+
+
+@case("traceback")
+def apply_output_not_creatable(base, tmp):
+    (tmp / "taken").write_text("a file\n")
+    argv, _ = _apply_argv(base, tmp, tmp / "taken" / "out.csv")
+    return Spec(argv, 2, (str(tmp / "taken"),))
+
+
+@case("traceback")
+def problem_not_utf8(base, tmp):
+    p = tmp / "problem.yaml"
+    p.write_bytes((base / "rows" / "problem.yaml").read_bytes().replace(b"# Simulated", b"# Simul\xe9 \xff"))
+    (tmp / "data.csv").symlink_to(base / "rows" / "data.csv")
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("problem.yaml", "UTF-8"))
+
+
+@case("traceback")
+def scenario_not_utf8(base, tmp):
+    p = tmp / "scenario.yaml"
+    p.write_bytes(b"# caf\xe9\nkind: static_array\ntriads: 3\n")
+    return Spec(["simulate", str(p), "-o", str(tmp / "out")], 2, ("scenario.yaml", "UTF-8"))
+
+
+@case("traceback")
+def problem_deeply_nested(base, tmp):
+    p = tmp / "problem.yaml"
+    p.write_text("kind: static_array\ndata: " + "[" * 20000 + "]" * 20000 + "\n")
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("problem.yaml", "nest"))
+
+
+@case("traceback")
+def scenario_deeply_nested(base, tmp):
+    p = tmp / "scenario.yaml"
+    p.write_text("kind: static_array\ntruth: " + "{a: " * 5000 + "1" + "}" * 5000 + "\n")
+    return Spec(["simulate", str(p), "-o", str(tmp / "out")], 2, ("scenario.yaml", "nest"))
+
+
+@case("traceback")
+def problem_huge_integer(base, tmp):
+    p = problem_in(base, tmp, "rows", lambda d: d.setdefault("solver", {}).update(max_iter=10 ** 400))
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("solver.max_iter", "digits"))
+
+
+@case("traceback")
+def problem_huge_integer_gravity(base, tmp):
+    p = problem_in(base, tmp, "rows", lambda d: d["model"].update(gravity=10 ** 400))
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("model.gravity", "digits"))
+
+
+@case("traceback")
+def scenario_huge_integer_seed(base, tmp):
+    p = tmp / "scenario.yaml"
+    p.write_text(f"kind: static_array\ntriads: 3\nseed: {10 ** 400}\n")
+    return Spec(["simulate", str(p), "-o", str(tmp / "out")], 2, ("seed", "digits"))
+
+
+@case("traceback")
+def problem_huge_file(base, tmp):
+    p = problem_in(base, tmp, "rows")
+    with open(p, "a") as fh:
+        fh.write("#" + "x" * (2 << 20) + "\n")
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("problem.yaml", "MB"))
+
+
+@case("traceback")
+def data_path_is_a_device(base, tmp):
+    p = problem_in(base, tmp, "static", lambda d: d["data"].update(path="/dev/zero"))
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("data.path", "/dev/zero", "regular file"))
+
+
+@case("traceback")
+def data_path_is_a_fifo(base, tmp):
+    os.mkfifo(tmp / "fifo.csv")
+    p = problem_in(base, tmp, "static", lambda d: d["data"].update(path="fifo.csv"))
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("data.path", "fifo.csv", "regular file"))
+
+
+@case("traceback")
+def problem_is_a_device(base, tmp):
+    return Spec(["solve", "/dev/zero", "-o", str(tmp / "out"), "-q"], 2, ("/dev/zero", "regular file"))
+
+
+@case("traceback")
+def scenario_is_a_device(base, tmp):
+    return Spec(["simulate", "/dev/zero", "-o", str(tmp / "out")], 2, ("/dev/zero", "regular file"))
+
+
+@case("traceback")
+def apply_data_is_a_device(base, tmp):
+    return Spec(["apply", str(base / "static_solved" / "results.json"), "/dev/zero", "--format", "csv",
+                 "-o", str(tmp / "out.csv")], 2, ("/dev/zero", "regular file"))
+
+
+@case("traceback")
+def apply_results_is_a_device(base, tmp):
+    return Spec(["apply", "/dev/zero", str(base / "static" / "data.csv"), "-o", str(tmp / "out.csv")], 2,
+                ("/dev/zero", "regular file"))
+
+
+@case("traceback")
+def codegen_source_is_a_device(base, tmp):
+    return Spec(["codegen", "/dev/zero", "-o", str(tmp / "out")], 2, ("/dev/zero", "regular file"))
+
+
+def _results_edit(path_keys, value):
+    def f(doc):
+        d = doc
+        for k in path_keys[:-1]:
+            d = d[k]
+        if value is KeyError:
+            del d[path_keys[-1]]
+        else:
+            d[path_keys[-1]] = value
+    return f
+
+
+RESULTS_DEFECTS = {
+    # name: (edit, key named, apply-able)
+    "parameter_value_string": (_results_edit(["triads", "imu2", "parameters", "gain", "value"], "big"),
+                               "triads.imu2.parameters.gain"),
+    "parameter_value_misshaped": (_results_edit(["triads", "imu2", "parameters", "bias", "value"], [1, 2]),
+                                  "triads.imu2.parameters.bias"),
+    "parameters_not_a_mapping": (_results_edit(["triads", "imu2", "parameters"], [1, 2, 3]), "triads.imu2.parameters"),
+    "R_nominal_missing": (_results_edit(["triads", "imu2", "R_nominal"], KeyError), "triads.imu2.R_nominal"),
+    "R_nominal_misshaped": (_results_edit(["triads", "imu2", "R_nominal"], [[1, 0], [0, 1]]), "triads.imu2.R_nominal"),
+    "status_missing": (_results_edit(["status"], KeyError), "status"),
+    "residuals_not_numeric": (_results_edit(["residuals", "chi2_per_dof"], "many"), "residuals.chi2_per_dof"),
+    "effects_not_a_mapping": (_results_edit(["effects"], "all"), "effects"),
+}
+
+for _name, (_edit, _key) in RESULTS_DEFECTS.items():
+    def _apply_case(base, tmp, _edit=_edit, _key=_key):
+        d = solved_copy(base, tmp, "static_solved", results=_edit)
+        return Spec(["apply", str(d / "results.json"), str(base / "static" / "data.csv"), "-o", str(tmp / "o.csv")],
+                    2, ("results.json", _key))
+
+    def _report_case(base, tmp, _edit=_edit, _key=_key):
+        d = solved_copy(base, tmp, "static_solved", results=_edit)
+        return Spec(["report", str(d)], 2, ("results.json", _key))
+
+    CASES.append(Case(f"apply_results_{_name}", "traceback", _apply_case))
+    CASES.append(Case(f"report_results_{_name}", "traceback" if _name != "status_missing" else "silent",
+                      _report_case))
+
+
+DETAILS_DEFECTS = {
+    "residual_acc_misshaped": (lambda a: a.update(residual_acc=np.zeros((2, 2))), "residual_acc"),
+    "acc_sigma_strings": (lambda a: a.update(acc_sigma=np.array(["a", "b"])), "acc_sigma"),
+    "norm_error_missing": (lambda a: a.pop("norm_error_after"), "norm_error_after"),
+    "triads_mismatch": (lambda a: a.update(triads=np.array(["x", "y"])), "triads"),
+}
+for _name, (_edit, _key) in DETAILS_DEFECTS.items():
+    def _details_case(base, tmp, _edit=_edit, _key=_key):
+        d = solved_copy(base, tmp, "static_solved", details=_edit)
+        return Spec(["report", str(d)], 2, ("details.npz", _key))
+    CASES.append(Case(f"report_details_{_name}", "traceback", _details_case))
+
+
+@case("traceback")
+def report_dynamic_details_misshaped(base, tmp):
+    d = solved_copy(base, tmp, "dyn_solved", details=lambda a: a.update(omega=np.zeros((3,))))
+    return Spec(["report", str(d)], 2, ("details.npz", "omega"))
+
+
+@case("traceback")
+def scenario_unbounded_samples(base, tmp):
+    p = tmp / "scenario.yaml"
+    p.write_text("kind: dynamic_array\ngeometry: carlsson\nsamples: 100000000000\n")
+    return Spec(["simulate", str(p), "-o", str(tmp / "out")], 2, ("scenario.yaml", "samples"))
+
+
+@case("traceback")
+def scenario_unbounded_time_series(base, tmp):
+    p = tmp / "scenario.yaml"
+    p.write_text("kind: static_array\ntriads: 3\ntime_series: true\nrate: 1000000\npose_duration: 100000\n")
+    return Spec(["simulate", str(p), "-o", str(tmp / "out")], 2, ("scenario.yaml",))
+
+
+@case("traceback")
+def scenario_unbounded_triads(base, tmp):
+    p = tmp / "scenario.yaml"
+    p.write_text("kind: static_array\ntriads: 100000000\n")
+    return Spec(["simulate", str(p), "-o", str(tmp / "out")], 2, ("scenario.yaml", "triads"))
+
+
+@case("traceback")
+def scenario_unbounded_poses(base, tmp):
+    p = tmp / "scenario.yaml"
+    p.write_text("kind: static_array\ntriads: 3\nposes: 1000000000\n")
+    return Spec(["simulate", str(p), "-o", str(tmp / "out")], 2, ("scenario.yaml", "poses"))
+
+
+# ---------------------------------------------------------------- silent wrong answers
+
+
+@case("silent")
+def problem_duplicate_key(base, tmp):
+    text = (base / "rows" / "problem.yaml").read_text().replace("  gravity: 9.81", "  gravity: 9.81\n  gravity: 9.0")
+    (tmp / "data.csv").symlink_to(base / "rows" / "data.csv")
+    p = tmp / "problem.yaml"
+    p.write_text(text)
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("problem.yaml", "model.gravity", "duplicate"))
+
+
+@case("silent")
+def problem_duplicate_top_key(base, tmp):
+    text = (base / "rows" / "problem.yaml").read_text() + "kind: dynamic_array\n"
+    (tmp / "data.csv").symlink_to(base / "rows" / "data.csv")
+    p = tmp / "problem.yaml"
+    p.write_text(text)
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("problem.yaml", "kind", "duplicate"))
+
+
+@case("silent")
+def scenario_duplicate_key(base, tmp):
+    p = tmp / "scenario.yaml"
+    p.write_text("kind: static_array\ntriads: 3\nseed: 1\nseed: 2\n")
+    return Spec(["simulate", str(p), "-o", str(tmp / "out")], 2, ("scenario.yaml", "seed", "duplicate"))
+
+
+@case("silent")
+def csv_acc_in_g_declared_si(base, tmp):
+    rec = load_rec(base)
+    p = with_data(base, tmp, edited(rec, acc={n: a / G for n, a in rec.acc.items()}))
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("data.units.accelerometer", "g"))
+
+
+@case("silent")
+def csv_acc_in_si_declared_g(base, tmp):
+    rec = load_rec(base)
+    doc = static_problem("data.csv", "csv", rec.triads)
+    doc["data"]["units"] = {"accelerometer": "g"}
+    p = with_data(base, tmp, rec, problem=doc)
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("data.units.accelerometer", "m/s^2"))
+
+
+@case("silent")
+def npz_acc_in_g_declared_si(base, tmp):
+    rec = load_rec(base)
+    p = with_data(base, tmp, edited(rec, acc={n: a / G for n, a in rec.acc.items()}), fmt="npz")
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("data.units.accelerometer",))
+
+
+@case("silent")
+def imutk_acc_scale_wrong_by_g(base, tmp):
+    doc = yaml.safe_load((base / "imutk.yaml").read_text())
+    doc["data"]["units"]["accelerometer"] = {**IMUTK_ACC, "scale_unit": "g"}
+    doc["data"]["path"], doc["data"]["gyro_path"] = str(base / "acc.mat"), str(base / "gyro.mat")
+    p = write_yaml(tmp / "problem.yaml", doc)
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("data.units.accelerometer",))
+
+
+@case("silent")
+def mimu_acc_units_declared_si(base, tmp):
+    doc = yaml.safe_load((base / "mimu.yaml").read_text())
+    doc["data"]["path"] = str(base / "mimu.bin")
+    doc["data"]["units"] = {"accelerometer": {"unit": "counts", "scale": 1 / 2048}}  # counts -> g, said m/s^2
+    p = write_yaml(tmp / "problem.yaml", doc)
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("data.units.accelerometer",))
+
+
+@case("silent")
+def csv_gyro_in_deg_declared_rad(base, tmp):
+    rec = load_rec(base)
+    p = with_data(base, tmp, edited(rec, gyro={n: np.degrees(a) for n, a in rec.gyro.items()}))
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("data.units.gyroscope", "deg/s"))
+
+
+@case("silent")
+def dynamic_gyro_in_deg_declared_rad(base, tmp):
+    rec = read_csv(base / "dyn" / "data.csv")
+    doc = problem_doc(base, "dyn")
+    p = with_data(base, tmp, edited(rec, gyro={n: np.degrees(a) for n, a in rec.gyro.items()}), problem=doc)
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("data.units.gyroscope", "deg/s"))
+
+
+def _mimu_with(base, tmp, mutate):
+    rec = load_rec(base)
+    parts = np.load(base / "mimu_parts.npy")
+    ticks, counter = parts[:, 0].copy(), parts[:, 1].copy()
+    mutate(ticks, counter)
+    (tmp / "data.bin").write_bytes(mimu_stream(ticks, counter, mimu_values(rec, rec.triads[:2])))
+    return tmp / "data.bin"
+
+
+def _no_time_jump(path: Path, max_dt: float = 1.0):
+    def check(res):
+        t = read_csv(path).t
+        if np.diff(t).max() > max_dt:
+            return f"time jumps by {np.diff(t).max():.3f} s in the output"
+        if "timestamp" not in (res["stderr"] + res["stdout"]).lower():
+            return "repaired without a note"
+        return None
+    return check
+
+
+@case("silent")
+def mimu_timestamp_backwards(base, tmp):
+    def mutate(ticks, counter):
+        ticks[1500] -= 3 * round(64e6 / 50)  # one stamp 3 samples back; the counter is contiguous
+    data = _mimu_with(base, tmp, mutate)
+    out = tmp / "out.csv"
+    return Spec(["apply", str(base / "mimu_solved" / "results.json"), str(data), "-o", str(out)], 0,
+                output=out, check=_no_time_jump(out))
+
+
+@case("silent")
+def mimu_timestamp_jump_counter_contiguous(base, tmp):
+    def mutate(ticks, counter):
+        ticks[1500:] += 40 * 64_000_000  # 40 s jump with no packet missing
+    data = _mimu_with(base, tmp, mutate)
+    out = tmp / "out.csv"
+    return Spec(["apply", str(base / "mimu_solved" / "results.json"), str(data), "-o", str(out)], 0,
+                output=out, check=_no_time_jump(out))
+
+
+@case("silent")
+def mimu_timestamp_duplicated_different_packet(base, tmp):
+    def mutate(ticks, counter):
+        ticks[1500] = ticks[1499]  # same stamp, next counter: a stuck clock, not a repeated packet
+    data = _mimu_with(base, tmp, mutate)
+    out = tmp / "out.csv"
+
+    def check(res):
+        n = len(read_csv(out).t)
+        if n != len(np.load(base / "mimu_parts.npy")):
+            return f"{n} samples written; a packet with a new counter was dropped as a duplicate"
+        return _no_time_jump(out)(res)
+    return Spec(["apply", str(base / "mimu_solved" / "results.json"), str(data), "-o", str(out)], 0,
+                output=out, check=check)
+
+
+@case("silent")
+def static_phase_given_to_dynamic_kind(base, tmp):
+    """The static session (3 triads at rest, 12 poses) given to the dynamic kind with positions."""
+    doc = problem_doc(base, "dyn")
+    rec = load_rec(base)
+    doc["array"]["triads"] = [{"name": n, "position": [0.0189 * i, 0.0, 0.0]} for i, n in enumerate(rec.triads)]
+    doc["array"]["reference"] = rec.triads[0]
+    p = with_data(base, tmp, rec, problem=doc)
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("problem.yaml", "angular"))
+
+
+@case("silent")
+def dynamic_little_rotation(base, tmp):
+    """A dynamic recording whose angular rate is 30x smaller: positions barely determined."""
+    (tmp / "sc.yaml").write_text("kind: dynamic_array\ngeometry: carlsson\nimus: 4\nsamples: 200\nseed: 3\n"
+                                 "max_omega: 20\nmax_omega_dot: 20\n")
+    res = run_cli(["simulate", str(tmp / "sc.yaml"), "-o", str(tmp / "sim")])
+    assert res["rc"] == 0, res
+    return Spec(["solve", str(tmp / "sim" / "problem.yaml"), "-o", str(tmp / "out"), "-q"], 2,
+                ("problem.yaml", "angular"))
+
+
+@case("silent")
+def report_results_no_parameters(base, tmp):
+    def edit(doc):
+        for t in doc["triads"].values():
+            t.pop("parameters")
+    d = solved_copy(base, tmp, "static_solved", results=edit)
+    return Spec(["report", str(d)], 2, ("results.json", "parameters"))
+
+
+@case("silent")
+def report_results_status_not_numeric(base, tmp):
+    d = solved_copy(base, tmp, "static_solved", results=_results_edit(["status", "success"], "yes"))
+    return Spec(["report", str(d)], 2, ("results.json", "status.success"))
+
+
+# ---------------------------------------------------------------- touched inputs, partial outputs
+
+
+@case("touched")
+def apply_output_equals_input(base, tmp):
+    data = copy(base / "static" / "data.csv", tmp)
+    return Spec(["apply", str(base / "static_solved" / "results.json"), str(data), "-o", str(data)], 2,
+                ("data.csv", "input"))
+
+
+@case("touched")
+def apply_output_equals_input_other_spelling(base, tmp):
+    data = copy(base / "static" / "data.csv", tmp)
+    (tmp / "sub").mkdir()
+    return Spec(["apply", str(base / "static_solved" / "results.json"), str(data), "-o",
+                 str(tmp / "sub" / ".." / "data.csv")], 2, ("data.csv", "input"))
+
+
+@case("touched")
+def apply_output_equals_input_npz(base, tmp):
+    data = copy(base / "static.npz", tmp)
+    return Spec(["apply", str(base / "static_solved" / "results.json"), str(data), "-o", str(data)], 2,
+                ("static.npz", "input"))
+
+
+@case("touched")
+def solve_partial_output(base, tmp):
+    out = tmp / "out"
+    (out / "results.json").mkdir(parents=True)
+    return Spec(["solve", str(base / "rows" / "problem.yaml"), "-o", str(out), "-q"], 2, ("results.json",))
+
+
+@case("touched")
+def solve_output_overwrites_intrinsics(base, tmp):
+    """A dynamic problem whose model.intrinsics is DIR/results.json, solved into DIR."""
+    shutil.copytree(base / "dyn_solved", tmp / "run")
+    doc = problem_doc(base, "dyn")
+    doc["data"]["path"] = str(base / "dyn" / "data.csv")
+    doc["model"]["intrinsics"] = "run/results.json"
+    # the intrinsics' triads must be those of the problem: use the static session's names
+    p = write_yaml(tmp / "problem.yaml", doc)
+    return Spec(["solve", str(p), "-o", str(tmp / "run"), "-q"], 2, ("results.json", "input"))
+
+
+@case("touched")
+def simulate_output_overwrites_scenario(base, tmp):
+    p = tmp / "problem.yaml"
+    p.write_text("kind: static_array\ntriads: 3\nposes: 20\nseed: 2\n")
+    return Spec(["simulate", str(p), "-o", str(tmp)], 2, ("problem.yaml", "input"))
+
+
+@case("touched")
+def solve_output_overwrites_data(base, tmp):
+    """The problem reads DIR/details.npz as its data (npz); solving into DIR would replace it."""
+    (tmp / "details.npz").write_bytes((base / "static.npz").read_bytes())
+    rec = load_rec(base)
+    p = write_yaml(tmp / "problem.yaml", static_problem("details.npz", "npz", rec.triads))
+    return Spec(["solve", str(p), "-o", str(tmp), "-q"], 2, ("details.npz", "input"))
+
+
+@case("touched")
+def diagnose_into_the_problem_directory(base, tmp):
+    """diagnose writing beside its own problem and data: the inputs stay as they were."""
+    (tmp / "data.csv").write_bytes((base / "rows" / "data.csv").read_bytes())
+    p = copy(base / "rows" / "problem.yaml", tmp, "x.yaml")
+    return Spec(["diagnose", str(p), "-o", str(tmp), "-q"], 0, output=tmp)
+
+
+# ---------------------------------------------------------------- vague refusals
+
+
+@case("vague")
+def clipped_channel(base, tmp):
+    rec = load_rec(base)
+    acc = dict(rec.acc)
+    a = acc["imu2"].copy()
+    a[:, 0] = np.minimum(a[:, 0], 2.0)  # x axis clipped at +2 m/s^2 (a rail)
+    acc["imu2"] = a
+    p = with_data(base, tmp, edited(rec, acc=acc))
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("imu2.ax",))
+
+
+@case("vague")
+def stuck_channel(base, tmp):
+    rec = load_rec(base)
+    acc = dict(rec.acc)
+    a = acc["imu3"].copy()
+    a[:, 2] = 4.2
+    acc["imu3"] = a
+    p = with_data(base, tmp, edited(rec, acc=acc))
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("imu3.az",))
+
+
+@case("vague")
+def all_zero_triad(base, tmp):
+    rec = load_rec(base)
+    acc = dict(rec.acc)
+    acc["imu2"] = np.zeros_like(acc["imu2"])
+    p = with_data(base, tmp, edited(rec, acc=acc))
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("imu2",))
+
+
+@case("vague")
+def all_zero_triad_rows(base, tmp):
+    rec = read_csv(base / "rows" / "data.csv")
+    acc = dict(rec.acc)
+    acc["imu3"] = np.zeros_like(acc["imu3"])
+    doc = problem_doc(base, "rows")
+    p = with_data(base, tmp, edited(rec, acc=acc), problem=doc)
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("imu3",))
+
+
+@case("vague")
+def fully_masked_gyroscope(base, tmp):
+    p = problem_in(base, tmp, "dyn", lambda d: d["data"].update(saturation={"gyroscope": 1e-6}))
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("data.saturation.gyroscope",))
+
+
+@case("vague")
+def gravity_absurd(base, tmp):
+    p = problem_in(base, tmp, "rows", lambda d: d["model"].update(gravity=1e308))
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("model.gravity",))
+
+
+@case("vague")
+def sigma_absurd(base, tmp):
+    p = problem_in(base, tmp, "rows", lambda d: d["noise"].update(accelerometer=1e300))
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("noise.accelerometer",))
+
+
+@case("vague")
+def sigma_tiny(base, tmp):
+    p = problem_in(base, tmp, "rows", lambda d: d["noise"].update(accelerometer=1e-300))
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("noise.accelerometer",))
+
+
+@case("vague")
+def detection_window_absurd(base, tmp):
+    p = problem_in(base, tmp, "static", lambda d: d["data"].update(detection={"window": 1e300}))
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("data.detection.window",))
+
+
+@case("vague")
+def scenario_noise_absurd(base, tmp):
+    p = tmp / "scenario.yaml"
+    p.write_text("kind: static_array\ntriads: 3\nnoise: {accelerometer: 1.0e+300}\n")
+    return Spec(["simulate", str(p), "-o", str(tmp / "out")], 2, ("scenario.yaml", "noise.accelerometer"))
+
+
+@case("vague")
+def units_scale_absurd(base, tmp):
+    p = problem_in(base, tmp, "static", lambda d: d["data"].update(units={"accelerometer": {"unit": "counts",
+                                                                                       "scale": 1e300}}))
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("data.units.accelerometer",))
+
+
+for _fmt, _make in {
+    "csv": lambda base, tmp: problem_in(base, tmp, "static", lambda d: d["data"].update(path=str(tmp / "dir"))),
+    "npz": lambda base, tmp: write_yaml(tmp / "problem.yaml", {**yaml.safe_load((base / "npz.yaml").read_text()),
+                                                               "data": {"path": str(tmp / "dir"), "format": "npz"}}),
+    "mimu": lambda base, tmp: write_yaml(tmp / "problem.yaml", {**yaml.safe_load((base / "mimu.yaml").read_text()),
+                                                                "data": {"path": str(tmp / "dir"), "format": "mimu"}}),
+    "imutk": lambda base, tmp: write_yaml(tmp / "problem.yaml", {
+        **yaml.safe_load((base / "imutk.yaml").read_text()),
+        "data": {"path": str(base / "acc.mat"), "gyro_path": str(tmp / "dir"), "format": "imutk",
+                 "units": {"accelerometer": IMUTK_ACC, "gyroscope": IMUTK_GYRO}}}),
+}.items():
+    def _dir_case(base, tmp, _make=_make, _fmt=_fmt):
+        (tmp / "dir").mkdir()
+        p = _make(base, tmp)
+        key = "data.gyro_path" if _fmt == "imutk" else "data.path"
+        return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, (key, "is a directory"))
+    CASES.append(Case(f"{_fmt}_data_path_is_a_directory", "vague", _dir_case))
+
+
+@case("vague")
+def apply_data_is_a_directory(base, tmp):
+    (tmp / "d.csv").mkdir()
+    return Spec(["apply", str(base / "static_solved" / "results.json"), str(tmp / "d.csv"), "-o",
+                 str(tmp / "o.csv")], 2, ("d.csv", "is a directory"))
+
+
+@case("vague")
+def report_dir_is_a_file(base, tmp):
+    return Spec(["report", str(base / "rows_solved" / "results.json")], 2, ("results.json", "found a file"))
+
+
+@case("vague")
+def codegen_start_beyond_data(base, tmp):
+    return Spec(["codegen", str(base / "dyn" / "problem.yaml"), "-o", str(tmp / "out"), "--window", "50",
+                 "--start", "1000000"], 2, ("--start", "200"))
+
+
+@case("vague")
+def codegen_negative_window(base, tmp):
+    return Spec(["codegen", str(base / "dyn" / "problem.yaml"), "-o", str(tmp / "out"), "--window", "-5"], 2,
+                ("--window",))
+
+
+@case("vague")
+def codegen_window_on_results(base, tmp):
+    return Spec(["codegen", str(base / "rows_solved" / "results.json"), "-o", str(tmp / "out"), "--start", "3"], 2,
+                ("--start",))
+
+
+# ---------------------------------------------------------------- CLI (issue 14) and per-reader basics
+
+
+@case("cli")
+def solve_on_a_scenario_file(base, tmp):
+    return Spec(["solve", str(base / "rows.yaml"), "-o", str(tmp / "out"), "-q"], 2, ("rows.yaml", "simulate"))
+
+
+@case("cli")
+def diagnose_on_a_scenario_file(base, tmp):
+    return Spec(["diagnose", str(base / "rows.yaml"), "-o", str(tmp / "out"), "-q"], 2, ("rows.yaml", "simulate"))
+
+
+@case("cli")
+def simulate_on_a_problem_file(base, tmp):
+    return Spec(["simulate", str(base / "rows" / "problem.yaml"), "-o", str(tmp / "out")], 2,
+                ("problem.yaml", "solve"))
+
+
+@case("cli")
+def csv_reader_ok(base, tmp):
+    return Spec(["solve", str(base / "static" / "problem.yaml"), "-o", str(tmp / "out"), "-q"], 0,
+                output=tmp / "out")
+
+
+@case("cli")
+def npz_reader_ok(base, tmp):
+    return Spec(["solve", str(base / "npz.yaml"), "-o", str(tmp / "out"), "-q"], 0, output=tmp / "out")
+
+
+@case("cli")
+def mimu_reader_ok_with_genuine_wrap(base, tmp):
+    out = tmp / "out"
+
+    def check(res):
+        doc = json.loads((out / "results.json").read_text())
+        if doc["poses"]["count"] != 12:
+            return f"{doc['poses']['count']} poses found, expected 12"
+        return None
+    return Spec(["solve", str(base / "mimu.yaml"), "-o", str(out), "-q"], 0, output=out, check=check)
+
+
+@case("cli")
+def imutk_reader_ok(base, tmp):
+    return Spec(["solve", str(base / "imutk.yaml"), "-o", str(tmp / "out"), "-q"], 0, output=tmp / "out")
+
+
+@case("cli")
+def mimu_truncated_stream(base, tmp):
+    (tmp / "data.bin").write_bytes((base / "mimu.bin").read_bytes()[:20])
+    doc = yaml.safe_load((base / "mimu.yaml").read_text())
+    doc["data"]["path"] = "data.bin"
+    p = write_yaml(tmp / "problem.yaml", doc)
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("data.bin",))
+
+
+@case("cli")
+def npz_not_an_archive(base, tmp):
+    (tmp / "data.npz").write_bytes(b"PK\x03\x04 not really")
+    doc = yaml.safe_load((base / "npz.yaml").read_text())
+    doc["data"]["path"] = "data.npz"
+    p = write_yaml(tmp / "problem.yaml", doc)
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("data.npz",))
+
+
+@case("cli")
+def imutk_binary_table(base, tmp):
+    (tmp / "acc.mat").write_bytes(b"\x00\xff" * 100)
+    doc = yaml.safe_load((base / "imutk.yaml").read_text())
+    doc["data"].update(path="acc.mat", gyro_path=str(base / "gyro.mat"))
+    p = write_yaml(tmp / "problem.yaml", doc)
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("acc.mat",))
+
+
+@case("cli")
+def csv_not_utf8(base, tmp):
+    (tmp / "data.csv").write_bytes(b"t,imu1.ax\n\xff\xfe\n")
+    p = problem_in(base, tmp, "static", lambda d: d["data"].update(path="data.csv"))
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("data.csv", "UTF-8"))
+
+
+@case("cli")
+def apply_ok_then_report_ok(base, tmp):
+    out = tmp / "o.npz"
+    return Spec(["apply", str(base / "static_solved" / "results.json"), str(base / "static.npz"), "-o", str(out)],
+                0, output=out)
+
+
+@case("cli")
+def codegen_results_ok(base, tmp):
+    return Spec(["codegen", str(base / "rows_solved" / "results.json"), "-o", str(tmp / "c")], 0,
+                output=tmp / "c")
+
+
+@case("cli")
+def report_ok(base, tmp):
+    d = solved_copy(base, tmp)
+    return Spec(["report", str(d)], 0, output=d / "report.html")
+
+
+# ============================================================================ the test
+
+
+@pytest.mark.parametrize("c", [pytest.param(c, id=c.id, marks=c.marks) for c in CASES])
+def test_adversarial(c: Case, base: Path, tmp_path: Path):
+    spec = c.build(base, tmp_path)
+    before = snapshot(tmp_path, base)
+    res = run_cli(spec.argv)
+    after = snapshot(tmp_path, base)
+    kind, why = outcome(spec, res, before, after, tmp_path)
+    assert kind == "clean", f"{kind}: {why}"
+
+
+# ============================================================================ the table
+
+
+def tabulate(base: Path, work: Path, only: str | None = None) -> list[tuple[Case, str, str]]:
+    rows = []
+    for c in CASES:
+        if only and only not in c.id:
+            continue
+        tmp = work / c.id
+        tmp.mkdir()
+        try:
+            spec = c.build(base, tmp)
+        except Exception:  # noqa: BLE001
+            rows.append((c, "build error", traceback.format_exc().splitlines()[-1]))
+            continue
+        before = snapshot(tmp, base)
+        res = run_cli(spec.argv)
+        after = snapshot(tmp, base)
+        kind, why = outcome(spec, res, before, after, tmp)
+        rows.append((c, kind, why))
+        print(f"{kind:14s} {c.klass:10s} {c.id}: {why[:300]}", flush=True)
+    return rows
+
+
+if __name__ == "__main__":
+    import tempfile
+
+    root = Path(tempfile.mkdtemp(prefix="adv"))
+    (root / "base").mkdir()
+    (root / "cases").mkdir()
+    b = build_base(root / "base")
+    rows = tabulate(b, root / "cases", sys.argv[1] if len(sys.argv) > 1 else None)
+    table = Counter((c.klass, k) for c, k, _ in rows)
+    print("\n| class | " + " | ".join(OUTCOMES) + " | total |")
+    print("|---|" + "---|" * (len(OUTCOMES) + 1))
+    for kl in sorted({c.klass for c, _, _ in rows}):
+        n = sum(v for (k2, _), v in table.items() if k2 == kl)
+        print(f"| {kl} | " + " | ".join(str(table[kl, o]) for o in OUTCOMES) + f" | {n} |")
+    tot = Counter(k for _, k, _ in rows)
+    print("| all | " + " | ".join(str(tot[o]) for o in OUTCOMES) + f" | {len(rows)} |")
+    shutil.rmtree(root, ignore_errors=True)
