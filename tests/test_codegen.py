@@ -127,7 +127,7 @@ def test_unconverged_results_are_refused(tmp_path):
 
 
 def test_missing_results_file(tmp_path):
-    with pytest.raises(InputError, match="cannot read"):
+    with pytest.raises(InputError, match="results file not found"):
         generate_c(tmp_path / "nope" / "results.json", tmp_path / "c")
 
 

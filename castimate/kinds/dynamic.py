@@ -8,7 +8,6 @@ rates; restart from the estimated poses when one is found. Every attempt is repo
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -17,6 +16,7 @@ from . import Log, quiet
 from .static import check_plausible, check_temperature, declared, load_recording
 from ..errors import InputError, NotConvergedError
 from ..io.readers import read_recording
+from ..io.results import read_results
 from ..io.recording import Recording
 from ..problem.compensation import linear_inverse
 from ..problem.triads import Regressors
@@ -68,12 +68,7 @@ def read_intrinsics(spec: ProblemSpec) -> dict:
     path = spec.model.intrinsics
     if path is None:
         return {}
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        raise InputError(path, "", f"cannot read the intrinsics results file ({e})") from None
-    if doc.get("format") != "castimate.results/1" or not doc.get("status", {}).get("success"):
-        raise InputError(path, "status.success", "expected a successful castimate results file")
+    doc = read_results(path)  # format, successful status and structure checked, key paths named
     out = {}
     for name in spec.array.names:
         t = doc.get("triads", {}).get(name)

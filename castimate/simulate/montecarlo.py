@@ -105,9 +105,10 @@ def diagnose_trials(scenario: str | Path, effect: str | None, seeds, workdir: st
 
     from ..kinds.diagnose import diagnose
     from ..spec import load_problem
+    from ..validation import load_yaml
     from .scenarios import simulate_scenario
 
-    raw = yaml.safe_load(Path(scenario).read_text())
+    raw = load_yaml(scenario, "scenario file")
     raw.pop("effects", None)
     if effect:
         raw["effects"] = {effect: "realistic"}
