@@ -122,7 +122,7 @@ def test_window_on_a_static_problem_is_refused(simulated, tmp_path, capsys):
 
 
 def test_window_beyond_the_data_is_refused(simulated, tmp_path):
-    with pytest.raises(InputError, match=r"data: expected a window of 1\.\.1000 samples .* found --window 5000"):
+    with pytest.raises(InputError, match=r"--window: expected a window of 1 to 1000 samples .* found 5000"):
         generate_c(simulated["sim_carlsson_32x1000"], tmp_path / "c", window=5000)
 
 

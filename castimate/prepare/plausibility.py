@@ -123,41 +123,29 @@ def check_accelerometer_units(rec: Recording, names: list[str], declared: Declar
         log(f"warning: {what} ({r:.3g} g); check data.units.accelerometer")
 
 
-def check_gyroscope_units(rec: Recording, names: list[str], declared: Declared) -> None:
-    """No angular rate beyond any MEMS gyroscope's range."""
-    peaks = {n: float(np.abs(rec.gyro[n]).max()) for n in names if n in rec.gyro}
-    if not peaks:
+def _gyro_limit(values: dict[str, float], limit: float, what: str, declared: Declared) -> None:
+    """Refuse the largest of ``values`` (rad/s per triad) above ``limit``, with the unit fix when
+    deg/s read as rad/s explains it."""
+    if not values:
         return
-    name = max(peaks, key=peaks.get)
-    if peaks[name] > MAX_RATE:
+    name = max(values, key=values.get)
+    if values[name] > limit:
+        fix = "the data look like deg/s; declare data.units.gyroscope: deg/s" \
+            if np.radians(values[name]) <= limit else "check data.units.gyroscope"
         raise InputError(declared.problem, "data.units.gyroscope",
-                         f"the gyroscope of {name} reads up to {peaks[name]:.4g} rad/s after the declared conversion "
-                         f"{declared.gyro_units}, beyond the range of any MEMS gyroscope ({MAX_RATE:g} rad/s = "
-                         f"{np.degrees(MAX_RATE):.0f} deg/s)" + _gyro_fix(peaks[name]))
+                         f"the gyroscope of {name} {what} {values[name]:.4g} rad/s after the declared conversion "
+                         f"{declared.gyro_units}; no MEMS gyroscope exceeds {limit:g} rad/s there: {fix}")
 
 
-def _gyro_fix(value: float) -> str:
-    if value / np.degrees(1.0) <= MAX_RATE:
-        return ": the data look like deg/s; declare data.units.gyroscope: deg/s"
-    return ": check data.units.gyroscope"
+def check_gyroscope_units(rec: Recording, names: list[str], declared: Declared) -> None:
+    """No angular rate beyond any MEMS gyroscope's range (MAX_RATE = 4000 deg/s)."""
+    _gyro_limit({n: float(np.abs(rec.gyro[n]).max()) for n in names if n in rec.gyro}, MAX_RATE, "reads up to",
+                declared)
 
 
 def check_gyroscope_noise(sigma: dict[str, float], declared: Declared) -> None:
     """The per-sample white noise of the gyroscopes at rest (from the static poses)."""
-    if not sigma:
-        return
-    name = max(sigma, key=sigma.get)
-    if sigma[name] > MAX_GYRO_NOISE_AT_REST:
-        raise InputError(declared.problem, "data.units.gyroscope",
-                         f"the gyroscope of {name} has a noise of {sigma[name]:.4g} rad/s per sample at rest after the "
-                         f"declared conversion {declared.gyro_units}; MEMS gyroscopes have less than "
-                         f"{MAX_GYRO_NOISE_AT_REST:g} rad/s" + _noise_fix(sigma[name]))
-
-
-def _noise_fix(value: float) -> str:
-    if value / np.degrees(1.0) <= MAX_GYRO_NOISE_AT_REST:
-        return ": the data look like deg/s; declare data.units.gyroscope: deg/s"
-    return ": check data.units.gyroscope"
+    _gyro_limit(sigma, MAX_GYRO_NOISE_AT_REST, "has a noise at rest of", declared)
 
 
 def angular_excitation(omega: np.ndarray, t: np.ndarray) -> np.ndarray:
