@@ -128,6 +128,7 @@ def test_undoing_is_derived_from_the_symbolic_term():
     assert how["accelerometer.bias_drift"] == how["accelerometer.temperature_bias"] == fxs.SUBTRACTED
     assert how["gyroscope.g_sensitivity"] == fxs.SUBTRACTED  # depends on f, not on the gyroscope's reading
     assert how["accelerometer.temperature_gain"] == how["accelerometer.scale_nonlinearity"] == fxs.NEWTON
+    assert how["gyroscope.coupling"] == fxs.NEWTON
     assert how["accelerometer.axis_offsets"] == how["gyroscope.time_offset"] == fxs.NOT_SAMPLE_WISE
 
 

@@ -6,7 +6,7 @@ import pytest
 import numpy as np
 
 from castimate.models import effects as fx
-from castimate.problem.effects import EFFECTS, STATIC, effects_for
+from castimate.problem.effects import BY_KEY, EFFECTS, STATIC, effects_for
 from castimate.problem.triads import GroupSetting, Regressors, TriadConfig, group_name
 from castimate.problem.static import StaticConfig, build_static
 from castimate.prepare.poses import pose_averages_from_means
@@ -149,9 +149,10 @@ def test_a_triad_without_the_effect_keeps_it_fixed_at_zero():
 
 # --------------------------------------------------------------------------- dynamic-only effects
 
-def dynamic_effect_case(seed=4, n=600, effects=None):
+def dynamic_effect_case(seed=4, n=600, effects=None, reshape_motion=None, position_free=True):
     """8 IMUs of the Carlsson board with gyroscopes, positions free, with size-effect offsets and
-    time offsets in the data (simulated exactly) and in the model."""
+    time offsets (or ``effects``) in the data (simulated exactly) and in the model;
+    ``reshape_motion(motion)`` may change the simulated motion."""
     from castimate.problem.dynamic import DynamicConfig, DynamicData
     from castimate.simulate.dynamic import carlsson_geometry, dynamic_measurements, euler_consistent, smooth_random_motion
 
@@ -160,6 +161,7 @@ def dynamic_effect_case(seed=4, n=600, effects=None):
     keep = [0, 3, 5, 10, 12, 16, 22, 31]
     names, nominal, true = [names[i] for i in keep], nominal[keep], true[keep]
     motion = euler_consistent(smooth_random_motion(n, 100.0, np.radians(1500), np.radians(2000), rng))
+    motion = reshape_motion(motion) if reshape_motion else motion
     K = len(names)
     Rs = np.stack([R[nm] for nm in names])
     effects = effects if effects is not None else {
@@ -171,12 +173,13 @@ def dynamic_effect_case(seed=4, n=600, effects=None):
                                       effects=effects)
     fixed = GroupSetting(free=(False,) * 3)
     keys = sorted({".".join(k.split(".")[1:]) for k in effects})
-    acc_eff = {k.split(".")[1]: GroupSetting(free=(True,) * (6 if "axis" in k else 1)) for k in keys
-               if k.startswith("accelerometer")}
-    gyro_eff = {k.split(".")[1]: GroupSetting(free=(True,)) for k in keys if k.startswith("gyroscope")}
+    free = {k.split(".")[1]: GroupSetting(free=(True,) * len(BY_KEY[k].group.components)) for k in keys}
+    acc_eff = {k.split(".")[1]: free[k.split(".")[1]] for k in keys if k.startswith("accelerometer")}
+    gyro_eff = {k.split(".")[1]: free[k.split(".")[1]] for k in keys if k.startswith("gyroscope")}
     triads = tuple(TriadConfig(nm, R[nm], {**{g: fixed for g in ("gain", "bias", "nonorthogonality", "misalignment")},
                                            **acc_eff},
-                               {**{g: fixed for g in ("gain", "bias", "misalignment")}, **gyro_eff}, nominal[i])
+                               {**{g: fixed for g in ("gain", "bias", "misalignment")}, **gyro_eff}, nominal[i],
+                               None if position_free else fixed)
                    for i, nm in enumerate(names))
     cfg = DynamicConfig(triads, names[0], process_model=False, effects=tuple(keys))
     data = DynamicData(motion.t, acc, {nm: np.full(3, 0.04) for nm in names}, gy, {nm: np.full(3, 1e-3) for nm in names})
@@ -201,22 +204,28 @@ def test_dynamic_effects_recovered_within_sigma():
         assert np.all(sol.values[f"imu1.accelerometer.{g}"] == 0) and np.all(sol.std[f"imu1.accelerometer.{g}"] == 0)
 
 
-def test_dynamic_effect_jacobian_matches_finite_differences():
+def assert_dynamic_jacobian_matches_finite_differences(cfg, data, label: str, n_random: int = 20) -> None:
+    """The dynamic problem's Jacobian against central differences in every variable whose label has
+    ``label`` and ``n_random`` random others (motion incl. neighbours, positions), at a perturbed start."""
     from castimate.problem.dynamic import build_dynamic
 
-    cfg, data, _ = dynamic_effect_case(n=30)
     solver = Solver(build_dynamic(cfg, data).lsq)
     lay = solver.problem.layout
     x0 = lay.x0() + 0.01 * np.random.default_rng(2).standard_normal(lay.n_x)
     J = solver.jacobians(x0)[0].toarray()
     h = 1e-6
-    idx = [i for i, lab in enumerate(lay.x_labels) if "offset" in lab]
-    idx += list(np.random.default_rng(3).choice(lay.n_x, 20, replace=False))  # motion (incl. neighbours), positions
+    idx = [i for i, lab in enumerate(lay.x_labels) if label in lab]
+    assert idx, label
+    idx += list(np.random.default_rng(3).choice(lay.n_x, n_random, replace=False))
     for i in idx:
         e = np.zeros_like(x0)
         e[i] = h
         fd = (solver.residuals(x0 + e) - solver.residuals(x0 - e)) / (2 * h)
         assert np.allclose(J[:, i], fd, rtol=1e-5, atol=1e-6 * max(1, np.abs(fd).max())), lay.x_labels[i]
+
+
+def test_dynamic_effect_jacobian_matches_finite_differences():
+    assert_dynamic_jacobian_matches_finite_differences(*dynamic_effect_case(n=30)[:2], "offset")
 
 
 def test_apply_inverts_the_effect_model(tmp_path):

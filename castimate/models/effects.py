@@ -11,7 +11,8 @@ non-orthogonality, misalignment):
 - per-axis sensing-element offsets inside an accelerometer triad, the "size effect"
   (:func:`axis_offsets`);
 - a time offset of a triad's samples (:func:`time_offset`);
-- the g-sensitivity of a gyroscope (:func:`g_sensitivity`).
+- the g-sensitivity of a gyroscope (:func:`g_sensitivity`);
+- the cross-axis coupling of a gyroscope (:func:`coupling`).
 
 Arguments are CasADi symbols or numbers; nothing here knows about problems or data.
 """
@@ -66,3 +67,15 @@ def g_sensitivity(G, f):
     """G f: the linear-acceleration sensitivity of a gyroscope [rad/s per m/s²], G (9,) row-major
     3×3, f the specific force in the gyroscope's frame."""
     return ca.mtimes(ca.reshape(G, 3, 3).T, f)
+
+
+def coupling(c, u):
+    """(C - I) u: cross-axis coupling of a gyroscope triad, C = unitri(c) unit lower-triangular like
+    the accelerometer's non-orthogonality L (Nilsson 2014, eq. 1), c = (C10, C20, C21) = (yx, zx, zy):
+    the y axis reads c_yx times the x axis's reading, the z axis c_zx and c_zy times x's and y's.
+
+    The reading is then C K_g M_g R̄ ω: gain times coupling (a lower-triangular matrix) times a
+    rotation is a general 3×3 matrix (its LQ decomposition), which gain and rotation alone cannot
+    express (issue 11: on MIMU4444 exp_1 a full matrix lowers χ²/dof by about a third).
+    """
+    return ca.vertcat(0, c[0] * u[0], c[1] * u[0] + c[2] * u[1])

@@ -164,6 +164,9 @@ EFFECTS: tuple[Effect, ...] = (
     Effect("time_offset", "gyroscope", GroupDef(("dt",), (0.0,), 1e-3, "s"),
            lambda c, x: fx.time_offset(c, x.u_dot), kinds=(DYNAMIC,), needs=(NEIGHBOURS,), sample_wise=False,
            title="gyroscope time offset"),
+    Effect("coupling", "gyroscope", GroupDef(("yx", "zx", "zy"), (0.0,) * 3, 1e-2, "-"),
+           lambda c, x: fx.coupling(c, x.u), kinds=(DYNAMIC,),
+           title="gyroscope cross-axis coupling: unit lower-triangular C in C K_g M_g Rbar (a general 3x3 matrix)"),
 )
 BY_KEY = {e.key: e for e in EFFECTS}
 

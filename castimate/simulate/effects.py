@@ -32,10 +32,11 @@ REALISTIC_DYNAMIC_EFFECTS = {
     "accelerometer.axis_offsets": 3e-4,  # m
     "accelerometer.time_offset": 5e-4,  # s
     "gyroscope.time_offset": 5e-4,  # s
+    "gyroscope.coupling": 1e-2,  # -, the MIMU4444's off-diagonal terms reach 0.02 (issue 11)
 }
 #: Number of coefficients of each effect (the simulator's own table).
 SIZES = {"bias_drift": 6, "temperature_bias": 6, "temperature_gain": 6, "scale_nonlinearity": 3,
-         "g_sensitivity": 9, "axis_offsets": 6, "time_offset": 1}
+         "g_sensitivity": 9, "axis_offsets": 6, "time_offset": 1, "coupling": 3}
 
 
 def random_coefficients(key: str, magnitude: float, rng: np.random.Generator) -> np.ndarray:
@@ -82,6 +83,9 @@ def sample_terms(values: dict, name: str, sensor: str, u: np.ndarray, f_sensor: 
         if f_sensor is None:
             raise ValueError(f"{name}.{sensor}.g_sensitivity needs the specific force at the triad")
         out += f_sensor @ c.reshape(3, 3).T
+    c = values.get(f"{name}.{sensor}.coupling")
+    if c is not None:  # C u - u with C unit lower-triangular, (yx, zx, zy) below the diagonal
+        out += u @ np.array([[0.0, 0.0, 0.0], [c[0], 0.0, 0.0], [c[1], c[2], 0.0]]).T
     return out
 
 
