@@ -1,7 +1,8 @@
 """The public Python surface of castimate: ``import castimate``.
 
 Load a problem (a YAML file, or the same content as a dict), solve it, diagnose it, and apply a
-calibration. Every function raises :class:`castimate.InputError` (invalid input, one line naming
+calibration (``castimate.Calibration.read("results.json").apply(acc, gyro, t, temp)``, see
+:mod:`castimate.calibration`). Every function raises :class:`castimate.InputError` (invalid input, one line naming
 the file and key) or :class:`castimate.NotConvergedError`; nothing here writes files.
 
 Example (the bundled real MIMU4444 session; its data live in ``../shared/data``)::
@@ -19,10 +20,11 @@ import json
 from pathlib import Path
 from typing import Any, Callable
 
+from .calibration import Calibration
 from .errors import InputError, NotConvergedError
 from .spec import ProblemSpec, load_problem, parse_problem
 
-__all__ = ["InputError", "NotConvergedError", "ProblemSpec", "diagnose", "load", "solve"]
+__all__ = ["Calibration", "InputError", "NotConvergedError", "ProblemSpec", "diagnose", "load", "solve"]
 
 Log = Callable[[str], None]
 
