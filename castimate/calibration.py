@@ -39,7 +39,7 @@ from .errors import InputError
 from .io.readers import input_units, read_recording, write_csv, write_npz
 from .io.recording import Recording
 from .io.results import read_results
-from .io.units import UnitConversion, parse_units
+from .io.units import parse_units
 from .jit import compile_functions
 from .problem.compensation import TriadLayout, triad_compensation
 from .problem.effects import BY_KEY, TEMPERATURE, TIME, included
@@ -146,7 +146,7 @@ class Calibration:
             g = None if gyro is None else gyro.get(name)
             has_gyro = g is not None and self.layouts[name].gyroscope
             g = np.zeros((n, 3)) if not has_gyro else np.atleast_2d(np.asarray(g, float))
-            fi, wi = _evaluate(self.function(name), y, g, tau, dT, self.params[name])
+            fi, wi = _evaluate(self.layouts[name], y, g, tau, dT, self.params[name])
             f[name] = fi
             if has_gyro:
                 omega[name] = wi
@@ -173,17 +173,17 @@ def _values(path: Path, name: str, t: dict, layout: TriadLayout) -> dict:
     return out
 
 
-_COMPILED: dict[str, ca.Function] = {}
+_COMPILED: dict[TriadLayout, ca.Function] = {}
 
 
-def _evaluate(fn: ca.Function, acc, gyro, tau, dT, p):
+def _evaluate(layout: TriadLayout, acc, gyro, tau, dT, p):
     """The compensation on N samples at once (compiled once per structure when a C compiler exists)."""
+    fn = triad_compensation(layout)
     if len(acc) > 1000:
-        key = fn.serialize()
-        if key not in _COMPILED:
+        if layout not in _COMPILED:
             compiled = compile_functions([fn])
-            _COMPILED[key] = compiled[0] if compiled else fn
-        fn = _COMPILED[key]
+            _COMPILED[layout] = compiled[0] if compiled else fn
+        fn = _COMPILED[layout]
     f, w = fn(acc.T, gyro.T, tau[None, :], dT[None, :], p)
     return f.full().T, w.full().T
 
@@ -221,4 +221,4 @@ def apply_calibration(results_path, data_path, out_path, fmt: str | None = None,
     return len(out)
 
 
-__all__ = ["Calibration", "apply_calibration", "UnitConversion"]
+__all__ = ["Calibration", "apply_calibration"]

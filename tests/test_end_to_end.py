@@ -19,6 +19,9 @@ def test_simulated_time_series_round_trip(tmp_path):
     res = json.loads((tmp_path / "out" / "results.json").read_text())
     truth = json.loads((tmp_path / "sim" / "truth.json").read_text())
     assert res["status"]["success"] and res["poses"]["count"] == 20
+    # the reader's conversion is recorded (csv: SI, the identity) for apply and the C
+    assert res["units"]["input"]["accelerometer"] == {"unit": "counts", "scale": [1.0] * 3, "offset": [0.0] * 3,
+                                                      "scale_unit": "m/s^2"}
     z = []
     for name, t in truth["triads"].items():
         for key, value in t["parameters"].items():

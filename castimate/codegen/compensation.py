@@ -544,8 +544,7 @@ def _samples(cal: Calibration) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     rng = np.random.default_rng(SEED)
     m, reg = len(cal.names), cal.regressors
     acc_u, gyro_u, temp_u = (_units(cal, q) for q in ("accelerometer", "gyroscope", "temperature"))
-    T = {n: {k: cal.layouts[n].split(cal.params[n])[k] for k in ("accelerometer.T", "accelerometer.b")}
-         for n in cal.names}
+    values = {n: cal.layouts[n].split(cal.params[n]) for n in cal.names}
     rows = [np.zeros(6 * m)]
     for special in ("offset", "bias", "big", "neg"):
         r = np.zeros(6 * m)
@@ -554,9 +553,9 @@ def _samples(cal: Calibration) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
                 if special == "offset":
                     v = u.offset
                 elif special == "bias":
-                    b = np.asarray(cal.layouts[n].split(cal.params[n])["accelerometer.b" if k == 0 else "gyroscope.b"]) \
+                    b = values[n]["accelerometer.b" if k == 0 else "gyroscope.b"] \
                         if k == 0 or cal.layouts[n].gyroscope else np.zeros(3)
-                    v = np.ravel(b) / u.scale + u.offset
+                    v = b / u.scale + u.offset
                 elif special == "big":
                     v = u.offset + np.array([1.0, -1.0, 1.0]) * (160.0 if k == 0 else 35.0) / np.abs(u.scale)
                 else:
@@ -569,7 +568,7 @@ def _samples(cal: Calibration) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         g_dir *= 9.81 / np.linalg.norm(g_dir)
         for i, n in enumerate(cal.names):
             f = g_dir + rng.uniform(-5.0, 5.0, 3)
-            si = np.asarray(T[n]["accelerometer.T"]) @ f + np.ravel(T[n]["accelerometer.b"])
+            si = values[n]["accelerometer.T"] @ f + values[n]["accelerometer.b"]
             r[6 * i:6 * i + 3] = si / acc_u.scale + acc_u.offset
             r[6 * i + 3:6 * i + 6] = rng.uniform(-6.0, 6.0, 3) / gyro_u.scale + gyro_u.offset
         rows.append(r)

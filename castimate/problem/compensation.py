@@ -28,6 +28,7 @@ all evaluate it. :func:`linear_inverse` is the plain T⁻¹ (y - b) of the other
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import casadi as ca
 import numpy as np
@@ -79,7 +80,9 @@ class TriadLayout:
         out, i = {}, 0
         for name, n in self.slices():
             v = p[i:i + n]
-            out[name] = ca.reshape(v, 3, 3).T if n == 9 and name.endswith(("T", "R_nominal")) else v
+            if n == 9 and name.endswith(("T", "R_nominal")):  # row-major 3×3
+                v = v.reshape(3, 3) if isinstance(v, np.ndarray) else ca.reshape(v, 3, 3).T
+            out[name] = v
             i += n
         return out
 
@@ -108,6 +111,7 @@ def undo_effects(effects, params, z, context, steps: int = NEWTON_STEPS):
     return uk
 
 
+@lru_cache(maxsize=None)
 def triad_compensation(layout: TriadLayout, steps: int = NEWTON_STEPS) -> ca.Function:
     """``compensate_triad(acc, gyro, tau, dT, p) -> (f, omega)``: one sample of one triad.
 
