@@ -93,3 +93,32 @@ def test_coupling_undetermined_by_rotation_about_one_axis_is_named():
     solver = Solver(build_dynamic(cfg, data, start).lsq)
     bad = solver.undetermined(solver.problem.layout.x0())
     assert bad and all(".gyroscope.coupling[" in b for b in bad), bad
+
+
+def test_problem_files_include_it_and_the_rate_scale_gauge_is_named(tmp_path):
+    """``gyroscope: {coupling: free}`` in a dynamic problem file; with every gyroscope gain free too
+    (the reference's included) the rate scale is a gauge (ω -> aω, r -> r/a²), and the kind refuses
+    the problem naming the undetermined directions. The static kind has no such effect."""
+    from castimate.errors import InputError
+    from castimate.kinds.dynamic import calibrate_dynamic
+    from castimate.spec import load_problem
+    from test_dynamic import dynamic_problem
+
+    for d in ("a", "b"):
+        (tmp_path / d).mkdir()
+    spec = load_problem(dynamic_problem(tmp_path / "a", model__gyroscope={"coupling": "free", "bias": "fixed"}))
+    assert KEY in spec.model.effects
+    path = dynamic_problem(tmp_path / "b", model__gyroscope={"gain": "free", "coupling": "free", "bias": "fixed"})
+    with pytest.raises(InputError, match="the data cannot determine") as e:
+        calibrate_dynamic(load_problem(path))
+    assert e.value.where == "model"
+    static = tmp_path / "s.yaml"
+    static.write_text("kind: static_array\nseed: 1\ntriads: 3\nposes: 12\ngyroscope: true\n")
+    from castimate.cli import main
+    assert main(["simulate", str(static), "-o", str(tmp_path / "sim")]) == 0
+    import yaml
+    prob = yaml.safe_load((tmp_path / "sim" / "problem.yaml").read_text())
+    prob.setdefault("model", {})["gyroscope"] = {"coupling": "free"}
+    (tmp_path / "sim" / "problem.yaml").write_text(yaml.safe_dump(prob))
+    with pytest.raises(InputError, match="coupling"):
+        load_problem(tmp_path / "sim" / "problem.yaml")
