@@ -48,6 +48,7 @@ from pathlib import Path  # noqa: E402
 import casadi as ca  # noqa: E402
 import numpy as np  # noqa: E402
 
+from castimate.codegen import CodegenOptions
 from castimate.codegen.solvers import generate_solver_files, reference_for
 from castimate.errors import NotConvergedError
 from castimate.simulate.scenarios import simulate_scenario
@@ -188,7 +189,7 @@ def main() -> int:
         for label, path, window, start in cases:
             print(f"== {label}", flush=True)
             try:
-                ref = reference_for(path, window, start)
+                ref = reference_for(path, CodegenOptions(window=window, start=start))
             except NotConvergedError as e:
                 print(f"   skipped: {e}", flush=True)
                 continue

@@ -1,12 +1,12 @@
 """castimate: maximum-likelihood calibration of inertial sensor arrays.
 
 The public Python surface is :mod:`castimate.api`, available as ``castimate.load``,
-``castimate.solve``, ``castimate.diagnose``, ``castimate.Calibration`` (loaded on first use, so that ``import castimate`` stays
+``castimate.solve``, ``castimate.write``, ``castimate.diagnose`` (loaded on first use, so that ``import castimate`` stays
 light and the CLI can set up numpy's threads first).
 """
 
 __version__ = "0.1.0"
-__all__ = ["Calibration", "InputError", "NotConvergedError", "ProblemSpec", "diagnose", "load", "solve"]
+__all__ = ["InputError", "NotConvergedError", "ProblemSpec", "diagnose", "load", "solve", "write"]
 
 
 def __getattr__(name: str):

@@ -1,16 +1,21 @@
 """The public Python surface of castimate: ``import castimate``.
 
-Load a problem (a YAML file, or the same content as a dict), solve it, diagnose it, and apply a
-calibration (``castimate.Calibration.read("results.json").apply(acc, gyro, t, temp)``, see
-:mod:`castimate.calibration`). Every function raises :class:`castimate.InputError` (invalid input, one line naming
-the file and key) or :class:`castimate.NotConvergedError`; nothing here writes files.
+The same pipeline as the ``castimate`` command (:mod:`castimate.kinds`): load a problem (a YAML
+file, or the same content as a dict), solve it, write its outputs, diagnose it. Every function
+raises :class:`castimate.InputError` (invalid input, one line naming the file and key) or
+:class:`castimate.NotConvergedError`; only :func:`write` writes files.
 
-Example (the bundled real MIMU4444 session; its data live in ``../shared/data``)::
+Example, the bundled imu_tk Xsens session (its data live in ``../shared/data``; run from the
+repository's root)::
 
-    import castimate
-    spec = castimate.load("problems/mimu4444_exp1_static.yaml")
-    outcome = castimate.solve(spec)
-    print(outcome.solution.chi2_per_dof, outcome.calibration["imu2"])
+    >>> import castimate
+    >>> spec = castimate.load("problems/xsens_imutk.yaml")
+    >>> outcome = castimate.solve(spec)
+    >>> outcome.solution.success, sorted(outcome.calibration)
+    (True, ['imu'])
+    >>> T, b = outcome.calibration["imu"]  # raw ≈ T f + b: f = T⁻¹ (raw − b), SI units
+    >>> bool(abs(T[0, 0] - 1) < 0.05)
+    True
 """
 
 from __future__ import annotations
@@ -20,18 +25,31 @@ import json
 from pathlib import Path
 from typing import Any, Callable
 
-from .calibration import Calibration
 from .errors import InputError, NotConvergedError
 from .spec import ProblemSpec, load_problem, parse_problem
 
-__all__ = ["Calibration", "InputError", "NotConvergedError", "ProblemSpec", "diagnose", "load", "solve"]
+__all__ = ["InputError", "NotConvergedError", "ProblemSpec", "diagnose", "load", "solve", "write"]
 
 Log = Callable[[str], None]
+Problem = str | Path | dict[str, Any] | ProblemSpec
 
 
-def load(source: str | Path | dict[str, Any] | ProblemSpec, base_dir: str | Path = ".") -> ProblemSpec:
+def load(source: Problem, base_dir: str | Path = ".") -> ProblemSpec:
     """A validated problem from a YAML file, or from a dict with the file's content (relative data
-    paths then count from ``base_dir``). A ProblemSpec is returned as it is."""
+    paths then count from ``base_dir``). A ProblemSpec is returned as it is.
+
+    >>> import castimate
+    >>> castimate.load("problems/xsens_imutk.yaml").kind
+    'static_array'
+    >>> doc = {"kind": "static_array", "array": {"reference": "imu", "triads": [{"name": "imu"}]},
+    ...        "data": {"path": "../../shared/data/imu_tk_xsens/xsens_acc.mat", "format": "imutk",
+    ...                 "gyro_path": "../../shared/data/imu_tk_xsens/xsens_gyro.mat"}}
+    >>> castimate.load(doc, base_dir="problems").data.path.name
+    'xsens_acc.mat'
+    >>> castimate.load({"kind": "static_array"})
+    Traceback (most recent call last):
+    castimate.errors.InputError: <dict>: (top level): missing required key 'data'
+    """
     if isinstance(source, ProblemSpec):
         return source
     if isinstance(source, dict):
@@ -40,17 +58,55 @@ def load(source: str | Path | dict[str, Any] | ProblemSpec, base_dir: str | Path
     return load_problem(source)
 
 
-def solve(problem: str | Path | dict[str, Any] | ProblemSpec, log: Log | None = None):
-    """Calibrate: the outcome of the problem's kind (``outcome.solution`` holds the estimates with
-    their σ's, ``outcome.calibration`` the accelerometer (T, b) per triad)."""
+def solve(problem: Problem, log: Log | None = None):
+    """Calibrate through the problem kind's pipeline (:func:`castimate.kinds.calibrate`): its
+    outcome. ``outcome.solution`` holds the estimates with their σ's (``values``, ``std``, keyed
+    by parameter group), ``outcome.calibration`` and ``outcome.gyro_calibration`` the (T, b) per
+    triad. ``log`` receives the progress messages the command prints.
+
+    >>> import castimate
+    >>> outcome = castimate.solve("problems/xsens_imutk.yaml")
+    >>> sorted(g for g in outcome.solution.values if g.startswith("imu.gyroscope"))
+    ['imu.gyroscope.bias', 'imu.gyroscope.gain', 'imu.gyroscope.misalignment']
+    >>> bool(outcome.solution.chi2_per_dof > 0)
+    True
+    """
     from .kinds import calibrate
 
     return calibrate(load(problem), log)
 
 
-def diagnose(problem: str | Path | dict[str, Any] | ProblemSpec, log: Log | None = None):
-    """Close the loop on the problem's data: the :class:`~castimate.kinds.diagnose.Diagnosis`
-    (effects added, before and after)."""
+def write(outcome, directory: str | Path) -> Path:
+    """Write what ``castimate solve`` writes for an outcome of :func:`solve`: ``results.json``
+    and ``details.npz`` (``castimate report DIR`` renders them). Returns the results.json path.
+
+    >>> import castimate, json, tempfile
+    >>> outcome = castimate.solve("problems/xsens_imutk.yaml")
+    >>> with tempfile.TemporaryDirectory() as d:
+    ...     doc = json.loads(castimate.write(outcome, d).read_text())
+    >>> doc["format"], doc["kind"], doc["status"]["success"]
+    ('castimate.results/1', 'static_array', True)
+    """
+    from .output import write_outputs
+
+    directory = Path(directory)
+    write_outputs(directory, outcome)
+    return directory / "results.json"
+
+
+def diagnose(problem: Problem, log: Log | None = None):
+    """Close the loop on the problem's data (``castimate diagnose``): the
+    :class:`~castimate.kinds.diagnose.Diagnosis`, with the model before and after the effects
+    that the data demand were added (``added``).
+
+    >>> import castimate
+    >>> d = castimate.diagnose("problems/xsens_imutk.yaml")
+    >>> d.added == [f.effect for r in d.rounds for f in r.refits if f.accepted]
+    True
+    >>> bool(d.after.s2 <= d.before.s2)
+    True
+    """
+    from .kinds import quiet
     from .kinds.diagnose import diagnose as run
 
-    return run(load(problem), log or (lambda m: None))
+    return run(load(problem), log or quiet)

@@ -27,10 +27,8 @@ def _inputs_of(spec) -> tuple:
 
 def cmd_solve(args) -> int:
     from .io.atomic import StagedOutput
-    from .io.results import write_json
-    from .output.details import write_details, write_dynamic_details
-    from .output.results import dynamic_results, static_results
-    from .output.summary import dynamic_summary, static_summary
+    from .kinds import calibrate
+    from .output import write_outputs
     from .spec import load_problem
 
     out = Path(args.output)
@@ -38,20 +36,7 @@ def cmd_solve(args) -> int:
     log = _log if not args.quiet else (lambda m: None)
     # refused up front (a file where the directory goes, an input in the way), written only on success
     with StagedOutput(out, names=("results.json", "details.npz"), inputs=_inputs_of(spec)) as stage:
-        if spec.kind == "dynamic_array":
-            from .kinds.dynamic import calibrate_dynamic
-
-            outcome = calibrate_dynamic(spec, log=log)
-            write_dynamic_details(stage / "details.npz", outcome)
-            write_json(stage / "results.json", dynamic_results(outcome))
-            summary = dynamic_summary(outcome)
-        else:
-            from .kinds.static import calibrate_static
-
-            outcome = calibrate_static(spec, log=log)
-            write_details(stage / "details.npz", outcome)
-            write_json(stage / "results.json", static_results(outcome))
-            summary = static_summary(outcome)
+        summary = write_outputs(stage, calibrate(spec, log))
     print(summary)
     print(f"wrote {out / 'results.json'}")
     return 0
@@ -120,12 +105,13 @@ def cmd_diagnose(args) -> int:
 
 
 def cmd_codegen(args) -> int:
-    from .codegen import generate_c
+    from .codegen import CodegenOptions, generate_c
     from .io.atomic import StagedOutput
 
     out = Path(args.output)
     with StagedOutput(out, inputs=(args.source,)) as stage:
-        files = generate_c(args.source, stage, window=args.window, start=args.start, motion_only=args.motion_only)
+        files = generate_c(args.source, stage, CodegenOptions(window=args.window, start=args.start,
+                                                              motion_only=args.motion_only))
     for name in files:
         print(f"wrote {out / name}")
     print(f"build and test with: make -C {args.output} check")

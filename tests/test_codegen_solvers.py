@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from castimate.cli import main
-from castimate.codegen import generate_c
+from castimate.codegen import CodegenOptions, generate_c
 from castimate.codegen.gn_structure import arithmetic_runs, expand_runs
 from castimate.codegen.solvers import FILES, TOLERANCE
 from castimate.errors import InputError
@@ -91,7 +91,7 @@ def test_static_real_mimu4444_matches_ipopt(shared_data, tmp_path):
 def test_dynamic_simulated_window_matches_ipopt_and_is_deterministic(simulated, tmp_path):
     src = simulated["sim_carlsson_32x1000"]
     emit_and_check(src, tmp_path / "a", "--window", "60", "--start", "100")
-    generate_c(src, tmp_path / "b", window=60, start=100)
+    generate_c(src, tmp_path / "b", CodegenOptions(window=60, start=100))
     for name in FILES:
         assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), f"{name} differs"
     assert "samples 100..159 of 1000" in (tmp_path / "a" / "README.md").read_text()
@@ -123,14 +123,14 @@ def test_window_on_a_static_problem_is_refused(simulated, tmp_path, capsys):
 
 def test_window_beyond_the_data_is_refused(simulated, tmp_path):
     with pytest.raises(InputError, match=r"--window: expected a window of 1 to 1000 samples .* found 5000"):
-        generate_c(simulated["sim_carlsson_32x1000"], tmp_path / "c", window=5000)
+        generate_c(simulated["sim_carlsson_32x1000"], tmp_path / "c", CodegenOptions(window=5000))
 
 
 def test_process_model_is_refused(simulated, tmp_path):
     with pytest.raises(InputError, match="motion.process_model: factor process_model couples two samples"):
-        generate_c(simulated["sim_schopp_5x675"], tmp_path / "c", window=20)
+        generate_c(simulated["sim_schopp_5x675"], tmp_path / "c", CodegenOptions(window=20))
     with pytest.raises(InputError, match="motion.process_model: the motion estimator .* found true"):
-        generate_c(simulated["sim_schopp_5x675"], tmp_path / "c", window=20, motion_only=True)
+        generate_c(simulated["sim_schopp_5x675"], tmp_path / "c", CodegenOptions(window=20, motion_only=True))
 
 
 def test_missing_problem_file_and_file_as_output(tmp_path):
@@ -144,7 +144,7 @@ def test_missing_problem_file_and_file_as_output(tmp_path):
 
 def test_window_with_a_results_file_is_refused(tmp_path):
     with pytest.raises(InputError, match="--window, --start and --motion-only apply to a problem file"):
-        generate_c(ROOT / "reports" / "xsens_imutk" / "results.json", tmp_path / "c", window=10)
+        generate_c(ROOT / "reports" / "xsens_imutk" / "results.json", tmp_path / "c", CodegenOptions(window=10))
 
 
 def test_arithmetic_runs_round_trip():

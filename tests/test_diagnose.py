@@ -9,7 +9,7 @@ import pytest
 import yaml
 
 from castimate.cli import main
-from castimate.kinds.diagnose import StaticSession, candidates, score_test
+from castimate.kinds.diagnose import Session, candidates, score_test
 from castimate.simulate.montecarlo import diagnose_trials
 from castimate.problem.effects import BY_KEY
 from castimate.spec import load_problem
@@ -38,7 +38,7 @@ def _session(tmp_path, effect, scale, seed=5):
     raw = yaml.safe_load(SCENARIO.read_text())
     raw.update(seed=seed, effects={effect: REALISTIC_EFFECTS[effect] * scale})
     (tmp_path / "s.yaml").write_text(yaml.safe_dump(raw))
-    return StaticSession(load_problem(simulate_scenario(tmp_path / "s.yaml", tmp_path)["problem"]))
+    return Session(load_problem(simulate_scenario(tmp_path / "s.yaml", tmp_path)["problem"]))
 
 
 
@@ -62,7 +62,7 @@ def test_candidates_follow_the_data(tmp_path):
     assert keys == set(REALISTIC_EFFECTS)
     sim = ROOT / "problems" / "sim_nilsson_14x20.yaml"
     files = simulate_scenario(sim, tmp_path / "nilsson")
-    s2 = StaticSession(load_problem(files["problem"]))
+    s2 = Session(load_problem(files["problem"]))
     keys2 = {e.key for e in candidates(s2, s2.fit())}
     assert keys2 == {"accelerometer.bias_drift", "accelerometer.scale_nonlinearity"}
 

@@ -12,20 +12,20 @@ from pathlib import Path
 from ..errors import InputError
 from ..io.atomic import write_atomic
 from .compensation import generate_files, load_calibration
+from .options import CodegenOptions
 
 
 def is_problem_file(path: str | Path) -> bool:
     return Path(path).suffix.lower() in (".yaml", ".yml")
 
 
-def generate_c(source: str | Path, out_dir: str | Path, window: int | None = None, start: int = 0,
-               motion_only: bool = False) -> dict[str, Path]:
+def generate_c(source: str | Path, out_dir: str | Path, options: CodegenOptions = CodegenOptions()) -> dict[str, Path]:
     """Write C sources, header, test vectors, test program, Makefile and README into out_dir.
 
-    ``source`` is a results.json (the compensation function) or a problem file (its solver; a
-    dynamic problem for ``window`` samples from sample ``start``; ``motion_only``: the array motion
-    estimator, geometry and intrinsics fixed). Returns {name: path} of the
-    files written. Raises InputError for bad input, NotConvergedError if the reference solve fails.
+    ``source`` is a results.json (the compensation function) or a problem file (its solver, see
+    :class:`CodegenOptions` for the window of a dynamic problem and the motion estimator). Returns
+    {name: path} of the files written. Raises InputError for bad input, NotConvergedError if the
+    reference solve fails.
     """
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
@@ -33,11 +33,9 @@ def generate_c(source: str | Path, out_dir: str | Path, window: int | None = Non
     if is_problem_file(source):
         from .solvers import generate_solver_files, reference_for
 
-        files = generate_solver_files(reference_for(source, window, start, motion_only))
+        files = generate_solver_files(reference_for(source, options))
     else:
-        if window is not None or start or motion_only:
-            raise InputError(source, "", "--window, --start and --motion-only apply to a problem file, "
-                                         "not a results file")
+        options.check(source, None)
         files = generate_files(source)
     written = {}
     for name, text in files.items():
@@ -46,4 +44,4 @@ def generate_c(source: str | Path, out_dir: str | Path, window: int | None = Non
     return written
 
 
-__all__ = ["generate_c", "generate_files", "is_problem_file", "load_calibration"]
+__all__ = ["CodegenOptions", "generate_c", "generate_files", "is_problem_file", "load_calibration"]

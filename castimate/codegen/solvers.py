@@ -37,6 +37,7 @@ from ..problem.graph import Solution
 from ..solve.ipopt import Solver
 from .ctext import c_comment, c_double, casadi_sources
 from .gn_structure import GNStructure, UnsupportedProblem, gn_structure
+from .options import CodegenOptions
 
 API_H = "castimate_solver.h"
 PROBLEM_H = "castimate_problem.h"
@@ -52,8 +53,6 @@ FILES = (API_H, PROBLEM_H, PROBLEM_C, DRIVER_C, CG_C, CG_H, TEST_C, VECTORS, "Ma
 #: variables (value / typical magnitude of each group), i.e. relative to the larger of the value and
 #: its group's scale.
 TOLERANCE = 1e-6
-#: Default window of a dynamic problem (samples from the start of its time range).
-DEFAULT_WINDOW = 200
 #: IPOPT tolerance of the reference solve: tighter than the default 1e-8, so that the reference is
 #: the optimum to well below TOLERANCE.
 REFERENCE_TOL = 1e-10
@@ -78,61 +77,42 @@ def _sha(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def static_reference(spec) -> Reference:
-    """The static problem of a problem file (averaged poses, Nilsson 2014) solved by IPOPT."""
-    from ..kinds.static import check_identifiable, load_recording, pose_averages, static_config
-    from ..problem.static import build_static
+def reference(spec, options: CodegenOptions = CodegenOptions()) -> Reference:
+    """The problem instance the C solver is emitted for, solved by IPOPT, through the kind's
+    pipeline (:class:`castimate.kinds.Kind`): a static problem with all its poses (Nilsson 2014);
+    a dynamic one for ``options.window`` samples from ``options.start``, saturated readings weighted
+    out (fixed size), and with ``options.motion_only`` every triad's intrinsics and position fixed at
+    the problem file's values (or its ``model.intrinsics``): the array's per-sample ML motion
+    estimator (Carlsson 2017)."""
+    from ..kinds import kind_of
 
-    avg, _ = pose_averages(spec, load_recording(spec))
-    config, _ = static_config(spec, avg)
-    problem = build_static(config, avg)
-    solver = Solver(problem.lsq, _reference_options(spec.solver))
-    check_identifiable(spec.path, problem, solver, avg)
-    x0 = problem.lsq.layout.x0()
-    sol = _solve(spec, solver, x0)
-    desc = (f"static array (Nilsson 2014): {len(config.triads)} accelerometer triads"
-            f"{f', {len(problem.gyro_triads)} gyroscopes' if problem.gyro_triads else ''}, {avg.n_poses} poses, "
-            f"gravity direction {config.gravity_direction}, misalignment {config.misalignment}")
-    return Reference(spec.path, _sha(spec.path), "static_array", desc, solver, x0, problem.lsq.layout.p0(),
-                     problem.lsq.data, sol)
-
-
-def dynamic_reference(spec, window: int, start: int = 0, motion_only: bool = False) -> Reference:
-    """A window of samples of the dynamic problem of a problem file, solved by IPOPT.
-
-    ``motion_only``: every triad's intrinsics and position fixed at the problem file's values (or
-    its ``model.intrinsics``): the array's per-sample ML motion estimator (Carlsson 2017)."""
-    from ..kinds.dynamic import dynamic_inputs
-    from ..problem.dynamic import build_dynamic_sigma_masked, geometry_fixed
-
-    inputs = dynamic_inputs(spec)
-    if inputs.static_problem is not None:
+    options.check(spec.path, spec.kind)
+    if spec.data.static_range is not None:
         raise InputError(spec.path, "data.static", "the C solver covers the dynamic phase alone; "
                          "remove data.static (joint static-plus-dynamic problems are not emitted)")
-    n = inputs.data.n
-    if not (1 <= window and 0 <= start and start + window <= n):
-        if not 0 <= start < n:
-            raise InputError(spec.path, "--start", f"expected a first sample from 0 to {n - 1} (the problem has {n} "
-                                                   f"samples), found {start}")
-        raise InputError(spec.path, "--window", f"expected a window of 1 to {n - start} samples from sample {start} "
-                                                f"(the problem has {n}), found {window}")
-    data = inputs.data.window(start, window)
-    config = geometry_fixed(inputs.config) if motion_only else inputs.config
-    if motion_only and config.process_model:
+    if options.motion_only and spec.motion.process_model:
         raise InputError(spec.path, "motion.process_model", "the motion estimator treats every sample on its own "
                          "(Carlsson 2017); expected process_model: false, found true")
-    problem = build_dynamic_sigma_masked(config, data)  # saturated readings: sigma = MASKED_SIGMA
+    kind = kind_of(spec)
+    data = kind.load(spec)
+    config = kind.configure(spec, data)
+    part = ""
+    if kind.sampled:  # a time series: the C solver is built for a window of it
+        data, part = kind.window(spec, data, options.start, options.window_or_default)
+    if options.motion_only:
+        config = kind.nuisance_only(config)
+    problem = kind.build(config, data, fixed_size=True)
     solver = Solver(problem.lsq, _reference_options(spec.solver))
+    kind.check(spec, problem, solver, data)
     x0 = problem.lsq.layout.x0()
-    sol = _solve(spec, solver, x0)
-    lay = problem.lsq.layout
-    free = sorted({g.name.split(".", 1)[1] for g in lay.groups if g.free.any() and not g.nuisance})
-    what = ("array motion estimator (Carlsson 2017; omega, omega_dot, s per sample for a given geometry)"
-            if motion_only else "dynamic array (Carlsson 2017)")
-    desc = (f"{what}: {len(config.triads)} accelerometer triads, {len(problem.gyro_triads)} gyroscopes, "
-            f"samples {start}..{start + window - 1} of {n}, free: {', '.join(free) or 'motion only'}; "
-            f"process model {'on' if config.process_model else 'off'}")
-    return Reference(spec.path, _sha(spec.path), "dynamic_array", desc, solver, x0, lay.p0(), problem.lsq.data, sol)
+    sol = solver.solve(x0)
+    if not sol.success:
+        raise NotConvergedError(f"{spec.path}: IPOPT did not converge on the reference problem: {sol.message}")
+    desc = kind.describe(config, data, problem) + (f"; {part}" if part else "")
+    if options.motion_only:
+        desc = "array motion estimator (omega, omega_dot, s per sample for a given geometry) of a " + desc
+    return Reference(spec.path, _sha(spec.path), spec.kind, desc, solver, x0, problem.lsq.layout.p0(),
+                     problem.lsq.data, sol)
 
 
 def _reference_options(options):
@@ -141,25 +121,11 @@ def _reference_options(options):
     return replace(options, tol=min(options.tol, REFERENCE_TOL), method="ipopt")
 
 
-def _solve(spec, solver: Solver, x0: np.ndarray) -> Solution:
-    sol = solver.solve(x0)
-    if not sol.success:
-        raise NotConvergedError(f"{spec.path}: IPOPT did not converge on the reference problem: {sol.message}")
-    return sol
-
-
-def reference_for(problem_path: str | Path, window: int | None = None, start: int = 0,
-                  motion_only: bool = False) -> Reference:
+def reference_for(problem_path: str | Path, options: CodegenOptions = CodegenOptions()) -> Reference:
     """Load a problem file and solve the problem the C solver is emitted for."""
     from ..spec import load_problem
 
-    spec = load_problem(problem_path)
-    if spec.kind == "dynamic_array":
-        return dynamic_reference(spec, DEFAULT_WINDOW if window is None else window, start, motion_only)
-    if window is not None or start or motion_only:
-        raise InputError(problem_path, "kind", "--window, --start and --motion-only apply to dynamic_array "
-                         "problems, found static_array (emitted for all its poses)")
-    return static_reference(spec)
+    return reference(load_problem(problem_path), options)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -703,4 +669,4 @@ def generate_solver_files(ref: Reference) -> dict[str, str]:
     return files
 
 
-__all__ = ["FILES", "Reference", "TOLERANCE", "generate_solver_files", "reference_for"]
+__all__ = ["FILES", "Reference", "TOLERANCE", "generate_solver_files", "reference", "reference_for"]

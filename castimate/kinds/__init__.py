@@ -1,29 +1,121 @@
-"""The pipelines, one module per kind of problem, behind one entry point (:func:`calibrate`).
+"""The pipelines, one module per kind of problem, behind one protocol (:class:`Kind`).
 
-Each kind module provides ``calibrate_<kind>(spec, log)``: read the recording, prepare it (static
-poses or sample masks), configure the triads, compose the factor graph, check identifiability,
-solve and return an outcome.
+Every kind goes through the same steps, and everything above this package (the CLI, diagnose,
+the outputs, codegen's reference solves, the Python API) uses only these:
+
+    kind = kind_of(spec)                    # the registered Kind of spec.kind
+    data = kind.load(spec, log)             # read and prepare the session once
+    config = kind.configure(spec, data)     # the triads and the model structure for these data
+    problem = kind.build(config, data)      # the factor graph (problem.lsq)
+    kind.check(spec, problem, solver, data) # refuse what the data cannot determine
+    outcome = kind.calibrate(spec, data, log)  # all of the above, solved: the kind's outcome
+
+A third kind is a new module with a class implementing :class:`Kind` and one line in
+:data:`REGISTRY`. Every outcome has ``spec``, ``config``, ``problem``, ``solver``, ``solution``,
+``calibration`` and ``gyro_calibration`` ((T, b) per triad), ``residual_acc`` and ``residual_gyro``.
 """
 
 from __future__ import annotations
 
-from typing import Callable
+import importlib
+from dataclasses import dataclass
+from typing import Any, Callable, Protocol
 
+import numpy as np
+
+from ..errors import InputError
 from ..spec import ProblemSpec
 
 Log = Callable[[str], None]
+
+#: spec.kind -> module of castimate.kinds whose ``KIND`` implements :class:`Kind`.
+REGISTRY = {"static_array": "static", "dynamic_array": "dynamic"}
+
+#: sensor -> triad -> (residual (n, 3), σ (n, 3)) in physical units
+Residuals = dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]
 
 
 def quiet(msg: str) -> None:
     """A Log that says nothing."""
 
 
+@dataclass(frozen=True)
+class CrossValidation:
+    """Prediction error on held-out data: fit on the other folds, fix the calibration (and
+    geometry), estimate only the held-out nuisance variables (pose directions or motion), and take
+    the residual."""
+
+    folds: int
+    rms: float  # whitened residual RMS, all sensors (1 for a perfect model and honest σ)
+    rms_acc: float  # m/s^2
+    rms_gyro: float  # rad/s, nan without gyroscopes
+
+    @classmethod
+    def from_parts(cls, white: list, acc: list, gyro: list, folds: int) -> "CrossValidation":
+        """RMS over the held-out residual parts (NaN entries, i.e. masked samples, left out)."""
+        def rms(parts):
+            x = np.concatenate([np.ravel(p) for p in parts]) if parts else np.array([])
+            x = x[np.isfinite(x)]
+            return float(np.sqrt(np.mean(x ** 2))) if x.size else float("nan")
+
+        return cls(folds, rms(white), rms(acc), rms(gyro))
+
+
+class Kind(Protocol):
+    """One kind of problem (``spec.kind``): how its data are read, modelled, solved and checked."""
+
+    name: str  # the spec.kind it serves
+    sampled: bool  # the data are a time series (windows of samples), not a set of poses
+
+    def load(self, spec: ProblemSpec, log: Log = quiet) -> Any:
+        """Read the recording and prepare it (poses, masks, noise) once; every model variant of the
+        session is fitted to it."""
+
+    def configure(self, spec: ProblemSpec, data: Any, log: Log = quiet) -> Any:
+        """The problem structure (triads, settings, regressors) of ``spec``'s model for these data."""
+
+    def build(self, config: Any, data: Any, fixed_size: bool = False) -> Any:
+        """The factor graph (``.lsq``, ``.calibration(values)``, ``.gyro_triads``). ``fixed_size``:
+        a structure that does not depend on which readings are masked (for the C solver)."""
+
+    def check(self, spec: ProblemSpec, problem: Any, solver: Any, data: Any) -> None:
+        """Raise InputError if the data cannot determine the problem (before solving)."""
+
+    def calibrate(self, spec: ProblemSpec, data: Any, log: Log = quiet, quick: bool = False) -> Any:
+        """Configure, build, check and solve: the kind's outcome. Raises InputError or
+        NotConvergedError. ``quick``: only the fit, without the figures of merit that need extra
+        solves (static: the single-triad consistency of Nilsson's sec. IV)."""
+
+    def nuisance_only(self, config: Any) -> Any:
+        """The same structure with every calibration and geometry group fixed at its start value:
+        the estimator of the nuisance variables (pose directions, motion) alone."""
+
+    def window(self, spec: ProblemSpec, data: Any, start: int, n: int) -> tuple[Any, str]:
+        """The data restricted to n consecutive samples or poses from ``start``, and a note of which."""
+
+    def describe(self, config: Any, data: Any, problem: Any) -> str:
+        """One line naming the model and the size of the problem."""
+
+    def has_temperature(self, data: Any) -> bool:
+        """Whether the data log a temperature (temperature effects can be informed)."""
+
+    def cross_validate(self, spec: ProblemSpec, data: Any, folds: int) -> CrossValidation:
+        """K-fold prediction error of ``spec``'s model on these data."""
+
+    def residuals(self, outcome: Any) -> tuple[np.ndarray, Residuals]:
+        """Times (pose mid-times or samples) and the residuals with their σ per sensor and triad."""
+
+
+def kind_of(spec: ProblemSpec | str) -> Kind:
+    """The registered :class:`Kind` of a problem (or of a kind's name)."""
+    name = spec if isinstance(spec, str) else spec.kind
+    if name not in REGISTRY:
+        raise InputError(getattr(spec, "path", ""), "kind", f"expected one of {', '.join(REGISTRY)}, found {name!r}")
+    return importlib.import_module(f"{__name__}.{REGISTRY[name]}").KIND
+
+
 def calibrate(spec: ProblemSpec, log: Log | None = None):
-    """The outcome of the problem's kind (StaticOutcome or DynamicOutcome)."""
-    if spec.kind == "dynamic_array":
-        from .dynamic import calibrate_dynamic
-
-        return calibrate_dynamic(spec, log or quiet)
-    from .static import calibrate_static
-
-    return calibrate_static(spec, log or quiet)
+    """Read, configure, build, check and solve a problem: the outcome of its kind."""
+    kind = kind_of(spec)
+    log = log or quiet
+    return kind.calibrate(spec, kind.load(spec, log), log)

@@ -21,8 +21,8 @@ The procedure, for a problem with its declared model H0:
    so the family-wise false-alarm rate of a round is at most α.
 4. **Add** the first confirmed effect and repeat from 2 until no candidate is significant.
 
-Static and dynamic problems are handled by a session each (:class:`StaticSession`,
-:class:`DynamicSession`): read once, fitted with any set of effects. Only the math and
+Every kind is handled by one :class:`Session` through the kind's pipeline
+(:class:`castimate.kinds.Kind`): read once, fitted with any set of effects. Only the math and
 orchestration live here; :mod:`castimate.report.diagnose` writes the report.
 """
 
@@ -33,15 +33,11 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy import stats
 
-from . import Log, quiet
-from .static import StaticOutcome, calibrate_static, load_static, static_config
-from .dynamic import DynamicOutcome, calibrate_dynamic, dynamic_config, load_dynamic, measurement_residuals
-from ..errors import CastimateError, InputError, NotConvergedError
-from ..problem.dynamic import build_dynamic
+from . import CrossValidation, Log, Residuals, kind_of, quiet
+from ..errors import CastimateError, InputError
 from ..problem.effects import BY_KEY, EFFECTS, TEMPERATURE, Effect
 from ..spec import ProblemSpec
-from ..problem.triads import GroupSetting, Regressors, fixed_config, group_name
-from ..problem.static import build_static
+from ..problem.triads import GroupSetting, group_name
 from ..solve.ipopt import Solver
 
 
@@ -69,24 +65,12 @@ def with_effects(spec: ProblemSpec, keys) -> ProblemSpec:
     return replace(spec, model=replace(spec.model, settings=settings, effects=effects))
 
 
-@dataclass(frozen=True)
-class CrossValidation:
-    """Prediction error on held-out data: fit on the other folds, fix the calibration (and
-    geometry), estimate only the held-out nuisance variables (pose directions or motion), and take
-    the residual."""
-
-    folds: int
-    rms: float  # whitened residual RMS, all sensors (1 for a perfect model and honest σ)
-    rms_acc: float  # m/s^2
-    rms_gyro: float  # rad/s, nan without gyroscopes
-
-
 @dataclass
 class Model:
     """One fitted model variant of a session."""
 
     effects: tuple[str, ...]
-    outcome: StaticOutcome | DynamicOutcome
+    outcome: object  # the kind's outcome
     cv: CrossValidation | None = None
 
     @property
@@ -103,129 +87,39 @@ class Model:
         return self.chi2 / self.dof
 
 
-Residuals = dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]  # sensor -> triad -> (residual (n, 3), σ (n, 3))
-
-
-def _cv(white: list, acc: list, gyro: list, folds: int) -> CrossValidation:
-    def rms(parts):
-        x = np.concatenate([np.ravel(p) for p in parts]) if parts else np.array([])
-        x = x[np.isfinite(x)]
-        return float(np.sqrt(np.mean(x ** 2))) if x.size else float("nan")
-
-    return CrossValidation(folds, rms(white), rms(acc), rms(gyro))
-
-
-class StaticSession:
-    """A static session read once, fitted with any set of effects (Nilsson 2014 model)."""
-
-    def __init__(self, spec: ProblemSpec, log: Log = quiet):
-        self.spec, self.data = spec, load_static(spec, log)
-
-    def fit(self, effects=()) -> Model:
-        s = with_effects(self.spec, effects)
-        return Model(s.model.effects, calibrate_static(s, data=self.data, consistency=False))
-
-    def augmented(self, model: Model, effects) -> Solver:
-        """The Gauss-Newton solver of the model with ``effects`` added, regressors as in ``model``."""
-        s = with_effects(self.spec, effects)
-        config, _ = static_config(s, self.data.averages)
-        config = replace(config, regressors=model.outcome.problem.config.regressors)
-        return Solver(build_static(config, self.data.averages).lsq, replace(s.solver, hessian="gauss_newton"))
-
-    def has_temperature(self) -> bool:
-        return bool(self.data.averages.temp_mean)
-
-    def cross_validate(self, effects, folds: int = FOLDS) -> CrossValidation:
-        """K-fold over the poses, interleaved in time so that each fold spans the session."""
-        s = with_effects(self.spec, effects)
-        avg = self.data.averages
-        config, _ = static_config(s, avg)
-        config = replace(config, regressors=Regressors.from_poses(avg))
-        fold = np.empty(avg.n_poses, int)
-        fold[np.argsort(avg.t_start, kind="stable")] = np.arange(avg.n_poses) % folds
-        white, acc, gyro = [], [], []
-        for k in range(folds):
-            train, test = np.flatnonzero(fold != k), np.flatnonzero(fold == k)
-            prob = build_static(config, avg.take(train))
-            sol = Solver(prob.lsq, s.solver).solve()
-            if not sol.success:
-                raise NotConvergedError(f"cross-validation fold {k + 1} of {folds} did not converge: {sol.message}")
-            held = build_static(fixed_config(prob.config, sol.values), avg.take(test))
-            hs = Solver(held.lsq, s.solver).solve()
-            if not hs.success:
-                raise NotConvergedError(f"prediction of fold {k + 1} of {folds} did not converge: {hs.message}")
-            bd = held.block_data(avg.take(test))
-            r = hs.residual.reshape(-1, 3)
-            white.append(r)
-            n_acc = len(bd[0])
-            acc.append(r[:n_acc] * bd[0][:, 3:6])
-            if len(bd) > 1:
-                gyro.append(r[n_acc:] * bd[1][:, 3:6])
-        return _cv(white, acc, gyro, folds)
-
-    def residuals(self, outcome: StaticOutcome) -> tuple[np.ndarray, Residuals]:
-        """Pose mid-times and the residuals with their σ per sensor and triad."""
-        avg = outcome.averages
-        return (avg.t_start + avg.t_end) / 2, {
-            "accelerometer": {n: (r, avg.acc_sigma[n]) for n, r in outcome.residual_acc.items()},
-            "gyroscope": {n: (r, avg.gyro_sigma[n]) for n, r in outcome.residual_gyro.items()}}
-
-
-class DynamicSession:
-    """A dynamic session read once, fitted with any set of effects (Carlsson 2017, Schopp 2016)."""
+class Session:
+    """A session read once through its kind's pipeline (:class:`castimate.kinds.Kind`), fitted
+    with any set of effects."""
 
     def __init__(self, spec: ProblemSpec, log: Log = quiet):
         if spec.data.static_range is not None:
             raise InputError(spec.path, "data.static", "diagnose runs on a static or a dynamic problem, not a joint one")
-        self.spec, self.loaded = spec, load_dynamic(spec, log)
+        self.spec, self.kind = spec, kind_of(spec)
+        self.data = self.kind.load(spec, log)
 
     def fit(self, effects=()) -> Model:
         s = with_effects(self.spec, effects)
-        return Model(s.model.effects, calibrate_dynamic(s, loaded=self.loaded))
+        return Model(s.model.effects, self.kind.calibrate(s, self.data, quick=True))
 
     def augmented(self, model: Model, effects) -> Solver:
+        """The Gauss-Newton solver of the model with ``effects`` added (same session regressors)."""
         s = with_effects(self.spec, effects)
-        config = replace(dynamic_config(s, self.loaded.full, quiet), regressors=self.loaded.regressors)
-        return Solver(build_dynamic(config, self.loaded.data).lsq, replace(s.solver, hessian="gauss_newton"))
+        problem = self.kind.build(self.kind.configure(s, self.data), self.data)
+        return Solver(problem.lsq, replace(s.solver, hessian="gauss_newton"))
 
     def has_temperature(self) -> bool:
-        return bool(self.loaded.data.temp)
+        return self.kind.has_temperature(self.data)
 
     def cross_validate(self, effects, folds: int = FOLDS) -> CrossValidation:
-        """K-fold over contiguous blocks of samples."""
-        s = with_effects(self.spec, effects)
-        data = self.loaded.data
-        fold = np.arange(data.n) * folds // data.n
-        white, acc, gyro = [], [], []
-        for k in range(folds):
-            train, test = np.flatnonzero(fold != k), np.flatnonzero(fold == k)
-            fitted = calibrate_dynamic(s, loaded=replace(self.loaded, data=data.take(train)))
-            part = data.take(test)
-            held = build_dynamic(fixed_config(fitted.problem.config, fitted.solution.values), part)
-            hs = Solver(held.lsq, replace(s.solver, hessian="gauss_newton")).solve()
-            if not hs.success:
-                raise NotConvergedError(f"prediction of fold {k + 1} of {folds} did not converge: {hs.message}")
-            ra, rg = measurement_residuals(held, part, hs)
-            for r, sig, out in ((ra, part.acc_sigma, acc), (rg, part.gyro_sigma, gyro)):
-                for n, e in r.items():
-                    out.append(e)
-                    white.append(e / sig[n])
-        return _cv(white, acc, gyro, folds)
+        return self.kind.cross_validate(with_effects(self.spec, effects), self.data, folds)
 
-    def residuals(self, outcome: DynamicOutcome) -> tuple[np.ndarray, Residuals]:
-        """Sample times and the residuals (NaN where masked) with their σ per sensor and triad."""
-        d = outcome.data
-        return d.t, {
-            "accelerometer": {n: (r, np.broadcast_to(d.acc_sigma[n], r.shape)) for n, r in outcome.residual_acc.items()},
-            "gyroscope": {n: (r, np.broadcast_to(d.gyro_sigma[n], r.shape)) for n, r in outcome.residual_gyro.items()}}
-
-
-Session = StaticSession | DynamicSession
+    def residuals(self, outcome) -> tuple[np.ndarray, Residuals]:
+        return self.kind.residuals(outcome)
 
 
 def open_session(spec: ProblemSpec, log: Log = quiet) -> Session:
     """Read a problem's data once, for fitting any of its model variants."""
-    return DynamicSession(spec, log) if spec.kind == "dynamic_array" else StaticSession(spec, log)
+    return Session(spec, log)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -12,7 +12,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from . import Log, quiet
+from . import CrossValidation, Log, Residuals, quiet
 from .static import check_plausible, check_temperature, declared, load_recording
 from ..errors import InputError, NotConvergedError
 from ..io.readers import read_recording
@@ -21,9 +21,10 @@ from ..io.recording import Recording
 from ..problem.compensation import linear_inverse
 from ..problem.triads import Regressors
 from ..models.rotation import rotation_to_quaternion
-from ..problem.dynamic import OMEGA, OMEGA_DOT, DynamicConfig, DynamicData, MotionSigmas, build_dynamic, build_joint
+from ..problem.dynamic import (OMEGA, OMEGA_DOT, DynamicConfig, DynamicData, MotionSigmas, build_dynamic,
+                               build_dynamic_sigma_masked, build_joint, geometry_fixed)
 from ..spec import ProblemSpec
-from ..problem.triads import TriadConfig
+from ..problem.triads import TriadConfig, fixed_config
 from ..problem.static import recover_nominal_rotation
 from ..prepare.poses import average_poses
 from ..prepare.detect import detect_static
@@ -482,3 +483,91 @@ def orientation_quaternion(outcome: DynamicOutcome, name: str) -> np.ndarray:
     T, _ = outcome.calibration[name]
     U, _, Vt = np.linalg.svd(T)
     return rotation_to_quaternion(U @ Vt)
+
+
+# ---------------------------------------------------------------------------------------------
+# The kind (castimate.kinds.Kind)
+# ---------------------------------------------------------------------------------------------
+
+class DynamicKind:
+    """Sampled motion of an array (Carlsson 2017, Schopp 2016): ω, ω̇, s per sample; optionally
+    joint with the static poses of ``data.static``."""
+
+    name = "dynamic_array"
+    sampled = True
+
+    def load(self, spec: ProblemSpec, log: Log = quiet) -> DynamicInput:
+        return load_dynamic(spec, log)
+
+    def configure(self, spec: ProblemSpec, data: DynamicInput, log: Log = quiet) -> DynamicInputs:
+        return dynamic_inputs(spec, log, data)
+
+    def build(self, config: DynamicInputs, data: DynamicInput, fixed_size: bool = False):
+        if config.static_problem is not None:
+            if fixed_size:
+                raise ValueError("a joint static-plus-dynamic problem has no fixed-size form")
+            return build_joint(config.static_problem, config.config, data.data)
+        # fixed size: saturated readings weighted out by σ = MASKED_SIGMA rather than left out
+        return (build_dynamic_sigma_masked if fixed_size else build_dynamic)(config.config, data.data)
+
+    def check(self, spec: ProblemSpec, problem, solver: Solver, data: DynamicInput) -> None:
+        """Nothing before the solve: at zero angular motion nothing about the geometry is observable,
+        so :func:`calibrate_dynamic` checks at the first Gauss-Newton solution."""
+
+    def calibrate(self, spec: ProblemSpec, data: DynamicInput, log: Log = quiet, quick: bool = False) -> DynamicOutcome:
+        return calibrate_dynamic(spec, log, loaded=data)
+
+    def nuisance_only(self, config: DynamicInputs) -> DynamicInputs:
+        """Intrinsics and positions fixed at their start values: the array's per-sample ML motion
+        estimator (Carlsson 2017)."""
+        return replace(config, config=geometry_fixed(config.config))
+
+    def window(self, spec: ProblemSpec, data: DynamicInput, start: int, n: int) -> tuple[DynamicInput, str]:
+        N = data.data.n
+        if not 0 <= start < N:
+            raise InputError(spec.path, "--start", f"expected a first sample from 0 to {N - 1} (the problem has {N} "
+                                                   f"samples), found {start}")
+        if not 1 <= n <= N - start:
+            raise InputError(spec.path, "--window", f"expected a window of 1 to {N - start} samples from sample {start} "
+                                                    f"(the problem has {N}), found {n}")
+        return replace(data, data=data.data.window(start, n)), f"samples {start}..{start + n - 1} of {N}"
+
+    def describe(self, config: DynamicInputs, data: DynamicInput, problem) -> str:
+        cfg = config.config
+        free = sorted({g.name.split(".", 1)[1] for g in problem.lsq.layout.groups if g.free.any() and not g.nuisance})
+        return (f"dynamic array (Carlsson 2017): {len(cfg.triads)} accelerometer triads, "
+                f"{len(problem.gyro_triads)} gyroscopes, free: {', '.join(free) or 'motion only'}; "
+                f"process model {'on' if cfg.process_model else 'off'}")
+
+    def has_temperature(self, data: DynamicInput) -> bool:
+        return bool(data.data.temp)
+
+    def cross_validate(self, spec: ProblemSpec, data: DynamicInput, folds: int) -> CrossValidation:
+        """K-fold over contiguous blocks of samples."""
+        d = data.data
+        fold = np.arange(d.n) * folds // d.n
+        white, acc, gyro = [], [], []
+        for k in range(folds):
+            train, test = np.flatnonzero(fold != k), np.flatnonzero(fold == k)
+            fitted = calibrate_dynamic(spec, loaded=replace(data, data=d.take(train)))
+            part = d.take(test)
+            held = build_dynamic(fixed_config(fitted.problem.config, fitted.solution.values), part)
+            hs = Solver(held.lsq, replace(spec.solver, hessian="gauss_newton")).solve()
+            if not hs.success:
+                raise NotConvergedError(f"prediction of fold {k + 1} of {folds} did not converge: {hs.message}")
+            ra, rg = measurement_residuals(held, part, hs)
+            for r, sig, out in ((ra, part.acc_sigma, acc), (rg, part.gyro_sigma, gyro)):
+                for n, e in r.items():
+                    out.append(e)
+                    white.append(e / sig[n])
+        return CrossValidation.from_parts(white, acc, gyro, folds)
+
+    def residuals(self, outcome: DynamicOutcome) -> tuple[np.ndarray, Residuals]:
+        """Sample times and the residuals (NaN where masked) with their σ per sensor and triad."""
+        d = outcome.data
+        return d.t, {
+            "accelerometer": {n: (r, np.broadcast_to(d.acc_sigma[n], r.shape)) for n, r in outcome.residual_acc.items()},
+            "gyroscope": {n: (r, np.broadcast_to(d.gyro_sigma[n], r.shape)) for n, r in outcome.residual_gyro.items()}}
+
+
+KIND = DynamicKind()

@@ -11,15 +11,16 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from . import Log, quiet
+from . import CrossValidation, Log, Residuals, quiet
 from ..errors import InputError, NotConvergedError
 from ..io.readers import read_recording
 from ..io.recording import Recording
 from ..problem.compensation import linear_inverse
 from ..problem.effects import BY_KEY, TEMPERATURE
 from ..spec import ProblemSpec
+from ..problem.dynamic import geometry_fixed
 from ..problem.static import StaticConfig, StaticProblem, build_static, initial_directions, recover_nominal_rotation, single_triad_config
-from ..problem.triads import TriadConfig
+from ..problem.triads import Regressors, TriadConfig, fixed_config
 from ..prepare.detect import Detection, detect_static, explicit_segments
 from ..prepare.poses import PoseAverages, average_poses, pose_averages_from_means
 from ..problem.graph import Solution
@@ -128,6 +129,13 @@ def static_config(spec: ProblemSpec, avg: PoseAverages) -> tuple[StaticConfig, d
     check_temperature(spec, set(avg.temp_mean))
     return StaticConfig(tuple(triads), spec.array.reference, m.gravity, m.gravity_direction, m.misalignment,
                         m.effects), notes
+
+
+def session_config(spec: ProblemSpec, data: "StaticData") -> tuple[StaticConfig, dict[str, str]]:
+    """:func:`static_config` with the effects' regressors formed from the whole session's poses
+    (so that every model variant and every cross-validation fold of it shares them)."""
+    config, notes = static_config(spec, data.averages)
+    return replace(config, regressors=Regressors.from_poses(data.averages)), notes
 
 
 # ---------------------------------------------------------------------------------------------
@@ -274,7 +282,7 @@ def calibrate_static(spec: ProblemSpec, log: Log = quiet, data: StaticData | Non
     """
     data = data or load_static(spec, log)
     rec, avg, det = data.recording, data.averages, data.detection
-    config, notes = static_config(spec, avg)
+    config, notes = session_config(spec, data)
     for n, note in notes.items():
         log(f"  {n}: {note}")
     log(f"building the NLP: {len(config.triads)} triads, {avg.n_poses} poses")
@@ -301,3 +309,90 @@ def calibrate_static(spec: ProblemSpec, log: Log = quiet, data: StaticData | Non
         {n: res[i] for i, n in enumerate(config.names)},
         {n: res[M + i] for i, n in enumerate(problem.gyro_triads)},
         spread)
+
+
+# ---------------------------------------------------------------------------------------------
+# The kind (castimate.kinds.Kind)
+# ---------------------------------------------------------------------------------------------
+
+class StaticKind:
+    """Static poses of an array (Nilsson 2014): pose averages, one pose direction per pose."""
+
+    name = "static_array"
+    sampled = False
+
+    def load(self, spec: ProblemSpec, log: Log = quiet) -> StaticData:
+        return load_static(spec, log)
+
+    def configure(self, spec: ProblemSpec, data: StaticData, log: Log = quiet) -> StaticConfig:
+        """The structure, with the effects' regressors formed from the session's poses."""
+        config, notes = session_config(spec, data)
+        for n, note in notes.items():
+            log(f"  {n}: {note}")
+        return config
+
+    def build(self, config: StaticConfig, data: StaticData, fixed_size: bool = False) -> StaticProblem:
+        return build_static(config, data.averages)  # pose averages: no masked readings, any size is fixed
+
+    def check(self, spec: ProblemSpec, problem: StaticProblem, solver: Solver, data: StaticData) -> None:
+        check_identifiable(spec.path, problem, solver, data.averages)
+
+    def calibrate(self, spec: ProblemSpec, data: StaticData, log: Log = quiet, quick: bool = False) -> StaticOutcome:
+        return calibrate_static(spec, log, data, consistency=not quick)
+
+    def nuisance_only(self, config: StaticConfig) -> StaticConfig:
+        """Intrinsics fixed at their start values: only the pose directions are estimated."""
+        return geometry_fixed(config)
+
+    def window(self, spec: ProblemSpec, data: StaticData, start: int, n: int) -> tuple[StaticData, str]:
+        P = data.averages.n_poses
+        if not (1 <= n and 0 <= start and start + n <= P):
+            raise InputError(spec.path, "data", f"expected 1..{P - start} poses from pose {start} (the problem has {P}), "
+                             f"found {n}")
+        return replace(data, averages=data.averages.take(np.arange(start, start + n))), \
+            f"poses {start}..{start + n - 1} of {P}"
+
+    def describe(self, config: StaticConfig, data: StaticData, problem: StaticProblem) -> str:
+        g = problem.gyro_triads
+        return (f"static array (Nilsson 2014): {len(config.triads)} accelerometer triads"
+                f"{f', {len(g)} gyroscopes' if g else ''}, {data.averages.n_poses} poses, "
+                f"gravity direction {config.gravity_direction}, misalignment {config.misalignment}")
+
+    def has_temperature(self, data: StaticData) -> bool:
+        return bool(data.averages.temp_mean)
+
+    def cross_validate(self, spec: ProblemSpec, data: StaticData, folds: int) -> CrossValidation:
+        """K-fold over the poses, interleaved in time so that each fold spans the session."""
+        avg = data.averages
+        config = self.configure(spec, data)
+        fold = np.empty(avg.n_poses, int)
+        fold[np.argsort(avg.t_start, kind="stable")] = np.arange(avg.n_poses) % folds
+        white, acc, gyro = [], [], []
+        for k in range(folds):
+            train, test = np.flatnonzero(fold != k), np.flatnonzero(fold == k)
+            prob = build_static(config, avg.take(train))
+            sol = Solver(prob.lsq, spec.solver).solve()
+            if not sol.success:
+                raise NotConvergedError(f"cross-validation fold {k + 1} of {folds} did not converge: {sol.message}")
+            held = build_static(fixed_config(prob.config, sol.values), avg.take(test))
+            hs = Solver(held.lsq, spec.solver).solve()
+            if not hs.success:
+                raise NotConvergedError(f"prediction of fold {k + 1} of {folds} did not converge: {hs.message}")
+            bd = held.block_data(avg.take(test))
+            r = hs.residual.reshape(-1, 3)
+            white.append(r)
+            n_acc = len(bd[0])
+            acc.append(r[:n_acc] * bd[0][:, 3:6])
+            if len(bd) > 1:
+                gyro.append(r[n_acc:] * bd[1][:, 3:6])
+        return CrossValidation.from_parts(white, acc, gyro, folds)
+
+    def residuals(self, outcome: StaticOutcome) -> tuple[np.ndarray, Residuals]:
+        """Pose mid-times and the residuals with their σ per sensor and triad."""
+        avg = outcome.averages
+        return (avg.t_start + avg.t_end) / 2, {
+            "accelerometer": {n: (r, avg.acc_sigma[n]) for n, r in outcome.residual_acc.items()},
+            "gyroscope": {n: (r, avg.gyro_sigma[n]) for n, r in outcome.residual_gyro.items()}}
+
+
+KIND = StaticKind()

@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from ..kinds.diagnose import CrossValidation, Diagnosis, Model
+from ..kinds import CrossValidation
+from ..kinds.diagnose import Diagnosis, Model
 from ..problem.effects import BY_KEY
 from .results import dynamic_results, static_results
 

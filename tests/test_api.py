@@ -1,0 +1,42 @@
+"""The public Python surface: its docstring examples and the README's Python example run as written."""
+
+import doctest
+import os
+import re
+from pathlib import Path
+
+import castimate
+import castimate.api
+from castimate.codegen import options as codegen_options
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run_doctests(module, monkeypatch):
+    monkeypatch.chdir(ROOT)
+    res = doctest.testmod(module, optionflags=doctest.ELLIPSIS, raise_on_error=False, verbose=False)
+    assert res.attempted > 0 and res.failed == 0, f"{res.failed} of {res.attempted} examples failed (printed above)"
+
+
+def test_api_docstring_examples_run(shared_data, monkeypatch):
+    run_doctests(castimate.api, monkeypatch)
+
+
+def test_codegen_options_examples_run(monkeypatch):
+    run_doctests(codegen_options, monkeypatch)
+
+
+def test_readme_python_example_runs(shared_data, monkeypatch, tmp_path):
+    blocks = re.findall(r"```python\n(.*?)```", (ROOT / "README.md").read_text(), re.S)
+    assert blocks, "the README has no Python example"
+    monkeypatch.chdir(ROOT)
+    for code in blocks:
+        code = code.replace('"out/', f'"{tmp_path}/')  # write into the test's directory, not the repository
+        exec(compile(code, "README.md", "exec"), {})
+    assert (tmp_path / "xsens" / "results.json").is_file()
+
+
+def test_the_package_exposes_the_api_lazily():
+    assert set(castimate.__all__) == set(castimate.api.__all__)
+    assert castimate.solve is castimate.api.solve and castimate.write is castimate.api.write
+    assert "OPENBLAS_NUM_THREADS" in os.environ  # set by conftest, as the CLI does, before numpy loads
