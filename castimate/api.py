@@ -41,11 +41,11 @@ def load(source: Problem, base_dir: str | Path = ".") -> ProblemSpec:
     >>> import castimate
     >>> castimate.load("problems/xsens_imutk.yaml").kind
     'static_array'
-    >>> doc = {"kind": "static_array", "array": {"reference": "imu", "triads": [{"name": "imu"}]},
-    ...        "data": {"path": "../../shared/data/imu_tk_xsens/xsens_acc.mat", "format": "imutk",
-    ...                 "gyro_path": "../../shared/data/imu_tk_xsens/xsens_gyro.mat"}}
-    >>> castimate.load(doc, base_dir="problems").data.path.name
-    'xsens_acc.mat'
+    >>> import yaml
+    >>> doc = yaml.safe_load(open("problems/xsens_imutk.yaml"))
+    >>> doc["model"]["gravity"] = 9.81
+    >>> castimate.load(doc, base_dir="problems").model.gravity
+    9.81
     >>> castimate.load({"kind": "static_array"})
     Traceback (most recent call last):
     castimate.errors.InputError: <dict>: (top level): missing required key 'data'

@@ -177,7 +177,7 @@ def test_compiled_and_virtual_machine_assembly_agree():
 
 def test_chunked_evaluation_equals_one_chunk(monkeypatch):
     """Splitting the instances into chunks (whole stage groups) changes nothing."""
-    import castimate.solve.assembly as solve
+    from castimate.solve import assembly as solve
 
     prob = dynamic_case()
     x = prob.lsq.layout.x0()
