@@ -49,6 +49,11 @@ DEFAULT_FREE = {
         "accelerometer": {"gain": True, "bias": True, "nonorthogonality": True, "misalignment": True},
         "gyroscope": {"gain": False, "bias": True, "misalignment": False},
     },
+    # Static with model.intrinsics (reuse: fixed): refresh what a power-up changes, the biases.
+    "refresh": {
+        "accelerometer": {"gain": False, "bias": True, "nonorthogonality": False, "misalignment": False},
+        "gyroscope": {"gain": False, "bias": True, "misalignment": False},
+    },
     # Dynamic: the geometry is estimated; intrinsics come from a static calibration (model.intrinsics).
     "dynamic_array": {
         "accelerometer": {"gain": False, "bias": False, "nonorthogonality": False, "misalignment": False},
@@ -107,8 +112,9 @@ class ModelSpec:
     gravity_direction: str
     misalignment: str
     settings: dict  # (triad, sensor, group) -> GroupSetting; sensor "position" for positions
-    intrinsics: Path | None = None  # a static results.json whose values start (and by default fix) the intrinsics
+    intrinsics: Path | None = None  # a results.json whose values start (and by default fix) the intrinsics
     effects: tuple[str, ...] = ()  # included effects, "sensor.name" keys in library order
+    reuse: str = "fixed"  # fixed | prior: how the intrinsics of model.intrinsics enter (prior: N(value, σ²))
 
     def effect_settings(self, triad: str, sensor: str) -> dict:
         """The included effects' settings of one triad's sensor, by effect name (absent: not included there)."""
@@ -317,15 +323,20 @@ def _model(c: Check, m, array: ArraySpec, kind: str = "static_array", base: Path
            joint: bool = False) -> ModelSpec:
     """``joint``: a dynamic problem with a static phase, whose intrinsics default to free as in the static kind."""
     dynamic = kind == "dynamic_array"
-    defaults = DEFAULT_FREE["static_array" if joint else kind]
     m = c.mapping(m, "model", ("gravity", "gravity_direction", "misalignment", "accelerometer", "gyroscope",
-                               "triads") + (("position", "intrinsics") if dynamic else ()))
+                               "triads", "intrinsics", "reuse") + (("position",) if dynamic else ()))
     intrinsics = None
     if "intrinsics" in m:
         if not isinstance(m["intrinsics"], str):
-            c.fail("model.intrinsics", f"expected the path of a static results.json, found {m['intrinsics']!r}")
+            c.fail("model.intrinsics", f"expected the path of a castimate results.json, found {m['intrinsics']!r}")
         intrinsics = (base / m["intrinsics"]).resolve()
         input_file(intrinsics, "results file", c.source, "model.intrinsics")
+    reuse = c.choice(m.get("reuse", "fixed"), "model.reuse", ("fixed", "prior"))
+    if "reuse" in m and intrinsics is None:
+        c.fail("model.reuse", "applies to the intrinsics of model.intrinsics, which is not given")
+    # static with an earlier calibration: refresh the biases (fixed) or refit everything under priors
+    refresh = kind == "static_array" and intrinsics is not None and reuse == "fixed"
+    defaults = DEFAULT_FREE["refresh" if refresh else "static_array" if joint or reuse == "prior" else kind]
     gravity = c.number(m.get("gravity", 9.81), "model.gravity", positive=True, lo=GRAVITY_RANGE[0],
                        hi=GRAVITY_RANGE[1], unit="m/s^2 (gravity at the Earth's surface)")
     direction = c.choice(m.get("gravity_direction", "unit_vector"), "model.gravity_direction", DIRECTIONS)
@@ -395,7 +406,7 @@ def _model(c: Check, m, array: ArraySpec, kind: str = "static_array", base: Path
                 settings[name, sensor, g] = GroupSetting(**s)
     included = {(sensor, g) for (_, sensor, g) in settings if g in effects.get(sensor, {})}
     keys = tuple(e.key for sensor in SENSOR_GROUPS for g, e in effects[sensor].items() if (sensor, g) in included)
-    return ModelSpec(gravity, direction, mis, settings, intrinsics, keys)
+    return ModelSpec(gravity, direction, mis, settings, intrinsics, keys, reuse)
 
 
 def _motion(c: Check, m) -> MotionSpec:

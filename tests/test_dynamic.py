@@ -175,7 +175,7 @@ def dynamic_problem(tmp_path, **changes):
 @pytest.mark.parametrize("changes, where, message", [
     ({"data__segments": "rows"}, "data.segments", "needs the raw time series"),
     ({"model__intrinsics": "missing.json"}, "model.intrinsics", "does not exist"),
-    ({"model__intrinsics": 3}, "model.intrinsics", "expected the path of a static results.json"),
+    ({"model__intrinsics": 3}, "model.intrinsics", "expected the path of a castimate results.json"),
     ({"model__triads": {"imu1": {"position": "free"}}}, "model.triads.imu1.position", "its position is fixed"),
     ({"model__position": {"free": [True, True]}}, "model.position.free", "a list of 3"),
     ({"data__saturation": {"gyroscope": "sometimes"}}, "data.saturation.gyroscope", "expected auto, none or a level"),

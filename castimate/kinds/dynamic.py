@@ -13,10 +13,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from . import CrossValidation, Log, Residuals, quiet
+from .intrinsics import read_intrinsics, reused
 from .static import check_plausible, check_temperature, declared, load_recording
 from ..errors import InputError, NotConvergedError
 from ..io.readers import read_recording
-from ..io.results import read_results
 from ..io.recording import Recording
 from ..problem.compensation import linear_inverse
 from ..problem.triads import Regressors
@@ -64,35 +64,6 @@ def noise_from_static(spec: ProblemSpec, full: Recording, log: Log) -> tuple[dic
     return out_a, out_g or {}
 
 
-def read_intrinsics(spec: ProblemSpec) -> dict:
-    """Per triad: {(sensor, group): value} and R_nominal from a static results.json."""
-    path = spec.model.intrinsics
-    if path is None:
-        return {}
-    doc = read_results(path)  # format, successful status and structure checked, key paths named
-    out = {}
-    for name in spec.array.names:
-        t = doc.get("triads", {}).get(name)
-        if t is None:
-            raise InputError(spec.path, "model.intrinsics", f"{path.name} has no triad {name!r}")
-        vals = {}
-        for key, p in t.get("parameters", {}).items():
-            sensor, group = ("accelerometer", key) if "." not in key else key.split(".", 1)
-            vals[sensor, group] = np.asarray(p["value"], float)
-        out[name] = {"values": vals, "R_nominal": np.asarray(t.get("R_nominal", np.eye(3)), float)}
-    return out
-
-
-def _misalignment_as(value: np.ndarray, kind: str) -> np.ndarray:
-    """Convert a misalignment between small-angle ξ (3) and quaternion (4) forms."""
-    if kind == "rotation" and value.size == 3:
-        q = np.concatenate([[1.0], value / 2])
-        return q / np.linalg.norm(q)
-    if kind == "small_angle" and value.size == 4:
-        return 2 * value[1:] * np.sign(value[0] or 1)
-    return value
-
-
 def dynamic_config(spec: ProblemSpec, full: Recording, log: Log) -> DynamicConfig:
     """Triads with nominal rotations, positions and settings; intrinsics start from a static results.json."""
     intr = read_intrinsics(spec)
@@ -106,12 +77,12 @@ def dynamic_config(spec: ProblemSpec, full: Recording, log: Log) -> DynamicConfi
             raise InputError(spec.path, "array.triads", f"rotation: auto for {', '.join(auto)} needs static segments "
                              "(or model.intrinsics); the recording has fewer than 3")
         means = average_poses(full, det, triads=spec.array.names).acc_mean
-    R_ref = intr[ref_spec.name]["R_nominal"] if ref_spec.name in intr else \
+    R_ref = intr[ref_spec.name].R_nominal if ref_spec.name in intr else \
         (np.eye(3) if isinstance(ref_spec.rotation, str) else ref_spec.rotation)
     triads = []
     for t in spec.array.triads:
         if t.name in intr:
-            R = intr[t.name]["R_nominal"]
+            R = intr[t.name].R_nominal
         elif isinstance(t.rotation, np.ndarray):
             R = t.rotation
         elif t.rotation == "auto":
@@ -120,15 +91,8 @@ def dynamic_config(spec: ProblemSpec, full: Recording, log: Log) -> DynamicConfi
             log(f"  {t.name}: nominal rotation recovered from the static segments: {np.round(R).astype(int).tolist()}")
         else:
             R = np.eye(3)
-        vals = intr.get(t.name, {}).get("values", {})
-
         def setting(sensor, g):
-            st = s[t.name, sensor, g]
-            if st.initial is None and (sensor, g) in vals:
-                v = vals[sensor, g]
-                v = _misalignment_as(v, mis) if (sensor, g) == ("accelerometer", "misalignment") else v
-                st = replace(st, initial=tuple(v))
-            return st
+            return reused(s[t.name, sensor, g], intr.get(t.name), sensor, g, mis, spec.model.reuse == "prior")
 
         has_gyro = t.name in full.gyro if t.gyroscope is None else t.gyroscope
         triads.append(TriadConfig(t.name, R,

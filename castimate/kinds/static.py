@@ -12,6 +12,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from . import CrossValidation, Log, Residuals, quiet
+from .intrinsics import read_intrinsics, reused
 from ..errors import InputError, NotConvergedError
 from ..io.readers import read_recording
 from ..io.recording import Recording
@@ -107,8 +108,13 @@ def static_config(spec: ProblemSpec, avg: PoseAverages) -> tuple[StaticConfig, d
     R_ref = np.eye(3) if isinstance(ref.rotation, str) else ref.rotation
     notes, triads = {}, []
     m = spec.model
+    intr = read_intrinsics(spec)  # an earlier calibration to refresh (model.intrinsics)
+    if spec.array.reference in intr:
+        R_ref = intr[spec.array.reference].R_nominal
     for t in spec.array.triads:
-        if isinstance(t.rotation, np.ndarray):
+        if t.name in intr:
+            R = intr[t.name].R_nominal
+        elif isinstance(t.rotation, np.ndarray):
             R = t.rotation
         elif t.rotation == "identity":
             R = np.eye(3)
@@ -118,12 +124,15 @@ def static_config(spec: ProblemSpec, avg: PoseAverages) -> tuple[StaticConfig, d
             notes[t.name] = (f"nominal rotation recovered from the static poses: {np.round(R).astype(int).tolist()} "
                              f"(exact fit {resid:.1f} deg from it)")
         has_gyro = t.name in avg.gyro_mean if t.gyroscope is None else t.gyroscope
-        s = m.settings
+        def setting(sensor, g):
+            return reused(m.settings[t.name, sensor, g], intr.get(t.name), sensor, g, m.misalignment,
+                          m.reuse == "prior")
+
         triads.append(TriadConfig(
             t.name, R,
-            {**{g: s[t.name, "accelerometer", g] for g in ("gain", "bias", "nonorthogonality", "misalignment")},
+            {**{g: setting("accelerometer", g) for g in ("gain", "bias", "nonorthogonality", "misalignment")},
              **m.effect_settings(t.name, "accelerometer")},
-            {**{g: s[t.name, "gyroscope", g] for g in ("gain", "bias", "misalignment")},
+            {**{g: setting("gyroscope", g) for g in ("gain", "bias", "misalignment")},
              **m.effect_settings(t.name, "gyroscope")} if has_gyro else None,
             t.position))
     check_temperature(spec, set(avg.temp_mean))
