@@ -14,7 +14,7 @@ from ..kinds.diagnose import Diagnosis
 from ..output.diagnosis import parameter_changes
 from ..problem.effects import BY_KEY
 from . import figures
-from .page import fig_html, kv, page_head, format_pm
+from .page import DEG, fig_html, kv, page_head, format_pm
 
 
 def _g(x: float, digits: int = 3) -> str:
@@ -37,7 +37,10 @@ def render_diagnosis(d: Diagnosis) -> str:
     """The HTML text of a diagnose report."""
     spec = d.spec
     b, a = d.before, d.after
-    head = {"problem": str(spec.path), "problem_sha256": spec.sha256}
+    sol = a.outcome.solution  # the headline judges the final model
+    head = {"problem": str(spec.path), "problem_sha256": spec.sha256,
+            "status": {"success": sol.success, "message": sol.message},
+            "residuals": {"chi2_per_dof": a.s2, "dof": a.dof}}
     out = page_head(head, spec.path.name, "diagnose")
     add = out.append
     added = ", ".join(f"<b>{escape(k)}</b> ({escape(BY_KEY[k].title)})" for k in d.added) or "nothing"
@@ -51,12 +54,12 @@ def render_diagnosis(d: Diagnosis) -> str:
     rows = [("χ²/dof", _g(b.s2, 4), _g(a.s2, 4)),
             ("degrees of freedom", str(b.dof), str(a.dof)),
             ("residual RMS, accelerometers [mm/s²]", _g(rms(b.outcome.residual_acc) * 1e3), _g(rms(a.outcome.residual_acc) * 1e3)),
-            ("residual RMS, gyroscopes [mrad/s]", _g(rms(b.outcome.residual_gyro) * 1e3), _g(rms(a.outcome.residual_gyro) * 1e3))]
+            ("residual RMS, gyroscopes [deg/s]", _g(rms(b.outcome.residual_gyro) * DEG), _g(rms(a.outcome.residual_gyro) * DEG))]
     if b.cv and a.cv:
         unit = "poses" if spec.kind == "static_array" else "blocks of samples"
         rows += [(f"held-out error, {b.cv.folds}-fold over {unit} (RMS of residual/σ)", _g(b.cv.rms, 4), _g(a.cv.rms, 4)),
                  ("held-out error, accelerometers [mm/s²]", _g(b.cv.rms_acc * 1e3), _g(a.cv.rms_acc * 1e3)),
-                 ("held-out error, gyroscopes [mrad/s]", _g(b.cv.rms_gyro * 1e3), _g(a.cv.rms_gyro * 1e3))]
+                 ("held-out error, gyroscopes [deg/s]", _g(b.cv.rms_gyro * DEG), _g(a.cv.rms_gyro * DEG))]
     add("<h2>Before and after</h2>")
     add(_table(["", "declared model", "refined model"], [list(r) for r in rows]))
     t, wb = _whitened(d, b.outcome)

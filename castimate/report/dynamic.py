@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from . import figures
-from .page import DEG, fig_html, chi2_text, finite, format_pm, kv, matrix, page_head, parameter_tables
+from .page import DEG, fig_html, chi2_text, finite, format_pm, kv, matrix, page_head, parameter_tables, status_row, wide
 REQUIRED_DYNAMIC_DETAILS = ("triads", "t", "omega", "omega_dot", "s", "residual_acc", "acc_sigma", "position",
                             "position_std", "nominal_position")
 
@@ -202,11 +202,9 @@ def render_dynamic_report(results: dict, details: dict[str, np.ndarray]) -> str:
 
     # --- summary
     add("<h2>Summary</h2>")
-    ok = bool(status.get("success"))
     wall, build = status.get("wall_s"), status.get("build_s")
     attempts = status.get("attempts") or []
-    rows = [("solver status", f'<span class="{"ok" if ok else "bad"}">{"success" if ok else "failed"}</span> '
-                              f'— {escape(str(status.get("message", "")))}'),
+    rows = [status_row(results),
             ("iterations", escape(str(status.get("iterations", "?")))),
             ("attempts", f"{len(attempts)}" + (" (restarted; see below)" if len(attempts) > 1 else "")),
             ("solve time", f"{wall * 1e3:.0f} ms" if finite(wall) else "n/a"),
@@ -224,11 +222,11 @@ def render_dynamic_report(results: dict, details: dict[str, np.ndarray]) -> str:
                  + ", ".join(f"{escape(k)} {v}" for k, v in masked.items())))
     m = results.get("motion_model", {}) or {}
     if m:
-        def sig(key, unit):
-            return f"{m[key]:.3g} {unit}" if finite(m.get(key)) else "?"
+        def sig(key, unit, scale=1.0):
+            return f"{m[key] * scale:.3g} {unit}" if finite(m.get(key)) else "?"
         rows.append(("motion model", f"process model (Schopp 2016): σ_s {sig('sigma_s', 'm/s³')}, "
-                                     f"σ_ω̇ {sig('sigma_omega_dot', 'rad/s³')}, "
-                                     f"σ_integration {sig('sigma_integration', 'rad/s²')}"
+                                     f"σ_ω̇ {sig('sigma_omega_dot', 'deg/s³', DEG)}, "
+                                     f"σ_integration {sig('sigma_integration', 'deg/s²', DEG)}"
                      if m.get("process_model") else "no process model: the motion of each sample is free"))
     ra = np.asarray(details["residual_acc"], float)
     rows.append(("accelerometer residual RMS",
@@ -236,7 +234,7 @@ def render_dynamic_report(results: dict, details: dict[str, np.ndarray]) -> str:
                  f"{figures.whitened_rms(ra, details['acc_sigma']):.3f} (all triads, axes and unmasked samples)"))
     if "residual_gyro" in details and np.isfinite(details["residual_gyro"]).any():
         rg = np.asarray(details["residual_gyro"], float)
-        rows.append(("gyroscope residual RMS", f"{np.sqrt(np.nanmean(rg ** 2)) * DEG * 1e3:.2f} mdeg/s "
+        rows.append(("gyroscope residual RMS", f"{np.sqrt(np.nanmean(rg ** 2)) * DEG:.3g} deg/s "
                                                f"({len(details.get('gyro_triads', []))} triads, all axes)"))
     nom, est, sd = (np.asarray(details[k], float) for k in ("nominal_position", "position", "position_std"))
     rows.append(("positions", f"RMS distance estimated–nominal {figures.position_rms_um(nom, est, sd):.1f} µm "
@@ -278,7 +276,7 @@ def render_dynamic_report(results: dict, details: dict[str, np.ndarray]) -> str:
     for sensor, head, body, note in tables:
         add(f"<h3>{escape(sensor.capitalize())}</h3>")
         if body:
-            add('<div class="scroll"><table>' + "".join(head) + "".join(body) + "</table></div>")
+            add(f'<div class="scroll"><table{wide(head)}>' + "".join(head) + "".join(body) + "</table></div>")
         if note:
             add(f'<p class="note">{note}</p>')
 

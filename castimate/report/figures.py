@@ -159,6 +159,51 @@ def consistency(before: np.ndarray, after: np.ndarray) -> Figure:
     return fig
 
 
+def pose_timeline(t_start: np.ndarray, t_end: np.ndarray, rejected: Sequence[dict]) -> Figure:
+    """The static-pose detection over the recording: accepted poses (numbered, as in the other
+    figures) and rejected candidate segments with their reason.
+
+    Parameters
+    ----------
+    t_start, t_end
+        (P,) time range of each accepted pose, s.
+    rejected
+        ``results.json`` ``detection.rejected`` entries: ``t_start``, ``t_end`` (s) and ``reason``.
+    """
+    t_start, t_end = np.asarray(t_start, float), np.asarray(t_end, float)
+    fig = _new_figure(12.0, 2.4)
+    ax = fig.add_subplot()
+    ax.broken_barh([(a, b - a) for a, b in zip(t_start, t_end)], (0.55, 0.4), color=AFTER_COLOR)
+    for i, (a, b) in enumerate(zip(t_start, t_end)):
+        if len(t_start) <= 60 or i % 5 == 0:
+            ax.text((a + b) / 2, 1.0, str(i + 1), ha="center", va="bottom", fontsize=7)
+    reasons = sorted({str(r.get("reason", "")) for r in rejected})
+    colors = _category_colors(len(reasons))
+    for reason, c in zip(reasons, colors):
+        spans = [(r["t_start"], r["t_end"] - r["t_start"]) for r in rejected if str(r.get("reason", "")) == reason]
+        ax.broken_barh(spans, (0.05, 0.4), color=c, label=f"rejected: {reason[:60]}")
+    ax.set_yticks([0.25, 0.75], ["rejected", "poses"])
+    ax.set_ylim(0, 1.35)
+    ends = [x for x in (t_end.max() if t_end.size else None,
+                        max((r["t_end"] for r in rejected), default=None)) if x is not None]
+    starts = [x for x in (t_start.min() if t_start.size else None,
+                          min((r["t_start"] for r in rejected), default=None)) if x is not None]
+    if starts and ends:
+        ax.set_xlim(min(starts), max(ends))
+    ax.set_xlabel("time [s]")
+    ax.set_title(f"Static-pose detection: {len(t_start)} poses accepted, {len(rejected)} segments rejected")
+    if reasons:
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.35), ncols=2, frameon=False)
+    return fig
+
+
+def _category_colors(n: int) -> list:
+    """n distinct colours for categories (matplotlib's tab10 cycle)."""
+    from matplotlib import colormaps
+
+    return [colormaps["tab10"](i % 10) for i in range(n)]
+
+
 def gravity_norm(before: np.ndarray, after: np.ndarray, triads: Sequence[str]) -> Figure:
     """| |f| − g | per pose and triad, before (raw readings) and after calibration.
 

@@ -8,6 +8,7 @@ import base64
 import io
 import math
 import zipfile
+from datetime import datetime, timezone
 from html import escape
 from pathlib import Path
 from typing import Any
@@ -29,12 +30,16 @@ h1 .kind { color: #666; font-weight: normal; font-size: 0.75em; }
 h2 { font-size: 1.2em; border-bottom: 1px solid #ddd; padding-bottom: 0.2em; margin-top: 1.8em; }
 .sub { color: #666; margin-top: 0; font-size: 0.9em; }
 .ok { color: #1a7f37; font-weight: 600; }
+.warn { color: #9a6700; font-weight: 600; }
 .bad { color: #b42318; font-weight: 600; }
-.scroll { overflow-x: auto; }
-table { border-collapse: collapse; font-size: 0.85em; margin: 0.6em 0 1em; }
-th, td { border: 1px solid #d8dde3; padding: 0.25em 0.6em; }
+p.headline { font-size: 1.05em; padding: 0.5em 0.8em; border-radius: 4px; border: 1px solid #d8dde3; }
+p.headline.ok { background: #eaf6ec; } p.headline.warn { background: #fff6e0; } p.headline.bad { background: #fdecea; }
+.scroll { max-width: 100%; }
+table { border-collapse: collapse; font-size: 0.85em; margin: 0.6em 0 1em; max-width: 100%; }
+table.wide { font-size: 0.7em; }
+th, td { border: 1px solid #d8dde3; padding: 0.25em 0.5em; overflow-wrap: anywhere; }
 th { background: #f3f5f7; font-weight: 600; text-align: center; }
-td { text-align: right; font-variant-numeric: tabular-nums; white-space: nowrap; }
+td { text-align: right; font-variant-numeric: tabular-nums; }
 td.name, th.name { text-align: left; font-weight: 600; }
 td.na { color: #999; text-align: center; }
 td.fixed { color: #777; }
@@ -49,7 +54,10 @@ p.note { color: #555; font-size: 0.9em; margin-top: -0.4em; }
 code { background: #f3f5f7; padding: 0 0.2em; border-radius: 3px; }
 """
 
-UNIT_DISPLAY = {"-": "–", "m/s^2": "m/s²", "rad": "deg", "rad/s": "rad/s", "": "–"}
+UNIT_DISPLAY = {"-": "–", "": "–"}
+#: A model whose χ²/dof is above this is reported as not fitting, however the solver ended (the
+#: residuals are then about √(χ²/dof) times the noise model's σ).
+NO_FIT = 4.0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -100,7 +108,13 @@ def format_pm(value: float, std: float | None) -> str:
 
 
 def _unit(unit: str) -> str:
-    return UNIT_DISPLAY.get(unit, unit.replace("^2", "²"))
+    """The display unit of a stored (SI) unit: every angle in degrees (rad -> deg, rad/s -> deg/s, ...)."""
+    return UNIT_DISPLAY.get(unit, unit.replace("rad", "deg").replace("^2", "²").replace("^3", "³"))
+
+
+def unit_scale(unit: str) -> float:
+    """The factor from a stored (SI) unit to its display unit (:func:`_unit`)."""
+    return DEG if unit.startswith("rad") else 1.0
 
 
 def _sensor_of(key: str) -> tuple[str, str]:
@@ -153,7 +167,7 @@ def parameter_tables(results: dict) -> list[tuple[str, list[str], list[str], str
                 if g is None:
                     cells += ['<td class="na">—</td>'] * len(comps)
                     continue
-                scale = DEG if unit == "rad" else 1.0
+                scale = unit_scale(unit)
                 for k in range(len(comps)):
                     v = g["value"][k]
                     s = g["std"][k] if g.get("std") is not None else None
@@ -167,6 +181,11 @@ def parameter_tables(results: dict) -> list[tuple[str, list[str], list[str], str
             body.append("<tr>" + "".join(cells) + "</tr>")
         tables.append((sensor, ["<tr>" + "".join(head1) + "</tr>", "<tr>" + "".join(head2) + "</tr>"], body, note))
     return tables
+
+
+def wide(head: list[str]) -> str:
+    """The class attribute of a table with many columns (a smaller font, so that it fits the page)."""
+    return ' class="wide"' if sum(h.count("<th") for h in head[-1:]) > 12 else ""
 
 
 def matrix(R: Any) -> str:
@@ -204,6 +223,34 @@ def chi2_text(res: dict) -> str:
             + (f", χ² {res['chi2']:.1f}" if finite(res.get("chi2")) else "") + ")" + hint)
 
 
+def fit_verdict(results: dict) -> tuple[str, str]:
+    """(css class, sentence) on whether the model fits the data, from χ²/dof and the solver status."""
+    status, res = results.get("status", {}), results.get("residuals", {})
+    chi2, dof = res.get("chi2_per_dof"), res.get("dof")
+    band = 2.58 * math.sqrt(2 / dof) if finite(dof) and dof > 0 else 0.0
+    if not status.get("success"):
+        return "bad", f"The solver did not converge ({escape(str(status.get('message', '')))}): the estimates are not valid."
+    if not finite(chi2):
+        return "warn", "The solver converged; the fit cannot be judged (no χ²/dof)."
+    if chi2 > NO_FIT:
+        return "bad", (f"The model does not fit the data: χ²/dof = {chi2:.4g}, the residuals are about "
+                       f"{math.sqrt(chi2):.3g} × the noise σ. The solver converged, but the estimates and their σ's "
+                       "carry unmodelled errors (try <code>castimate diagnose</code>).")
+    if chi2 > 1 + band:
+        return "warn", (f"The model fits approximately: χ²/dof = {chi2:.3g}, the residuals exceed the noise model "
+                        f"(σ's about {math.sqrt(chi2):.2g} × too small for the σ's reported).")
+    return "ok", f"The model fits the data: χ²/dof = {chi2:.3g}, within the noise model."
+
+
+def status_row(results: dict) -> tuple[str, str]:
+    """The summary's solver-status row, coloured by the fit verdict (green only when it also fits)."""
+    status = results.get("status", {})
+    ok = bool(status.get("success"))
+    cls = fit_verdict(results)[0] if ok else "bad"
+    return ("solver status", f'<span class="{cls}">{"converged" if ok else "failed"}</span> '
+                             f'— {escape(str(status.get("message", "")))}')
+
+
 def kv(rows: list[tuple[str, str]]) -> str:
     return '<table class="kv">' + "".join(f"<tr><td>{k}</td><td>{v}</td></tr>" for k, v in rows) + "</table>"
 
@@ -212,13 +259,21 @@ def kv(rows: list[tuple[str, str]]) -> str:
 # The report
 # ---------------------------------------------------------------------------------------------
 
-def page_head(results: dict, problem: str, kind: str) -> list[str]:
-    """The opening lines of a report page, shared by every kind: head, title and provenance."""
+def page_head(results: dict, problem: str, kind: str, date: str | None = None) -> list[str]:
+    """The opening lines of a report page, shared by every kind: head, title, provenance (castimate
+    version and date) and the headline verdict on the fit."""
+    from .. import __version__
+
+    date = date or datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    cls, verdict = fit_verdict(results)
     return [
         "<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">",
+        '<meta name="viewport" content="width=device-width, initial-scale=1">',
         f"<title>castimate report: {escape(problem)}</title>",
         f"<style>{CSS}</style>\n</head>\n<body>",
         f'<h1>{escape(problem)} <span class="kind">{escape(kind)}</span></h1>',
-        f'<p class="sub">castimate calibration report; problem <code>{escape(str(results.get("problem", "?")))}</code>, '
+        f'<p class="sub">castimate {escape(__version__)} calibration report, written {escape(date)}; problem '
+        f'<code>{escape(str(results.get("problem", "?")))}</code>, '
         f'sha256 <code>{escape(str(results.get("problem_sha256", "?"))[:16])}…</code></p>',
+        f'<p class="headline {cls}">{verdict}</p>',
     ]

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from . import figures
-from .page import DEG, chi2_text, fig_html, finite, kv, matrix, page_head, parameter_tables
+from .page import DEG, chi2_text, fig_html, finite, kv, matrix, page_head, parameter_tables, status_row, wide
 
 REQUIRED_DETAILS = ("triads", "acc_sigma", "residual_acc", "norm_error_before", "norm_error_after")
 
@@ -27,10 +27,8 @@ def render_report(results: dict, details: dict[str, np.ndarray]) -> str:
 
     # --- summary
     add("<h2>Summary</h2>")
-    ok = bool(status.get("success"))
     wall, build = status.get("wall_s"), status.get("build_s")
-    rows = [("solver status", f'<span class="{"ok" if ok else "bad"}">{"success" if ok else "failed"}</span> '
-                              f'— {escape(str(status.get("message", "")))}'),
+    rows = [status_row(results),
             ("iterations", escape(str(status.get("iterations", "?")))),
             ("solve time", f"{wall * 1e3:.0f} ms" if finite(wall) else "n/a"),
             ("build time", f"{build * 1e3:.0f} ms" if finite(build) else "n/a")]
@@ -49,7 +47,7 @@ def render_report(results: dict, details: dict[str, np.ndarray]) -> str:
     rows.append(("accelerometer residual RMS", f"{np.sqrt(np.mean(rms ** 2)) * 1e3:.2f} mm/s² (all triads and axes)"))
     if "residual_gyro" in details:
         rg = details["residual_gyro"]
-        rows.append(("gyroscope residual RMS", f"{np.sqrt(np.mean(rg ** 2)) * DEG * 1e3:.2f} mdeg/s "
+        rows.append(("gyroscope residual RMS", f"{np.sqrt(np.mean(rg ** 2)) * DEG:.3g} deg/s "
                                                f"({len(details.get('gyro_triads', []))} triads, all axes)"))
     poses = results.get("poses", {})
     rows.append(("triads, poses", f"{len(triads)} triads (reference {escape(str(results.get('reference', '?')))}), "
@@ -66,7 +64,7 @@ def render_report(results: dict, details: dict[str, np.ndarray]) -> str:
     for sensor, head, body, note in parameter_tables(results):
         add(f"<h3>{escape(sensor.capitalize())}</h3>")
         if body:
-            add('<div class="scroll"><table>' + "".join(head) + "".join(body) + "</table></div>")
+            add(f'<div class="scroll"><table{wide(head)}>' + "".join(head) + "".join(body) + "</table></div>")
         if note:
             add(f'<p class="note">{note}</p>')
 
@@ -95,6 +93,13 @@ def render_report(results: dict, details: dict[str, np.ndarray]) -> str:
                       "Trace of the across-triad covariance of the compensated specific force per pose, with each "
                       "triad calibrated alone (before) and with the array model (after): the after bars should sit "
                       "well below the before bars in every pose, not only on average."))
+    if "t_start" in details and "t_end" in details:
+        fig = figures.pose_timeline(details["t_start"], details["t_end"],
+                                    (results.get("detection") or {}).get("rejected", []))
+        add(fig_html(fig, "static-pose detection timeline",
+                      "Where the static poses were found in the recording (numbered as in the other figures) and "
+                      "the candidate segments that were rejected, coloured by reason: a pose missing here, or a long "
+                      "hold among the rejected ones, points to detection settings to check."))
     fig = figures.gravity_norm(details["norm_error_before"], details["norm_error_after"], triads)
     add(fig_html(fig, "gravity-norm error per pose and triad",
                   "The error of the measured specific-force magnitude against g per pose and triad: calibrated "
