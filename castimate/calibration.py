@@ -188,12 +188,24 @@ def _evaluate(layout: TriadLayout, acc, gyro, tau, dT, p):
     return f.full().T, w.full().T
 
 
-def apply_calibration(results_path, data_path, out_path, fmt: str | None = None, log=None) -> int:
+def imutk_gyro_file(acc_path: Path) -> Path | None:
+    """The gyroscope file of an imu_tk session beside its accelerometer file ('acc' -> 'gyro' in
+    the name, as in xsens_acc.mat / xsens_gyro.mat), if it exists."""
+    if "acc" not in acc_path.name:
+        return None
+    g = acc_path.with_name(acc_path.name.replace("acc", "gyro"))
+    return g if g.is_file() else None
+
+
+def apply_calibration(results_path, data_path, out_path, fmt: str | None = None, gyro_path=None,
+                      log=None) -> int:
     """Write the calibrated recording (body frame, SI units) and return its number of samples.
 
     The data are read with the units recorded in the results (those of the problem the
     calibration came from), so raw counts are converted exactly as during calibration. ``log``
-    receives the reader's notes (dropped packets, repaired time stamps).
+    receives the reader's notes (dropped packets, repaired time stamps). imu_tk data keep the
+    gyroscope in a second file: ``gyro_path``, by default the one beside ``data_path``
+    (:func:`imutk_gyro_file`). A calibrated gyroscope without readings is noted.
     """
     cal = Calibration.read(results_path)
     data_path, out_path = Path(data_path), Path(out_path)
@@ -203,8 +215,13 @@ def apply_calibration(results_path, data_path, out_path, fmt: str | None = None,
     if out_path.suffix.lower() not in (".csv", ".npz"):
         raise InputError(out_path, "", f"expected an output file ending in .csv or .npz, found {out_path.suffix!r}")
     units = read_results(results_path).get("units", {})
+    log = log or (lambda msg: None)
+    if gyro_path is None and fmt == "imutk":
+        gyro_path = imutk_gyro_file(data_path)
+        if gyro_path is not None:
+            log(f"gyroscope readings from {gyro_path.name}")
     rec = read_recording(fmt, data_path, acc_units=units.get("data_accelerometer"),
-                         gyro_units=units.get("data_gyroscope"))
+                         gyro_units=units.get("data_gyroscope"), gyro_path=gyro_path)
     for note in rec.notes if log else ():
         log(f"{data_path.name}: {note}")
     for name in cal.names:
@@ -214,6 +231,10 @@ def apply_calibration(results_path, data_path, out_path, fmt: str | None = None,
             raise InputError(data_path, f"{name}.temp", "the calibration has a temperature effect; the data logs "
                                                         f"no temperature for triad {name!r}")
     gyro = {n: rec.gyro[n] for n in cal.names if n in rec.gyro}
+    unread = [n for n in cal.names if cal.layouts[n].gyroscope and n not in rec.gyro]
+    if unread:
+        log(f"note: the calibration includes the gyroscope of {', '.join(unread)}, but {data_path.name} has no "
+            "gyroscope readings" + (" (imutk: pass --gyro FILE)" if fmt == "imutk" else "") + "; accelerometer only")
     f, omega = cal.apply({n: rec.acc[n] for n in cal.names}, gyro, rec.t,
                          {n: rec.temp[n] for n in cal.names if n in rec.temp})
     out = Recording(t=rec.t, acc=f, gyro=omega or {}, source=str(data_path))

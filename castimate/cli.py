@@ -58,8 +58,9 @@ def cmd_apply(args) -> int:
     from .calibration import apply_calibration
     from .io.atomic import StagedOutput
 
-    with StagedOutput(args.output, directory=False, inputs=(args.results, args.data)) as staged:
-        n = apply_calibration(args.results, args.data, staged, fmt=args.format, log=_log)
+    inputs = (args.results, args.data) + ((args.gyro,) if args.gyro else ())
+    with StagedOutput(args.output, directory=False, inputs=inputs) as staged:
+        n = apply_calibration(args.results, args.data, staged, fmt=args.format, gyro_path=args.gyro, log=_log)
     print(f"wrote {args.output}: {n} samples calibrated")
     return 0
 
@@ -71,10 +72,11 @@ def cmd_report(args) -> int:
     directory = Path(args.directory)
     if directory.exists() and not directory.is_dir():
         raise InputError(directory, "", "expected the output directory of `castimate solve`, found a file")
-    with StagedOutput(directory / "report.html", directory=False,
+    target = Path(args.output) if args.output else directory / "report.html"
+    with StagedOutput(target, directory=False,
                       inputs=(directory / "results.json", directory / "details.npz")) as staged:
         write_report(directory, staged)
-    print(f"wrote {directory / 'report.html'}")
+    print(f"wrote {target}")
     return 0
 
 
@@ -119,33 +121,54 @@ def cmd_codegen(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="castimate", description="Calibrate inertial sensor arrays.")
-    sub = p.add_subparsers(dest="verb", required=True)
-    s = sub.add_parser("solve", help="solve a YAML problem, write DIR/results.json and print a summary")
-    s.add_argument("problem")
-    s.add_argument("-o", "--output", required=True, help="output directory")
-    s.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
+    from . import __version__
+
+    p = argparse.ArgumentParser(prog="castimate", description="Maximum-likelihood calibration of inertial sensor "
+                                "arrays (CasADi + IPOPT). Exit codes: 0 success, 2 invalid input, 3 no convergence.")
+    p.add_argument("--version", action="version", version=f"castimate {__version__}")
+    sub = p.add_subparsers(dest="verb", required=True, metavar="VERB")
+
+    def verb(name, summary, description):
+        return sub.add_parser(name, help=summary, description=f"{summary[0].upper()}{summary[1:]}. {description}")
+
+    quiet = {"action": "store_true", "help": "no progress messages on stderr"}
+    s = verb("solve", "solve a YAML problem, write DIR/results.json and DIR/details.npz and print a summary",
+             "Reads the data, finds the static poses (static_array) or masks saturated samples (dynamic_array), "
+             "solves the maximum-likelihood problem and writes the estimates with their sigmas.")
+    s.add_argument("problem", help="problem file (PROBLEM.yaml, see the README's 'Problem files')")
+    s.add_argument("-o", "--output", required=True, help="output directory (created if missing)")
+    s.add_argument("-q", "--quiet", **quiet)
     s.set_defaults(func=cmd_solve)
-    s = sub.add_parser("simulate", help="simulate a session with known truth and write a ready problem")
-    s.add_argument("scenario")
-    s.add_argument("-o", "--output", required=True)
+    s = verb("simulate", "simulate a session with known truth and write a ready problem",
+             "Writes DIR/data.csv, DIR/truth.json and DIR/problem.yaml; solve the latter with `castimate solve`.")
+    s.add_argument("scenario", help="scenario file (a problem-like YAML with a 'seed' key, e.g. problems/sim_*.yaml)")
+    s.add_argument("-o", "--output", required=True, help="output directory (created if missing)")
     s.set_defaults(func=cmd_simulate)
-    s = sub.add_parser("apply", help="write calibrated data from a results.json")
-    s.add_argument("results")
-    s.add_argument("data")
+    s = verb("apply", "write calibrated data from a results.json",
+             "Reads DATA with the units recorded in the results, removes every included effect and writes "
+             "f = T^-1 (raw - b) per triad in the body frame, SI units.")
+    s.add_argument("results", help="results.json of `castimate solve` or `castimate diagnose`")
+    s.add_argument("data", help="recording to calibrate (csv, npz, mimu or imutk accelerometer file)")
     s.add_argument("-o", "--output", required=True, help="output file (.csv or .npz)")
     s.add_argument("--format", choices=("csv", "npz", "mimu", "imutk"), help="data format (default: from the extension)")
+    s.add_argument("--gyro", metavar="FILE", help="imutk data: the gyroscope file beside the accelerometer file "
+                                                  "(default: the file named like DATA with 'acc' -> 'gyro', if it exists)")
     s.set_defaults(func=cmd_apply)
-    s = sub.add_parser("report", help="write DIR/report.html from a solved DIR")
-    s.add_argument("directory")
+    s = verb("report", "write a self-contained HTML report of a solved directory",
+             "Reads DIR/results.json and DIR/details.npz as written by `castimate solve`.")
+    s.add_argument("directory", help="output directory of `castimate solve`")
+    s.add_argument("-o", "--output", help="report file (default DIR/report.html)")
     s.set_defaults(func=cmd_report)
-    s = sub.add_parser("diagnose", help="find effects the model lacks, add the significant ones, report before/after")
-    s.add_argument("problem")
-    s.add_argument("-o", "--output", required=True, help="output directory")
-    s.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
+    s = verb("diagnose", "find effects the model lacks, add the significant ones, report before/after",
+             "Score-tests every library effect the declared model lacks, confirms the significant ones by "
+             "refitting (likelihood-ratio F test and cross-validation), and writes diagnose.json, results.json, "
+             "the refined problem file and report.html.")
+    s.add_argument("problem", help="problem file (static_array or dynamic_array)")
+    s.add_argument("-o", "--output", required=True, help="output directory (created if missing)")
+    s.add_argument("-q", "--quiet", **quiet)
     s.set_defaults(func=cmd_diagnose)
-    s = sub.add_parser("codegen", help="write C99 code into DIR: the solver of a problem file, or the "
-                                        "compensation function of a results.json")
+    s = verb("codegen", "write C99 code into DIR: the solver of a problem file, or the compensation function "
+                        "of a results.json", "Builds and checks with `make -C DIR check` (gcc and make needed).")
     s.add_argument("source", help="a problem file (PROBLEM.yaml: its solver in C, test vectors from the "
                                   "Python solve) or a results.json (the compensation function)")
     s.add_argument("-o", "--output", required=True, help="output directory")

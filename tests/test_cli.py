@@ -1,0 +1,52 @@
+"""The command line: descriptions, --version, report -o, apply with an imu_tk gyroscope file."""
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import castimate
+from castimate.cli import build_parser, main
+
+ROOT = Path(__file__).resolve().parents[1]
+XSENS_RESULTS = ROOT / "reports" / "xsens_imutk" / "results.json"
+
+
+def test_every_verb_and_argument_is_described():
+    p = build_parser()
+    sub = next(a for a in p._actions if a.dest == "verb")  # argparse keeps its parsers there
+    assert set(sub.choices) == {"solve", "simulate", "apply", "report", "diagnose", "codegen"}
+    for name, verb in sub.choices.items():
+        assert verb.description and len(verb.description) > 40, name
+        for a in verb._actions:
+            assert a.help, f"{name} {a.dest} has no help"
+
+
+def test_version(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0 and capsys.readouterr().out.strip() == f"castimate {castimate.__version__}"
+
+
+def test_report_to_a_chosen_file(tmp_path, capsys):
+    d = tmp_path / "solved"
+    shutil.copytree(ROOT / "reports" / "xsens_imutk", d)
+    (d / "report.html").unlink(missing_ok=True)
+    assert main(["report", str(d), "-o", str(tmp_path / "x.html")]) == 0
+    assert (tmp_path / "x.html").read_text().startswith("<!DOCTYPE html>") and not (d / "report.html").exists()
+
+
+def test_apply_reads_the_imutk_gyroscope_file(shared_data, tmp_path, capsys):
+    acc = shared_data / "imu_tk_xsens" / "xsens_acc.mat"
+    assert main(["apply", str(XSENS_RESULTS), str(acc), "-o", str(tmp_path / "a.csv")]) == 0
+    header = (tmp_path / "a.csv").read_text().split("\n", 1)[0].split(",")
+    assert {"imu.gx", "imu.gy", "imu.gz"} <= set(header)
+    assert "gyroscope readings from xsens_gyro.mat" in capsys.readouterr().err
+    # alone in a directory, the accelerometer file is calibrated with a note about the gyroscope
+    shutil.copy(acc, tmp_path / "only.mat")
+    assert main(["apply", str(XSENS_RESULTS), str(tmp_path / "only.mat"), "--format", "imutk",
+                 "-o", str(tmp_path / "b.csv")]) == 0
+    assert "no gyroscope readings (imutk: pass --gyro FILE)" in capsys.readouterr().err
+    data = np.genfromtxt(tmp_path / "b.csv", delimiter=",", names=True)
+    assert "imu_gx" not in data.dtype.names and len(data) > 1000
