@@ -37,7 +37,7 @@ sys.path.insert(0, str(ROOT))
 
 import castimate  # noqa: E402
 from castimate.kinds import kind_of  # noqa: E402
-from castimate.kinds.static import compensate  # noqa: E402
+from castimate.problem.compensation import linear_inverse  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
 SESSIONS = [1, 2, 3, 4, 5]
@@ -53,7 +53,7 @@ def problem(j: int, intrinsics: Path | None = None):
 
 def norm_errors(cal: dict, avg, g: float) -> np.ndarray:
     """| |T⁻¹(y − b)| − g | of every triad and pose, m/s^2."""
-    return np.concatenate([np.abs(np.linalg.norm(compensate(T, b, avg.acc_mean[n]), axis=1) - g)
+    return np.concatenate([np.abs(np.linalg.norm(linear_inverse(T, b, avg.acc_mean[n]), axis=1) - g)
                            for n, (T, b) in cal.items()])
 
 

@@ -1,7 +1,7 @@
 """castimate: maximum-likelihood calibration of inertial sensor arrays.
 
 The public Python surface is :mod:`castimate.api`, available as ``castimate.load``,
-``castimate.solve``, ``castimate.write``, ``castimate.diagnose`` (loaded on first use, so that
+``castimate.solve``, ``castimate.write``, ``castimate.diagnose``, ``castimate.Calibration`` (loaded on first use, so that
 ``import castimate`` stays light and the CLI can set up numpy's threads first).
 """
 
@@ -9,7 +9,7 @@ import sys
 import types
 
 __version__ = "0.1.0"
-__all__ = ["InputError", "NotConvergedError", "ProblemSpec", "diagnose", "load", "solve", "write"]
+__all__ = ["Calibration", "InputError", "NotConvergedError", "ProblemSpec", "diagnose", "load", "solve", "write"]
 
 
 def __getattr__(name: str):

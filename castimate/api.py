@@ -16,6 +16,15 @@ repository's root)::
     >>> T, b = outcome.calibration["imu"]  # raw ≈ T f + b: f = T⁻¹ (raw − b), SI units
     >>> bool(abs(T[0, 0] - 1) < 0.05)
     True
+
+A calibration written by ``castimate solve`` applies itself to raw readings in SI units
+(:class:`castimate.Calibration`, every included effect)::
+
+    >>> import numpy as np
+    >>> cal = castimate.Calibration.read("reports/xsens_imutk/results.json")
+    >>> f, omega = cal.apply(np.array([[0.1, 0.2, 9.9]]), gyro=np.zeros((1, 3)))
+    >>> f.shape, omega.shape
+    ((1, 3), (1, 3))
 """
 
 from __future__ import annotations
@@ -25,10 +34,11 @@ import json
 from pathlib import Path
 from typing import Any, Callable
 
+from .calibration import Calibration
 from .errors import InputError, NotConvergedError
 from .spec import ProblemSpec, load_problem, parse_problem
 
-__all__ = ["InputError", "NotConvergedError", "ProblemSpec", "diagnose", "load", "solve", "write"]
+__all__ = ["Calibration", "InputError", "NotConvergedError", "ProblemSpec", "diagnose", "load", "solve", "write"]
 
 Log = Callable[[str], None]
 Problem = str | Path | dict[str, Any] | ProblemSpec

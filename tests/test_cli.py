@@ -3,7 +3,6 @@
 import shutil
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 import castimate
@@ -39,8 +38,8 @@ def test_report_to_a_chosen_file(tmp_path, capsys):
 
 def test_apply_reads_the_imutk_gyroscope_file(shared_data, tmp_path, capsys):
     acc = shared_data / "imu_tk_xsens" / "xsens_acc.mat"
-    assert main(["apply", str(XSENS_RESULTS), str(acc), "-o", str(tmp_path / "a.csv")]) == 0
-    header = (tmp_path / "a.csv").read_text().split("\n", 1)[0].split(",")
+    assert main(["apply", str(XSENS_RESULTS), str(acc), "--format", "imutk", "-o", str(tmp_path / "a.csv")]) == 0
+    header = (tmp_path / "a.csv").read_text().split("\n")[1].split(",")  # after the units comment
     assert {"imu.gx", "imu.gy", "imu.gz"} <= set(header)
     assert "gyroscope readings from xsens_gyro.mat" in capsys.readouterr().err
     # alone in a directory, the accelerometer file is calibrated with a note about the gyroscope
@@ -48,5 +47,5 @@ def test_apply_reads_the_imutk_gyroscope_file(shared_data, tmp_path, capsys):
     assert main(["apply", str(XSENS_RESULTS), str(tmp_path / "only.mat"), "--format", "imutk",
                  "-o", str(tmp_path / "b.csv")]) == 0
     assert "no gyroscope readings (imutk: pass --gyro FILE)" in capsys.readouterr().err
-    data = np.genfromtxt(tmp_path / "b.csv", delimiter=",", names=True)
-    assert "imu_gx" not in data.dtype.names and len(data) > 1000
+    lines = (tmp_path / "b.csv").read_text().split("\n")
+    assert lines[1] == "t,imu.ax,imu.ay,imu.az" and len(lines) > 1000

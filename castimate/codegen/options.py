@@ -10,8 +10,6 @@ from ..validation import Check
 
 #: Default window of a dynamic problem's C solver (samples from the start of its time range).
 DEFAULT_WINDOW = 200
-#: Precisions of the emitted C code.
-PRECISIONS = ("double",)
 
 
 @dataclass(frozen=True)
@@ -29,11 +27,10 @@ class CodegenOptions:
         Dynamic problems: the array motion estimator (ω, ω̇, s per sample; intrinsics and
         positions fixed at the problem's values, passed at run time as the fixed values). Default
         off: the calibration solver.
-    precision
-        Floating-point type of the emitted code: ``double`` (default, the only one so far).
 
-    ``window``, ``start`` and ``motion_only`` apply to a problem file of the dynamic kind only;
-    :meth:`check` refuses them elsewhere.
+    They apply to a problem file of the dynamic kind only; :meth:`check` refuses them elsewhere. The
+    solvers are emitted in double precision; the compensation function of a results.json in double
+    and float (:mod:`castimate.codegen.compensation`).
 
     >>> CodegenOptions(window=60, start=100).window_or_default
     60
@@ -44,7 +41,6 @@ class CodegenOptions:
     window: int | None = None
     start: int = 0
     motion_only: bool = False
-    precision: str = "double"
 
     @property
     def window_or_default(self) -> int:
@@ -63,7 +59,6 @@ class CodegenOptions:
         c.number(self.start, "--start", integer=True)
         if self.start < 0:
             c.fail("--start", f"expected a sample index >= 0, found {self.start}")
-        c.choice(self.precision, "--precision", PRECISIONS)
         if self.dynamic_only and kind is None:
             c.fail("", "--window, --start and --motion-only apply to a problem file, not a results file")
         if self.dynamic_only and kind is not None and kind != "dynamic_array":
@@ -72,4 +67,4 @@ class CodegenOptions:
         return self
 
 
-__all__ = ["CodegenOptions", "DEFAULT_WINDOW", "PRECISIONS"]
+__all__ = ["CodegenOptions", "DEFAULT_WINDOW"]
