@@ -8,7 +8,7 @@ The public Python surface is :mod:`castimate.api`, available as ``castimate.load
 import sys
 import types
 
-__version__ = "0.1.0"
+from .version import __version__
 __all__ = ["Calibration", "InputError", "NotConvergedError", "ProblemSpec", "diagnose", "load", "solve", "write"]
 
 

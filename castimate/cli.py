@@ -121,7 +121,7 @@ def cmd_codegen(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from . import __version__
+    from .version import __version__
 
     p = argparse.ArgumentParser(prog="castimate", description="Maximum-likelihood calibration of inertial sensor "
                                 "arrays (CasADi + IPOPT). Exit codes: 0 success, 2 invalid input, 3 no convergence.")

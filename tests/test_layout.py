@@ -14,7 +14,7 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "castimate"
 
 LAYERS = [
-    ("errors", "jit"),  # utilities without physics
+    ("errors", "jit", "version"),  # utilities without physics
     ("validation",),   # the one style of input checks
     ("models",),       # symbolic physics only
     ("problem",),      # factor graphs composed from the models, parameter groups, the effect registry

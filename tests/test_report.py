@@ -35,7 +35,7 @@ def report(solved) -> str:
 def test_report_is_self_contained(report):
     assert report.lstrip().startswith("<!DOCTYPE html>")
     assert "data:image/png;base64," in report
-    assert len(re.findall(r'src="data:image/png;base64,', report)) == 4
+    assert len(re.findall(r'src="data:image/png;base64,', report)) == 5  # with the pose timeline
     assert not re.search(r'(src|href)="(https?:)?//', report)
     assert "<link" not in report and "<script" not in report
     assert report.rstrip().endswith("</html>")
@@ -52,7 +52,7 @@ def test_report_content(solved, report):
     # angles are shown in degrees: the first free misalignment component of a non-reference triad
     name = next(n for n in doc["triads"] if n != doc["reference"])
     g = doc["triads"][name]["parameters"]["misalignment"]
-    from castimate.report.page import format_pm
+    from castimate.report.page import DEG, format_pm
 
     assert format_pm(np.degrees(g["value"][0]), np.degrees(g["std"][0])) in report
     # the reference triad has no misalignment group: its cells say so instead of a value
@@ -92,7 +92,7 @@ def test_report_missing_directory(tmp_path, capsys):
 
 
 def test_format_pm():
-    from castimate.report.page import format_pm
+    from castimate.report.page import DEG, format_pm
 
     assert format_pm(1.0045540261, 4.6467e-05) == "1.004554 ± 0.000046"
     assert format_pm(-0.2767280, 0.00027663) == "-0.27673 ± 0.00028"
@@ -152,7 +152,7 @@ def test_dynamic_report_is_self_contained(dynamic_report):
 
 
 def test_dynamic_report_content(dynamic_solved, dynamic_report):
-    from castimate.report.page import format_pm
+    from castimate.report.page import DEG, format_pm
 
     doc = json.loads((dynamic_solved / "results.json").read_text())
     assert doc["kind"] == "dynamic_array" and "dynamic_array" in dynamic_report
@@ -168,7 +168,7 @@ def test_dynamic_report_content(dynamic_solved, dynamic_report):
         assert re.search(rf">{re.escape(name)}\b", dynamic_report), name
     # the gyroscope biases are estimated: shown with σ like in the static report
     g = doc["triads"]["imu2"]["parameters"]["gyroscope.bias"]
-    assert format_pm(g["value"][0], g["std"][0]) in dynamic_report
+    assert format_pm(g["value"][0] * DEG, g["std"][0] * DEG) in dynamic_report  # deg/s, as every rate
 
 
 def test_dynamic_report_positions_table(dynamic_solved, dynamic_report):

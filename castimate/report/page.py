@@ -262,7 +262,7 @@ def kv(rows: list[tuple[str, str]]) -> str:
 def page_head(results: dict, problem: str, kind: str, date: str | None = None) -> list[str]:
     """The opening lines of a report page, shared by every kind: head, title, provenance (castimate
     version and date) and the headline verdict on the fit."""
-    from .. import __version__
+    from ..version import __version__
 
     date = date or datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     cls, verdict = fit_verdict(results)
