@@ -20,14 +20,24 @@ def __getattr__(name: str):
     raise AttributeError(f"module 'castimate' has no attribute {name!r}")
 
 
+class _SolvePackage(types.ModuleType):
+    """``castimate.solve`` is both the solver subpackage (``castimate.solve.Solver``, its modules) and
+    the API function: calling it calls :func:`castimate.api.solve`."""
+
+    def __call__(self, *args, **kwargs):
+        from .api import solve
+
+        return solve(*args, **kwargs)
+
+
 class _Package(types.ModuleType):
-    """The package keeps its API names: importing the subpackage ``castimate.solve`` (the solver)
-    would otherwise make ``castimate.solve`` that module instead of :func:`castimate.api.solve`
-    (the import system sets a package's attribute to each submodule it loads)."""
+    """The import system sets a package's attribute to each submodule it loads, so importing the
+    subpackage ``castimate.solve`` would hide the API function of the same name: the subpackage is
+    made callable instead (:class:`_SolvePackage`)."""
 
     def __setattr__(self, name: str, value) -> None:
-        if name in __all__ and isinstance(value, types.ModuleType):
-            return
+        if name == "solve" and type(value) is types.ModuleType:
+            value.__class__ = _SolvePackage
         super().__setattr__(name, value)
 
 

