@@ -34,6 +34,8 @@ import numpy as np
 from scipy import stats
 
 from . import CrossValidation, Log, Residuals, kind_of, quiet
+from .dynamic import CLOCK_BEAT, estimate_clocks, implied_ages
+from ..problem.clocks import Beat, estimate_beats, periodogram
 from ..errors import CastimateError, InputError
 from ..problem.effects import BY_KEY, EFFECTS, TEMPERATURE, Effect
 from ..spec import ProblemSpec
@@ -96,6 +98,7 @@ class Session:
             raise InputError(spec.path, "data.static", "diagnose runs on a static or a dynamic problem, not a joint one")
         self.spec, self.kind = spec, kind_of(spec)
         self.data = self.kind.load(spec, log)
+        self.clocks: dict[str, Beat] = {}  # the chip clocks found by find_clocks (dynamic sessions)
 
     def fit(self, effects=()) -> Model:
         s = with_effects(self.spec, effects)
@@ -103,12 +106,22 @@ class Session:
 
     def augmented(self, model: Model, effects) -> Solver:
         """The Gauss-Newton solver of the model with ``effects`` added (same session regressors)."""
+        if CLOCK_BEAT in effects:
+            self.find_clocks(model)
         s = with_effects(self.spec, effects)
         problem = self.kind.build(self.kind.configure(s, self.data), self.data)
         return Solver(problem.lsq, replace(s.solver, hessian="gauss_newton"))
 
     def has_temperature(self) -> bool:
         return self.kind.has_temperature(self.data)
+
+    def find_clocks(self, model: Model) -> None:
+        """The chip clocks' beats (ν, φ) from ``model``'s implied sample ages, once per session: the
+        sawtooth age's regressor for the score test and every later fit (dynamic sessions)."""
+        if not self.data.regressors.beats:
+            self.clocks = estimate_clocks(model.outcome)
+            self.data = replace(self.data, regressors=self.data.regressors.with_beats(
+                {n: (b.nu, b.phi) for n, b in self.clocks.items()}))
 
     def cross_validate(self, effects, folds: int = FOLDS) -> CrossValidation:
         return self.kind.cross_validate(with_effects(self.spec, effects), self.data, folds)
@@ -173,6 +186,36 @@ def analyse_residuals(t: np.ndarray, residuals: Residuals, dof: int) -> Residual
             C = [np.corrcoef(np.stack([w[ok, a] for w in W]))[np.triu_indices(len(W), 1)].mean() for a in range(3)]
             common[sensor] = float(np.mean(C))
     return ResidualAnalysis(rows, common)
+
+
+@dataclass(frozen=True)
+class TimingTrace:
+    """The sample age one triad's residuals imply over time (dynamic sessions, issue 11): the
+    residual along the reading's rate, relative to the array's mean age; its periodogram and the
+    chip-clock sawtooth that fits it best. A beat shows as a peak (with harmonics), a drift as a
+    trend, a delay as a non-zero mean."""
+
+    triad: str
+    t: np.ndarray
+    age: np.ndarray  # s
+    weight: np.ndarray  # 1/s^2: 1/variance of each sample's age
+    freqs: np.ndarray  # Hz
+    power: np.ndarray  # fraction of the weighted variance a sinusoid explains
+    beat: Beat
+
+    @property
+    def mean(self) -> float:
+        return float(np.sum(self.weight * self.age) / np.sum(self.weight))
+
+
+def timing_traces(outcome) -> list[TimingTrace]:
+    """Per triad: the implied sample age over time, its periodogram and its best sawtooth."""
+    out = []
+    for n, (age, w) in implied_ages(outcome).items():
+        t = outcome.data.t
+        freqs, power, _ = periodogram(t, age, w)
+        out.append(TimingTrace(n, t, age, w, freqs, power, estimate_beat(t, age, w)))
+    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -244,6 +287,13 @@ def score_test(session: Session, model: Model, effect: Effect) -> ScoreTest:
     x = lay.x0(model.outcome.solution.values)
     k = sum(len(lay.x_indices(group_name(n, effect.sensor, effect.name)))
             for n in session.spec.array.names if group_name(n, effect.sensor, effect.name) in lay)
+    if effect.key == CLOCK_BEAT:
+        # ν and φ were searched over a grid: test only if some chip's periodogram peak stands out
+        # of the noise at all the frequencies searched (Bonferroni over the chips at ALPHA)
+        p_min = min(b.p for b in session.clocks.values()) * len(session.clocks)
+        if p_min >= ALPHA:
+            return ScoreTest(effect.key, k, np.nan, np.nan, np.nan, -np.inf,
+                             f"no chip's implied-age periodogram has a significant peak (p = {min(p_min, 1):.2g})")
     bad = solver.undetermined(x)
     if bad:
         return ScoreTest(effect.key, k, np.nan, np.nan, np.nan, -np.inf, f"not determined by these data: {bad[0]}")
@@ -289,6 +339,8 @@ class Diagnosis:
     rounds: list[Round]
     residuals_before: ResidualAnalysis
     residuals_after: ResidualAnalysis
+    timing_before: list[TimingTrace] = field(default_factory=list)  # dynamic sessions
+    timing_after: list[TimingTrace] = field(default_factory=list)
 
     @property
     def spec(self) -> ProblemSpec:
@@ -332,4 +384,5 @@ def diagnose(spec: ProblemSpec, log: Log = quiet, alpha: float = ALPHA, session:
     if model is before:
         before.cv = before.cv or session.cross_validate(before.effects)
     analyse = lambda m: analyse_residuals(*session.residuals(m.outcome), m.dof)  # noqa: E731
-    return Diagnosis(session, before, model, rounds, analyse(before), analyse(model))
+    timing = (lambda m: timing_traces(m.outcome)) if session.kind.sampled else (lambda m: [])  # noqa: E731
+    return Diagnosis(session, before, model, rounds, analyse(before), analyse(model), timing(before), timing(model))

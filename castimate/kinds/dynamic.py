@@ -20,6 +20,7 @@ from ..io.readers import read_recording
 from ..io.recording import Recording
 from ..problem.compensation import linear_inverse
 from ..problem.triads import Regressors
+from ..problem.clocks import Beat, estimate_beats, implied_age
 from ..models.rotation import rotation_to_quaternion
 from ..problem.dynamic import (OMEGA, OMEGA_DOT, DynamicConfig, DynamicData, MotionSigmas, build_dynamic,
                                build_dynamic_sigma_masked, build_joint, geometry_fixed)
@@ -277,7 +278,19 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = quiet, max_restarts: int = 2
                       loaded: DynamicInput | None = None) -> DynamicOutcome:
     """Run a dynamic array calibration end to end. Raises InputError or NotConvergedError.
 
-    ``loaded`` reuses a session already read with :func:`load_dynamic`."""
+    ``loaded`` reuses a session already read with :func:`load_dynamic`. With the chip-clock sawtooth
+    included (``accelerometer.clock_beat``) and its beats not yet known, the model without it is
+    fitted first and the beats found from its implied sample ages (:func:`estimate_clocks`)."""
+    if CLOCK_BEAT in spec.model.effects:
+        loaded = loaded or load_dynamic(spec, log)
+        if any(n not in loaded.regressors.beats for n in spec.array.names):
+            log("chip clocks: fitting without the sawtooth age to find the beats")
+            pre = calibrate_dynamic(replace(spec, model=replace(spec.model, effects=tuple(
+                k for k in spec.model.effects if k != CLOCK_BEAT))), log, max_restarts, loaded)
+            beats = estimate_clocks(pre)
+            log("  " + ", ".join(f"{n} {b.nu:+.4f} Hz" for n, b in beats.items()))
+            loaded = replace(loaded, regressors=loaded.regressors.with_beats(
+                {n: (b.nu, b.phi) for n, b in beats.items()}))
     inputs = dynamic_inputs(spec, log, loaded)
     config, data, sat, nominal, static_problem = (inputs.config, inputs.data, inputs.saturation, inputs.nominal,
                                                   inputs.static_problem)
@@ -422,6 +435,30 @@ def _solve_bcd(spec: ProblemSpec, config: DynamicConfig, data: DynamicData, log:
         raise NotConvergedError(f"{spec.path}: {message}")
     return problem, solver, sol, [{"attempt": 1, "success": True, "message": message, "iterations": res.iterations,
                                    "cost": sol.cost, "issues": [], "start": "nominal poses (BCD)"}]
+
+
+#: The chip clock's sawtooth age (problem.effects): its beats are found before the smooth fit.
+CLOCK_BEAT = "accelerometer.clock_beat"
+
+
+def implied_ages(outcome: DynamicOutcome) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per triad: the sample age its accelerometer and gyroscope residuals imply at every sample
+    (the residual along the reading's rate, ``problem.clocks.implied_age``) and its weight. The
+    motion absorbs an age common to all triads, so these are relative to the array's mean."""
+    rate_acc, rate_gyro = outcome.problem.reading_rates(outcome.solution.values, outcome.data)
+    d = outcome.data
+    out = {}
+    for n in outcome.config.names:
+        parts = [(outcome.residual_acc[n], rate_acc[n], d.acc_sigma[n])]
+        if n in rate_gyro:
+            parts.append((outcome.residual_gyro[n], rate_gyro[n], d.gyro_sigma[n]))
+        out[n] = implied_age(*map(list, zip(*parts)))
+    return out
+
+
+def estimate_clocks(outcome: DynamicOutcome) -> dict[str, Beat]:
+    """Each triad's chip-clock sawtooth (beat ν, phase φ, amplitude A) from its implied sample age."""
+    return estimate_beats(outcome.data.t, implied_ages(outcome))
 
 
 def measurement_residuals(problem, data: DynamicData, sol: Solution) -> tuple[dict, dict]:

@@ -15,6 +15,12 @@ def specific_force_at(s, omega, omega_dot, r):
     return s + ca.cross(omega, ca.cross(omega, r)) + ca.cross(omega_dot, r)
 
 
+def specific_force_rate(s_dot, omega, omega_dot, omega_ddot, r):
+    """ḟ = ṡ + ω̈×r + ω̇×(ω×r) + ω×(ω̇×r): the time derivative of :func:`specific_force_at`
+    (what a triad's sample age acts on, see ``models.effects.sample_age``)."""
+    return s_dot + ca.cross(omega_ddot, r) + ca.cross(omega_dot, ca.cross(omega, r)) + ca.cross(omega, ca.cross(omega_dot, r))
+
+
 def process_residual(omega, omega_dot, s, omega_next, omega_dot_next, s_next, dt, sigma_s, sigma_int, sigma_omega_dot):
     """Whitened process-model residual between samples n and n+1 (Schopp 2016, eqs. 7, 8, 14).
 

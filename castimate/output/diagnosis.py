@@ -66,12 +66,18 @@ def diagnosis_document(d: Diagnosis) -> dict:
                         "cv_before": _cv(f.cv_before), "cv_after": _cv(f.cv_after)} for f in r.refits],
         })
 
+    def timing(traces):
+        return {x.triad: {"mean_age_s": x.mean, "periodogram_peak_Hz": float(x.freqs[int(np.argmax(x.power))]),
+                          "periodogram_peak_fraction": float(np.max(x.power)), "sawtooth": x.beat.to_dict()}
+                for x in traces}
+
     def analysis(a):
         return {"rows": [vars(r) for r in a.rows], "common_mode": a.common_mode}
 
     return {"format": FORMAT, "problem": str(d.spec.path), "problem_sha256": d.spec.sha256,
             "added": d.added, "before": _model(d.before), "after": _model(d.after), "rounds": rounds,
             "residuals_before": analysis(d.residuals_before), "residuals_after": analysis(d.residuals_after),
+            "timing_before": timing(d.timing_before), "timing_after": timing(d.timing_after),
             "parameter_changes": parameter_changes(d)}
 
 

@@ -98,11 +98,12 @@ def accelerometer_sample_factor(config: DynamicConfig) -> ca.Function:
     """Whitened residual of one accelerometer triad at one sample (DESIGN.md triad model with the
     rigid-body specific force, Carlsson 2017 eq. 1), plus the included effects' terms.
 
-    z = [k, l, m, b, r, ω, ω̇, s, effect parameters..., (ω, ω̇, s) of samples n-1 and n+1 if a time
-    offset is included], d = [y, σ, vec(Rbar), τ, τ², ΔT, ΔT², 1/(t_n+1 - t_n-1)].
+    z = [k, l, m, b, r, ω, ω̇, s, effect parameters..., (ω̇, s) of samples n-1 and n+1 if an effect
+    acts on the reading's rate], d = [y, σ, vec(Rbar), τ, τ², ΔT, ΔT², beat, 1/(t_n+1 - t_n-1)].
+    The rate is T ḟ (``models.motion.specific_force_rate``) with ṡ and ω̈ as central differences.
     """
     Tfn = accelerometer_matrix(config.misalignment)
-    effects = fxs.included(config.effects, "accelerometer")
+    effects = fxs.acting_on(config.effects, "accelerometer")
     k, l, m, b = ca.SX.sym("k", 3), ca.SX.sym("l", 3), ca.SX.sym("m", Tfn.size1_in(2)), ca.SX.sym("b", 3)
     r, w, wd, s = ca.SX.sym("r", 3), ca.SX.sym("omega", 3), ca.SX.sym("omega_dot", 3), ca.SX.sym("s", 3)
     y, sigma, R = ca.SX.sym("y", 3), ca.SX.sym("sigma", 3), ca.SX.sym("Rbar", 9)
@@ -110,43 +111,59 @@ def accelerometer_sample_factor(config: DynamicConfig) -> ca.Function:
     c = effect_params(effects)
     T = Tfn(k, l, m, ca.reshape(R, 3, 3))
     f = mot.specific_force_at(s, w, wd, r)
-    z = [k, l, m, b, r, w, wd, s, *c]  # ω and ω̇ (the needs MOTION) are always there
+    z = [k, l, m, b, r, w, wd, s, *c]
     u_dot = None
-    if fxs.need(effects, fxs.NEIGHBOURS):
-        prev, nxt = [ca.SX.sym(n, 9) for n in ("motion_prev", "motion_next")]
+    if fxs.need(effects, fxs.RATE):
+        prev, nxt = [ca.SX.sym(n, 6) for n in ("motion_prev", "motion_next")]  # (ω̇, s)
         z += [prev, nxt]
-        f_prev = mot.specific_force_at(prev[6:9], prev[0:3], prev[3:6], r)
-        f_next = mot.specific_force_at(nxt[6:9], nxt[0:3], nxt[3:6], r)
-        u_dot = ca.mtimes(T, f_next - f_prev) * inv_span
+        u_dot = accelerometer_rate()(T, r, w, wd, prev, nxt, inv_span)
     ctx = effect_context(reg, u=ca.mtimes(T, f), T=T, omega=w, omega_dot=wd, u_dot=u_dot)
     res = (y - tri.triad_output(T, b, f) - fxs.total(effects, c, ctx)) / sigma
     return ca.Function("accelerometer_sample", [ca.vertcat(*z), ca.vertcat(y, sigma, R, reg, inv_span)], [res])
 
 
+def accelerometer_rate() -> ca.Function:
+    """u̇ = T ḟ of an accelerometer triad at sample n (``models.motion.specific_force_rate``), with ṡ
+    and ω̈ as central differences of the neighbouring samples' (ω̇, s): (T, r, ω, ω̇, (ω̇, s)_n-1,
+    (ω̇, s)_n+1, 1/(t_n+1 - t_n-1)) -> u̇."""
+    T, r, w, wd = ca.SX.sym("T", 3, 3), ca.SX.sym("r", 3), ca.SX.sym("omega", 3), ca.SX.sym("omega_dot", 3)
+    prev, nxt, inv_span = ca.SX.sym("prev", 6), ca.SX.sym("next", 6), ca.SX.sym("inv_span")
+    f_dot = mot.specific_force_rate((nxt[3:6] - prev[3:6]) * inv_span, w, wd, (nxt[0:3] - prev[0:3]) * inv_span, r)
+    return ca.Function("accelerometer_rate", [T, r, w, wd, prev, nxt, inv_span], [ca.mtimes(T, f_dot)])
+
+
+def _gyro_needs(effects: list[fxs.Effect]) -> tuple[bool, bool]:
+    """(ω̇, specific force): the motion a gyroscope factor's effects need beyond ω."""
+    force = fxs.need(effects, fxs.SPECIFIC_FORCE)
+    return force or fxs.need(effects, fxs.RATE), force
+
+
 def gyroscope_sample_factor(config: DynamicConfig) -> ca.Function:
     """Whitened residual of one gyroscope triad at one sample: y = T_g ω + b_g (Carlsson 2017, eq. 2,
-    with the DESIGN.md gyroscope model), plus the included effects' terms.
+    with the DESIGN.md gyroscope model), plus the included effects' terms (and the shared chip
+    effects of the triad, ``Effect.shared``).
 
-    z = [k_g, m_g, b_g, ω, (r, ω̇, s) if g-sensitivity is included, effect parameters..., ω of
-    samples n-1 and n+1 if a time offset is included], d as for the accelerometers.
+    z = [k_g, m_g, b_g, ω, ω̇ if an effect needs it, (r, s) if g-sensitivity is included, effect
+    parameters...], d as for the accelerometers. The reading's rate is T_g ω̇.
     """
-    effects = fxs.included(config.effects, "gyroscope")
+    effects = fxs.acting_on(config.effects, "gyroscope")
     k, m, b, w = ca.SX.sym("k", 3), ca.SX.sym("m", 3), ca.SX.sym("b", 3), ca.SX.sym("omega", 3)
     y, sigma, R = ca.SX.sym("y", 3), ca.SX.sym("sigma", 3), ca.SX.sym("Rbar", 9)
     reg, inv_span = ca.SX.sym("regressors", N_REGRESSORS), ca.SX.sym("inv_span")
     Rbar = ca.reshape(R, 3, 3)
     T = gyroscope_matrix()(k, m, Rbar)
     z, f, u_dot = [k, m, b, w], None, None
-    if fxs.need(effects, fxs.SPECIFIC_FORCE):
-        r, wd, s = ca.SX.sym("r", 3), ca.SX.sym("omega_dot", 3), ca.SX.sym("s", 3)
-        z += [r, wd, s]
+    need_wd, need_f = _gyro_needs(effects)
+    wd = ca.SX.sym("omega_dot", 3)
+    if need_wd:
+        z.append(wd)
+        u_dot = ca.mtimes(T, wd)
+    if need_f:
+        r, s = ca.SX.sym("r", 3), ca.SX.sym("s", 3)
+        z += [r, s]
         f = ca.mtimes(Rbar, mot.specific_force_at(s, w, wd, r))
     c = effect_params(effects)
     z += c
-    if fxs.need(effects, fxs.NEIGHBOURS):
-        prev, nxt = ca.SX.sym("omega_prev", 3), ca.SX.sym("omega_next", 3)
-        z += [prev, nxt]
-        u_dot = ca.mtimes(T, nxt - prev) * inv_span
     ctx = effect_context(reg, u=ca.mtimes(T, w), f=f, u_dot=u_dot)
     res = (y - tri.triad_output(T, b, w) - fxs.total(effects, c, ctx)) / sigma
     return ca.Function("gyroscope_sample", [ca.vertcat(*z), ca.vertcat(y, sigma, R, reg, inv_span)], [res])
@@ -218,9 +235,9 @@ class DynamicProblem:
             S = np.where(ok[..., None], np.stack([np.broadcast_to(sigma[n], (self.n_samples, 3)) for n in names], axis=1),
                          np.inf)
             Rv = np.broadcast_to(np.stack([R[n].ravel(order="F") for n in names]), (self.n_samples, len(names), 9))
-            reg_ = np.stack([reg.sample_moments(data.t, data.temp.get(n), n) for n in names], axis=1)  # (N, K, 4)
+            reg_ = np.stack([reg.sample_moments(data.t, data.temp.get(n), n) for n in names], axis=1)  # (N, K, 5)
             span = np.broadcast_to(inv_span[:, None, None], (self.n_samples, len(names), 1))
-            return np.concatenate([Y, S, Rv, reg_, span], axis=2).reshape(-1, 20)
+            return np.concatenate([Y, S, Rv, reg_, span], axis=2).reshape(-1, 16 + N_REGRESSORS)
 
         out = [stack(self.config.names, "acc", data.acc, data.acc_sigma)]
         if self.gyro_triads:
@@ -231,6 +248,20 @@ class DynamicProblem:
             out.append(np.column_stack([dt, np.full_like(dt, m.s), np.full_like(dt, m.integration),
                                         np.full_like(dt, m.omega_dot)]))
         return out
+
+    def reading_rates(self, values: dict, data: DynamicData) -> tuple[dict, dict]:
+        """u̇ of every triad and sample at the fitted ``values``, (N, 3) per triad: T ḟ of the
+        accelerometers (:func:`accelerometer_rate`) and T_g ω̇ of the gyroscopes, as in the factors of
+        effects acting on the rate."""
+        prev, nxt = _neighbours(data.n)
+        wd, s = values[OMEGA_DOT], values[S]
+        inv_span = 1.0 / (data.t[nxt] - data.t[prev]) if data.n > 1 else np.zeros(data.n)
+        F = accelerometer_rate().map(data.n)
+        both = lambda i: np.hstack([wd[i], s[i]]).T  # noqa: E731
+        acc = {n: np.asarray(F(T, values[f"{n}.position"], values[OMEGA].T, wd.T, both(prev), both(nxt), inv_span[None])).T
+               for n, (T, _) in self.calibration(values).items()}
+        gyro = {n: wd @ T.T for n, (T, _) in self.gyro_calibration(values).items()}
+        return acc, gyro
 
     def data_vector(self, data: DynamicData) -> np.ndarray:
         return self.lsq.pack(self.block_data(data))
@@ -322,29 +353,27 @@ def build_dynamic(config: DynamicConfig, data: DynamicData, start: dict | None =
     prev, nxt = _neighbours(N)
 
     def effect_inputs(sensor, names, k):
-        return [(tuple(group_name(t, sensor, e.name) for t in names), k) for e in fxs.included(config.effects, sensor)]
+        return [(tuple(group_name(t, e.sensor, e.name) for t in names), k) for e in fxs.acting_on(config.effects, sensor)]
 
     # One instance per (sample, triad), sample-major and including masked samples (zero residual,
     # not valid): the Solver assembles such blocks sample by sample (see solve.py, "Stages").
     k, n, ok = instances("acc", config.names)
-    effects = fxs.included(config.effects, "accelerometer")
+    effects = fxs.acting_on(config.effects, "accelerometer")
     blocks = [FactorBlock("accelerometer_sample", accelerometer_sample_factor(config),
                           [(tuple(group_name(t, "accelerometer", g) for t in config.names), k) for g in ACC_FACTOR_GROUPS]
                           + [(tuple(f"{t}.position" for t in config.names), k), (OMEGA, n), (OMEGA_DOT, n), (S, n)]
                           + effect_inputs("accelerometer", config.names, k)
-                          + ([(g, i) for i in (prev[n], nxt[n]) for g in (OMEGA, OMEGA_DOT, S)]
-                             if fxs.need(effects, fxs.NEIGHBOURS) else []),
+                          + ([(g, i) for i in (prev[n], nxt[n]) for g in (OMEGA_DOT, S)]
+                             if fxs.need(effects, fxs.RATE) else []),
                           np.zeros((len(k), 0)), valid=ok)]
     if gyro_triads:
         k, n, ok = instances("gyro", gyro_triads)
-        effects = fxs.included(config.effects, "gyroscope")
+        need_wd, need_f = _gyro_needs(fxs.acting_on(config.effects, "gyroscope"))
         blocks.append(FactorBlock("gyroscope_sample", gyroscope_sample_factor(config),
                                   [(tuple(group_name(t, "gyroscope", g) for t in gyro_triads), k) for g in GYRO_FACTOR_GROUPS]
-                                  + [(OMEGA, n)]
-                                  + ([(tuple(f"{t}.position" for t in gyro_triads), k), (OMEGA_DOT, n), (S, n)]
-                                     if fxs.need(effects, fxs.SPECIFIC_FORCE) else [])
-                                  + effect_inputs("gyroscope", gyro_triads, k)
-                                  + ([(OMEGA, prev[n]), (OMEGA, nxt[n])] if fxs.need(effects, fxs.NEIGHBOURS) else []),
+                                  + [(OMEGA, n)] + ([(OMEGA_DOT, n)] if need_wd else [])
+                                  + ([(tuple(f"{t}.position" for t in gyro_triads), k), (S, n)] if need_f else [])
+                                  + effect_inputs("gyroscope", gyro_triads, k),
                                   np.zeros((len(k), 0)), valid=ok))
     if config.process_model and N > 1:
         a, b = np.arange(N - 1), np.arange(1, N)

@@ -14,19 +14,29 @@ Regressors an effect term may use (:class:`Context`):
 - ``u``: the triad's noise-free linear reading (T f or T_g ω), sensor frame;
 - ``f``: the specific force in the triad's frame (gyroscope g-sensitivity);
 - ``T``, ``omega``, ``omega_dot``: the triad matrix and the motion (size effect);
-- ``u_dot``: the time derivative of ``u`` (time offset).
+- ``u_dot``: the time derivative of ``u`` (time offsets and sample ages): T_g ω̇ for a gyroscope,
+  T ḟ for an accelerometer (``models.motion.specific_force_rate``, with ṡ and ω̈ from the
+  neighbouring samples' motion);
+- ``beat``: the chip clock's sawtooth frac(ν t + φ) − ½ (:mod:`castimate.problem.clocks`).
 
 What an entry says about the data it needs (:attr:`Effect.needs`): :data:`TIME` (the sample times),
 :data:`TEMPERATURE` (a logged temperature), :data:`SPECIFIC_FORCE` (the specific force at the triad: in a dynamic problem the
 motion states s, ω̇ and the triad's position; when a calibration is applied, the compensated
-accelerometer of the same IMU), :data:`MOTION` (ω and ω̇ of the sample) and :data:`NEIGHBOURS` (the
-motion of the neighbouring samples, for a time derivative).
+accelerometer of the same IMU), :data:`MOTION` (ω and ω̇ of the sample) and :data:`RATE` (the
+reading's time derivative ``u_dot``: in a dynamic problem ω̇ for a gyroscope, the neighbouring samples'
+motion for an accelerometer).
 
 How an entry is undone when a calibration is applied is derived from its symbolic term
 (:attr:`Effect.undoing`): a term that does not depend on the reading ``u`` is subtracted (closed
 form); one that does is removed by Newton steps on the CasADi expression
 (:mod:`castimate.problem.compensation`). Entries with ``sample_wise=False`` describe where or when a
-triad senses (sensing-element offsets, time offsets); they are not undone sample by sample.
+triad senses (sensing-element offsets, time offsets, sample ages); they are not undone sample by sample.
+
+Timing (issue 11): a triad's sample is a(t) old when the board reads it, so it reads u(t − a) ≈ u −
+a u̇. The constant part is ``time_offset`` (Δt = −a; per sensor, so the pair also expresses an
+accelerometer–gyroscope delay: ``gyroscope.time_offset − accelerometer.time_offset``); the chip
+clock's drift (a linear in time) and its sawtooth at the beat with the board's read-out are
+properties of the chip, shared by its accelerometer and gyroscope (:attr:`Effect.shared`).
 """
 
 from __future__ import annotations
@@ -40,7 +50,7 @@ from ..models import effects as fx
 from .parameters import XYZ, GroupDef
 
 STATIC, DYNAMIC = "static_array", "dynamic_array"
-TIME, TEMPERATURE, SPECIFIC_FORCE, MOTION, NEIGHBOURS = "time", "temperature", "specific_force", "motion", "neighbours"
+TIME, TEMPERATURE, SPECIFIC_FORCE, MOTION, RATE = "time", "temperature", "specific_force", "motion", "rate"
 #: How an effect is undone when a calibration is applied (:attr:`Effect.undoing`).
 SUBTRACTED, NEWTON, NOT_SAMPLE_WISE = "subtracted", "newton", "not sample-wise"
 POLY = ("x1", "y1", "z1", "x2", "y2", "z2")  # linear then quadratic coefficient per axis
@@ -59,6 +69,7 @@ class Context:
     omega: Any = None
     omega_dot: Any = None
     u_dot: Any = None
+    beat: Any = None
 
 
 @dataclass(frozen=True)
@@ -79,7 +90,7 @@ class Effect:
         Problem kinds it applies to.
     needs
         The data its term uses beyond the reading (module docstring): :data:`TIME`, :data:`TEMPERATURE`,
-        :data:`SPECIFIC_FORCE`, :data:`MOTION`, :data:`NEIGHBOURS`.
+        :data:`SPECIFIC_FORCE`, :data:`MOTION`, :data:`RATE`.
     title
         One line for reports.
     relative
@@ -87,6 +98,9 @@ class Effect:
     sample_wise
         False for an effect that says where or when the triad senses: not undone sample by sample
         when a calibration is applied.
+    shared
+        A property of the IMU's chip (its sample clock): the group belongs to the accelerometer
+        (every triad has one) and its term also acts on the triad's gyroscope.
     """
 
     name: str
@@ -98,10 +112,15 @@ class Effect:
     title: str = ""
     relative: bool = False
     sample_wise: bool = True
+    shared: bool = False
 
     @property
     def key(self) -> str:
         return f"{self.sensor}.{self.name}"
+
+    def acts_on(self, sensor: str) -> bool:
+        """Whether its term enters ``sensor``'s readings (its own sensor, or both for a shared one)."""
+        return self.sensor == sensor or (self.shared and sensor == "gyroscope")
 
     @property
     def results_key(self) -> str:
@@ -123,7 +142,8 @@ def probe_context() -> Context:
     """Every regressor as a free symbol (to inspect a term's dependencies)."""
     sym = ca.SX.sym
     return Context(tau=(sym("tau"), sym("tau2")), temp=(sym("dT"), sym("dT2")), u=sym("u", 3), f=sym("f", 3),
-                   T=sym("T", 3, 3), omega=sym("omega", 3), omega_dot=sym("omega_dot", 3), u_dot=sym("u_dot", 3))
+                   T=sym("T", 3, 3), omega=sym("omega", 3), omega_dot=sym("omega_dot", 3), u_dot=sym("u_dot", 3),
+                   beat=sym("beat"))
 
 
 def _bias_drift(sensor: str, unit: str, scale: float) -> Effect:
@@ -153,7 +173,7 @@ EFFECTS: tuple[Effect, ...] = (
            title="accelerometer sensing-element offsets (size effect): y and z elements relative to x, "
                  "relative to the reference triad's"),
     Effect("time_offset", "accelerometer", GroupDef(("dt",), (0.0,), 1e-3, "s"),
-           lambda c, x: fx.time_offset(c, x.u_dot), kinds=(DYNAMIC,), needs=(NEIGHBOURS,), relative=True,
+           lambda c, x: fx.time_offset(c, x.u_dot), kinds=(DYNAMIC,), needs=(RATE,), relative=True,
            sample_wise=False,
            title="accelerometer time offset (relative to the reference triad)"),
     _bias_drift("gyroscope", "rad/s", 1e-3),
@@ -162,11 +182,21 @@ EFFECTS: tuple[Effect, ...] = (
            GroupDef(("xx", "xy", "xz", "yx", "yy", "yz", "zx", "zy", "zz"), (0.0,) * 9, 1e-4, "rad/s per m/s^2"),
            lambda c, x: fx.g_sensitivity(c, x.f), needs=(SPECIFIC_FORCE,), title="gyroscope g-sensitivity"),
     Effect("time_offset", "gyroscope", GroupDef(("dt",), (0.0,), 1e-3, "s"),
-           lambda c, x: fx.time_offset(c, x.u_dot), kinds=(DYNAMIC,), needs=(NEIGHBOURS,), sample_wise=False,
+           lambda c, x: fx.time_offset(c, x.u_dot), kinds=(DYNAMIC,), needs=(RATE,), sample_wise=False,
            title="gyroscope time offset"),
     Effect("coupling", "gyroscope", GroupDef(("yx", "zx", "zy"), (0.0,) * 3, 1e-2, "-"),
            lambda c, x: fx.coupling(c, x.u), kinds=(DYNAMIC,),
            title="gyroscope cross-axis coupling: unit lower-triangular C in C K_g M_g Rbar (a general 3x3 matrix)"),
+    Effect("clock_drift", "accelerometer", GroupDef(("end",), (0.0,), 1e-4, "s"),
+           lambda c, x: fx.sample_age(c * x.tau[0], x.u_dot), kinds=(DYNAMIC,), needs=(RATE,), relative=True,
+           sample_wise=False, shared=True,
+           title="chip clock-rate drift: the IMU's sample age (accelerometer and gyroscope) linear in time, "
+                 "its value at the session's end, relative to the reference triad's"),
+    Effect("clock_beat", "accelerometer", GroupDef(("A",), (0.0,), 1e-3, "s"),
+           lambda c, x: fx.sample_age(c * x.beat, x.u_dot), kinds=(DYNAMIC,), needs=(RATE,), sample_wise=False,
+           shared=True,
+           title="chip clock: the IMU's sample age (accelerometer and gyroscope) a sawtooth A (frac(ν t + φ) − ½) "
+                 "at the beat with the read-out; ν, φ from the implied age"),
 )
 BY_KEY = {e.key: e for e in EFFECTS}
 
@@ -184,6 +214,12 @@ def included(keys, sensor: str) -> list[Effect]:
 def need(effects, what: str) -> bool:
     """Whether any of ``effects`` needs ``what`` (:data:`TEMPERATURE`, :data:`SPECIFIC_FORCE`, ...)."""
     return any(what in e.needs for e in effects)
+
+
+def acting_on(keys, sensor: str) -> list[Effect]:
+    """The effects among ``keys`` whose terms enter ``sensor``'s readings (shared chip effects act on
+    both sensors of a triad), in library order."""
+    return [e for e in EFFECTS if e.key in keys and e.acts_on(sensor)]
 
 
 def total(effects, params, ctx: Context):

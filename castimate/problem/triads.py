@@ -13,6 +13,7 @@ import numpy as np
 from ..models import rotation as rot
 from ..models import triad as tri
 from . import effects as fxs
+from .clocks import sawtooth
 from .parameters import XYZ, Group, GroupDef
 
 ACCELEROMETER_GROUPS = {
@@ -75,32 +76,45 @@ class Regressors:
     """How the effects' regressors are formed from time and temperature.
 
     τ = (t - t_mid) / t_half is the normalised session time (τ = ±1 at the first and last pose);
-    the temperature regressor is the triad's temperature minus ``temp_mean`` [K].
+    the temperature regressor is the triad's temperature minus ``temp_mean`` [K]; the beat regressor
+    is the chip clock's sawtooth frac(ν t + φ) − ½ (:mod:`castimate.problem.clocks`) with the (ν [Hz],
+    φ [cycles]) of ``beats`` (0 for a triad without one, and for pose averages).
     """
 
     t_mid: float = 0.0
     t_half: float = 1.0
     temp_mean: dict = field(default_factory=dict)  # triad -> K
+    beats: dict = field(default_factory=dict)  # triad -> (ν Hz, φ cycles) of its chip clock
 
     def to_dict(self) -> dict:
-        return {"time": {"t_mid_s": self.t_mid, "t_half_s": self.t_half,
-                         "tau": "(t - t_mid_s) / t_half_s"},
-                "temperature_mean_K": dict(self.temp_mean)}
+        out = {"time": {"t_mid_s": self.t_mid, "t_half_s": self.t_half,
+                        "tau": "(t - t_mid_s) / t_half_s"},
+               "temperature_mean_K": dict(self.temp_mean)}
+        if self.beats:
+            out["clock_beats"] = {n: {"frequency_Hz": float(nu), "phase_cycles": float(phi)}
+                                  for n, (nu, phi) in self.beats.items()}
+            out["beat"] = "frac(frequency_Hz * t + phase_cycles) - 0.5, t the recording's time [s]"
+        return out
 
     def pose_moments(self, poses: Poses, triad: str) -> np.ndarray:
-        """(P, 4): mean τ and mean τ² over each pose interval, then the temperature deviation and its
-        square (zeros where no temperature is logged)."""
+        """(P, 5): mean τ and mean τ² over each pose interval, then the temperature deviation and its
+        square (zeros where no temperature is logged), and a zero beat."""
         a = (poses.t_start - self.t_mid) / self.t_half
         b = (poses.t_end - self.t_mid) / self.t_half
         temp = poses.temp_mean.get(triad)
         dT = np.zeros(poses.n_poses) if temp is None else temp - self.temp_mean.get(triad, 0.0)
-        return np.column_stack([(a + b) / 2, (a * a + a * b + b * b) / 3, dT, dT ** 2])
+        return np.column_stack([(a + b) / 2, (a * a + a * b + b * b) / 3, dT, dT ** 2, np.zeros(poses.n_poses)])
 
     def sample_moments(self, t: np.ndarray, temp: np.ndarray | None, triad: str) -> np.ndarray:
-        """(N, 4) the same columns for single samples at times t: τ, τ², ΔT, ΔT²."""
+        """(N, 5) the same columns for single samples at times t: τ, τ², ΔT, ΔT², beat."""
         tau = (np.asarray(t, float) - self.t_mid) / self.t_half
         dT = np.zeros(len(tau)) if temp is None else temp - self.temp_mean.get(triad, 0.0)
-        return np.column_stack([tau, tau ** 2, dT, dT ** 2])
+        beat = sawtooth(t, *self.beats[triad]) if triad in self.beats else np.zeros(len(tau))
+        return np.column_stack([tau, tau ** 2, dT, dT ** 2, beat])
+
+    def with_beats(self, beats: dict) -> "Regressors":
+        """The same regressors with these chip clocks (triad -> (ν, φ)) added or replaced."""
+        return replace(self, beats={**self.beats, **beats})
 
     @staticmethod
     def from_times(t: np.ndarray, temp: dict[str, np.ndarray]) -> "Regressors":
@@ -189,12 +203,12 @@ def gyroscope_matrix() -> ca.Function:
     return ca.Function("gyroscope_T", [k, m, R], [T], ["k", "misalignment", "Rbar"], ["T"])
 
 
-#: Data columns of the effect regressors in every pose factor: mean τ, mean τ², ΔT, ΔT².
-N_REGRESSORS = 4
+#: Data columns of the effect regressors in every pose or sample factor: mean τ, mean τ², ΔT, ΔT², beat.
+N_REGRESSORS = 5
 
 
 def effect_context(reg, **kw) -> fxs.Context:
-    return fxs.Context(tau=(reg[0], reg[1]), temp=(reg[2], reg[3]), **kw)
+    return fxs.Context(tau=(reg[0], reg[1]), temp=(reg[2], reg[3]), beat=reg[4], **kw)
 
 
 def effect_params(effects: list[fxs.Effect]) -> list:

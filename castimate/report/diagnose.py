@@ -12,6 +12,7 @@ import numpy as np
 
 from ..kinds.diagnose import Diagnosis
 from ..output.diagnosis import parameter_changes
+from ..problem.clocks import sawtooth
 from ..problem.effects import BY_KEY
 from . import figures
 from .page import DEG, fig_html, kv, page_head, format_pm
@@ -31,6 +32,24 @@ def _whitened(d: Diagnosis, outcome) -> tuple[np.ndarray, dict[str, np.ndarray]]
     t, per = d.session.residuals(outcome)
     return t, {sensor: np.stack([r / sig for r, sig in res.values()]) if res else np.zeros((0, 0, 3))
                for sensor, res in per.items()}
+
+
+def _timing(traces) -> str:
+    """Table and figure of the implied sample ages (``kinds.diagnose.TimingTrace``)."""
+    fitted = np.stack([x.beat.amplitude * sawtooth(x.t, x.beat.nu, x.beat.phi) for x in traces])
+    fig = figures.sample_ages([x.triad for x in traces], traces[0].t, np.stack([x.age for x in traces]),
+                              np.stack([x.weight for x in traces]), np.stack([x.freqs for x in traces]),
+                              np.stack([x.power for x in traces]), fitted)
+    rows = [[escape(x.triad), _g(x.mean * 1e3, 3), _g(x.freqs[int(np.argmax(x.power))], 4), _g(float(np.max(x.power)), 2),
+             f"{x.beat.nu:+.4f}", _g(x.beat.phi, 3), _g(x.beat.amplitude * 1e3, 3), _g(x.beat.explained, 2)]
+            for x in traces]
+    return (_table(["triad", "mean age [ms]", "periodogram peak [Hz]", "its variance fraction", "sawtooth ν [Hz]",
+                    "φ [cycles]", "A [ms]", "variance explained"], rows)
+            + fig_html(fig, "implied sample ages",
+                       "Per triad, the residual along the time derivative of its readings (accelerometer and gyroscope "
+                       "together), as the sample age it implies, relative to the array's mean: the motion absorbs an "
+                       "age common to all triads. A chip clock beating against the read-out shows as a sawtooth and a "
+                       "periodogram peak with harmonics; a clock-rate drift as a trend; a delay as an offset."))
 
 
 def render_diagnosis(d: Diagnosis) -> str:
@@ -68,6 +87,11 @@ def render_diagnosis(d: Diagnosis) -> str:
                   "Whitened residuals of every triad and axis over the session, declared model (left) and refined "
                   "model (right). A drift shows as a trend over time; an effect that depends on the pose or the "
                   "motion as scatter larger than 1 that does not follow time."))
+
+    for label, traces in (("declared", d.timing_before), ("refined", d.timing_after)):
+        if traces:
+            add(f"<h2>Timing: the sample age the residuals imply ({label} model)</h2>")
+            add(_timing(traces))
 
     add("<h2>Residual structure of the declared model</h2>")
     ra = d.residuals_before

@@ -386,7 +386,9 @@ def dynamic_measurements(motion: Motion, positions, T, b, rng: np.random.Generat
     (:mod:`castimate.simulate.effects`, the truth terms shared with the static simulator): the
     geometric ones simulated exactly rather than as the model's first-order terms
     (``accelerometer.axis_offsets``: axis i senses the specific force at r + δ_i;
-    ``<sensor>.time_offset``: the triad reads the true signal at t + Δt), and the sample-wise ones
+    ``<sensor>.time_offset``: the triad reads the true signal at t + Δt; the chip clocks
+    ``accelerometer.clock_beat``, ``accelerometer.clock_drift``: both sensors of the triad read the
+    true signal at t − a(t)), and the sample-wise ones
     that need no temperature or specific force at the gyroscope (drifts over the record, scale terms).
     """
     effects = effects or {}
@@ -418,7 +420,7 @@ def dynamic_measurements(motion: Motion, positions, T, b, rng: np.random.Generat
         sg = np.broadcast_to(np.asarray(gyro["sigma"], dtype=float), (K, 3))
         sat = gyro.get("saturation")
         for k, n in enumerate(names):
-            u = shifted(motion.t, motion.omega, fx.time_offset(effects, n, "gyroscope")) @ Tg[k].T
+            u = shifted(motion.t, motion.omega, fx.time_offset(effects, n, "gyroscope", motion.t)) @ Tg[k].T
             y = u + bg[k] + fx.sample_terms(effects, n, "gyroscope", u, None, tau, zero) \
                 + sg[k] * rng.standard_normal((N, 3))
             if sat is None:

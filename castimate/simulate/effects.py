@@ -33,10 +33,14 @@ REALISTIC_DYNAMIC_EFFECTS = {
     "accelerometer.time_offset": 5e-4,  # s
     "gyroscope.time_offset": 5e-4,  # s
     "gyroscope.coupling": 1e-2,  # -, the MIMU4444's off-diagonal terms reach 0.02 (issue 11)
+    # chip clocks: the sample period of a chip sampling at about 1 kHz on its own clock (the
+    # sawtooth's amplitude, see chip_clock), and an age drifting by 50 ppm of a 10 s session
+    "accelerometer.clock_beat": 1e-3,  # s
+    "accelerometer.clock_drift": 2.5e-4,  # s at the session's end
 }
 #: Number of coefficients of each effect (the simulator's own table).
 SIZES = {"bias_drift": 6, "temperature_bias": 6, "temperature_gain": 6, "scale_nonlinearity": 3,
-         "g_sensitivity": 9, "axis_offsets": 6, "time_offset": 1, "coupling": 3}
+         "g_sensitivity": 9, "axis_offsets": 6, "time_offset": 1, "coupling": 3, "clock_drift": 1}
 
 
 def random_coefficients(key: str, magnitude: float, rng: np.random.Generator) -> np.ndarray:
@@ -89,24 +93,47 @@ def sample_terms(values: dict, name: str, sensor: str, u: np.ndarray, f_sensor: 
     return out
 
 
-def time_offset(values: dict, name: str, sensor: str) -> float:
-    """The triad's sampling delay Δt [s] (it reads the signal at t + Δt), 0 if none."""
-    return float(np.ravel(values.get(f"{name}.{sensor}.time_offset", 0.0))[0])
+def chip_clock(period: float, rate: float, rng: np.random.Generator) -> np.ndarray:
+    """(A, ν, φ) of a chip sampling on its own clock near 1/``period`` (within 0.3 %), read out at
+    ``rate`` [Hz]: its samples are a(t) = A (frac(ν t + φ) − ½) old, A = 1/f_c, ν = f_c folded into
+    (−rate/2, rate/2] (the beat with the read-out), φ uniform. The truth of ``accelerometer.clock_beat``."""
+    f_c = (1 + 0.003 * rng.standard_normal()) / period
+    return np.array([1 / f_c, f_c - rate * np.round(f_c / rate), rng.uniform()])
 
 
-def shifted(t: np.ndarray, x: np.ndarray, dt: float) -> np.ndarray:
-    """x(t + dt) by cubic-spline interpolation of the sampled true signal (N, 3)."""
+def time_offset(values: dict, name: str, sensor: str, t: np.ndarray) -> np.ndarray | float:
+    """The triad's sampling delay Δt [s] at times t (it reads the signal at t + Δt), 0 if none: its
+    own ``time_offset`` minus the sample age of its chip's clock, shared by both sensors:
+    ``accelerometer.clock_beat`` (A, ν, φ) a sawtooth A (frac(ν t + φ) − ½), and
+    ``accelerometer.clock_drift`` (a at the recording's end) linear in time, zero at its middle."""
+    dt = float(np.ravel(values.get(f"{name}.{sensor}.time_offset", 0.0))[0])
+    beat, drift = values.get(f"{name}.accelerometer.clock_beat"), values.get(f"{name}.accelerometer.clock_drift")
+    if beat is None and drift is None:
+        return dt
+    age = np.zeros(len(t))
+    if beat is not None:
+        A, nu, phi = np.ravel(beat)
+        x = nu * t + phi
+        age += A * (x - np.floor(x) - 0.5)
+    if drift is not None:
+        age += float(np.ravel(drift)[0]) * (t - (t[0] + t[-1]) / 2) / max((t[-1] - t[0]) / 2, 1e-9)
+    return dt - age
+
+
+def shifted(t: np.ndarray, x: np.ndarray, dt) -> np.ndarray:
+    """x(t + dt) by cubic-spline interpolation of the sampled true signal (N, 3); dt a number or (N,)."""
     from scipy.interpolate import CubicSpline
 
-    return CubicSpline(t, x, axis=0)(t + dt) if dt else x
+    return CubicSpline(t, x, axis=0)(t + dt) if np.any(dt) else x
 
 
 def sensed_specific_force(values: dict, name: str, t: np.ndarray, specific_force_at, position: np.ndarray,
                           T: np.ndarray) -> np.ndarray:
     """(N, 3) T f as the accelerometer triad senses it, exactly: each axis at its own sensing
-    element (the y and z elements at position + δ_y, + δ_z, the axis offsets) and instant (t + Δt).
+    element (the y and z elements at position + δ_y, + δ_z, the axis offsets) and instant (t + Δt,
+    with the chip clock's age, :func:`time_offset`).
     ``specific_force_at(r)`` gives the true specific force (N, 3) at body position r."""
-    dt = time_offset(values, name, "accelerometer")
+    dt = time_offset(values, name, "accelerometer", t)
     y = shifted(t, specific_force_at(position), dt) @ T.T
     delta = values.get(f"{name}.accelerometer.axis_offsets")
     if delta is not None:

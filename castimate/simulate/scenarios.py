@@ -15,7 +15,7 @@ from ..io.atomic import write_atomic
 from ..io.results import write_json
 from ..validation import Check, load_yaml, shown
 from ..problem.effects import BY_KEY
-from .effects import REALISTIC_DYNAMIC_EFFECTS, REALISTIC_EFFECTS, random_coefficients, random_effects
+from .effects import REALISTIC_DYNAMIC_EFFECTS, REALISTIC_EFFECTS, chip_clock, random_coefficients, random_effects
 from .static import StaticTruthScale, pose_directions, random_static_truth, static_pose_means, static_time_series
 
 #: Bounds of a scenario's size: the simulation must fit in memory (MAX_VALUES float64 readings,
@@ -228,7 +228,8 @@ def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path) -> dict[str, P
     origin = true[0]
     effects = {}
     for key, m in _effects(c, s, gyro, REALISTIC_DYNAMIC_EFFECTS).items():
-        effects.update({f"{n}.{key}": random_coefficients(key, m, rng) for n in names
+        effects.update({f"{n}.{key}": chip_clock(m, rate, rng) if key == "accelerometer.clock_beat"
+                        else random_coefficients(key, m, rng) for n in names
                         if not (BY_KEY[key].relative and n == names[0])})  # the reference's is the gauge
     acc, gy, saturated = dynamic_measurements(motion, true - origin, np.stack([true_R[n] for n in names]),
                                               np.zeros((K, 3)), rng, acc_sigma, gyro=gyro_model, names=names,
