@@ -210,12 +210,9 @@ class TimingTrace:
 
 def timing_traces(outcome) -> list[TimingTrace]:
     """Per triad: the implied sample age over time, its periodogram and its best sawtooth."""
-    out = []
-    for n, (age, w) in implied_ages(outcome).items():
-        t = outcome.data.t
-        freqs, power, _ = periodogram(t, age, w)
-        out.append(TimingTrace(n, t, age, w, freqs, power, estimate_beat(t, age, w)))
-    return out
+    t, ages = outcome.data.t, implied_ages(outcome)
+    beats = estimate_beats(t, ages)
+    return [TimingTrace(n, t, age, w, *periodogram(t, age, w)[:2], beats[n]) for n, (age, w) in ages.items()]
 
 
 # ---------------------------------------------------------------------------------------------

@@ -25,7 +25,7 @@ from .parameters import Group, Layout
 from . import effects as fxs
 from .compensation import linear_inverse
 from .parameters import XYZ
-from .triads import (ACC_FACTOR_GROUPS, GYRO_FACTOR_GROUPS, N_REGRESSORS, GroupSetting, Regressors, TriadConfig,
+from .triads import (ACC_FACTOR_GROUPS, GYRO_FACTOR_GROUPS, N_SAMPLE_REGRESSORS, GroupSetting, Regressors, TriadConfig,
                      accelerometer_matrix, effect_context, effect_params, group_name, gyroscope_matrix, triad_groups)
 
 OMEGA, OMEGA_DOT, S = "motion.omega", "motion.omega_dot", "motion.s"
@@ -107,7 +107,7 @@ def accelerometer_sample_factor(config: DynamicConfig) -> ca.Function:
     k, l, m, b = ca.SX.sym("k", 3), ca.SX.sym("l", 3), ca.SX.sym("m", Tfn.size1_in(2)), ca.SX.sym("b", 3)
     r, w, wd, s = ca.SX.sym("r", 3), ca.SX.sym("omega", 3), ca.SX.sym("omega_dot", 3), ca.SX.sym("s", 3)
     y, sigma, R = ca.SX.sym("y", 3), ca.SX.sym("sigma", 3), ca.SX.sym("Rbar", 9)
-    reg, inv_span = ca.SX.sym("regressors", N_REGRESSORS), ca.SX.sym("inv_span")
+    reg, inv_span = ca.SX.sym("regressors", N_SAMPLE_REGRESSORS), ca.SX.sym("inv_span")
     c = effect_params(effects)
     T = Tfn(k, l, m, ca.reshape(R, 3, 3))
     f = mot.specific_force_at(s, w, wd, r)
@@ -149,7 +149,7 @@ def gyroscope_sample_factor(config: DynamicConfig) -> ca.Function:
     effects = fxs.acting_on(config.effects, "gyroscope")
     k, m, b, w = ca.SX.sym("k", 3), ca.SX.sym("m", 3), ca.SX.sym("b", 3), ca.SX.sym("omega", 3)
     y, sigma, R = ca.SX.sym("y", 3), ca.SX.sym("sigma", 3), ca.SX.sym("Rbar", 9)
-    reg, inv_span = ca.SX.sym("regressors", N_REGRESSORS), ca.SX.sym("inv_span")
+    reg, inv_span = ca.SX.sym("regressors", N_SAMPLE_REGRESSORS), ca.SX.sym("inv_span")
     Rbar = ca.reshape(R, 3, 3)
     T = gyroscope_matrix()(k, m, Rbar)
     z, f, u_dot = [k, m, b, w], None, None
@@ -237,7 +237,7 @@ class DynamicProblem:
             Rv = np.broadcast_to(np.stack([R[n].ravel(order="F") for n in names]), (self.n_samples, len(names), 9))
             reg_ = np.stack([reg.sample_moments(data.t, data.temp.get(n), n) for n in names], axis=1)  # (N, K, 5)
             span = np.broadcast_to(inv_span[:, None, None], (self.n_samples, len(names), 1))
-            return np.concatenate([Y, S, Rv, reg_, span], axis=2).reshape(-1, 16 + N_REGRESSORS)
+            return np.concatenate([Y, S, Rv, reg_, span], axis=2).reshape(-1, 16 + N_SAMPLE_REGRESSORS)
 
         out = [stack(self.config.names, "acc", data.acc, data.acc_sigma)]
         if self.gyro_triads:

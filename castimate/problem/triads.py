@@ -97,13 +97,13 @@ class Regressors:
         return out
 
     def pose_moments(self, poses: Poses, triad: str) -> np.ndarray:
-        """(P, 5): mean τ and mean τ² over each pose interval, then the temperature deviation and its
-        square (zeros where no temperature is logged), and a zero beat."""
+        """(P, 4): mean τ and mean τ² over each pose interval, then the temperature deviation and its
+        square (zeros where no temperature is logged)."""
         a = (poses.t_start - self.t_mid) / self.t_half
         b = (poses.t_end - self.t_mid) / self.t_half
         temp = poses.temp_mean.get(triad)
         dT = np.zeros(poses.n_poses) if temp is None else temp - self.temp_mean.get(triad, 0.0)
-        return np.column_stack([(a + b) / 2, (a * a + a * b + b * b) / 3, dT, dT ** 2, np.zeros(poses.n_poses)])
+        return np.column_stack([(a + b) / 2, (a * a + a * b + b * b) / 3, dT, dT ** 2])
 
     def sample_moments(self, t: np.ndarray, temp: np.ndarray | None, triad: str) -> np.ndarray:
         """(N, 5) the same columns for single samples at times t: τ, τ², ΔT, ΔT², beat."""
@@ -203,12 +203,14 @@ def gyroscope_matrix() -> ca.Function:
     return ca.Function("gyroscope_T", [k, m, R], [T], ["k", "misalignment", "Rbar"], ["T"])
 
 
-#: Data columns of the effect regressors in every pose or sample factor: mean τ, mean τ², ΔT, ΔT², beat.
-N_REGRESSORS = 5
+#: Data columns of the effect regressors in every pose factor: mean τ, mean τ², ΔT, ΔT²; a sample
+#: factor of a dynamic problem has the chip clock's beat as a fifth (Regressors.sample_moments).
+N_REGRESSORS = 4
+N_SAMPLE_REGRESSORS = N_REGRESSORS + 1
 
 
 def effect_context(reg, **kw) -> fxs.Context:
-    return fxs.Context(tau=(reg[0], reg[1]), temp=(reg[2], reg[3]), beat=reg[4], **kw)
+    return fxs.Context(tau=(reg[0], reg[1]), temp=(reg[2], reg[3]), beat=reg[4] if reg.numel() > 4 else None, **kw)
 
 
 def effect_params(effects: list[fxs.Effect]) -> list:
