@@ -95,6 +95,9 @@ class Calibration:
         units = doc.get("units", {})
         recorded = units.get("input")
         if recorded is not None:
+            if not isinstance(recorded, dict) or not set(recorded) <= {"accelerometer", "gyroscope", "temperature"}:
+                raise InputError(path, "units.input", "expected a mapping of accelerometer, gyroscope, temperature "
+                                                      f"to unit conversions, found {recorded!r}")
             conv = {q: parse_units(recorded[q], path, f"units.input.{q}", q) for q in recorded}
         else:  # results written before the reader's conversion was recorded: the format's
             conv = input_units(units.get("data_format") or "csv", units.get("data_accelerometer"),

@@ -147,14 +147,23 @@ def test_apply_asks_for_the_data_its_effects_need(tmp_path):
         cal.apply(acc, acc, t=np.zeros(2))
 
 
-def test_bad_effect_parameters_are_refused(tmp_path):
+@pytest.mark.parametrize("change, where, message", [
+    (lambda d: d["triads"]["imu2"]["parameters"]["scale_nonlinearity"].update(value=[1.0, 2.0]),
+     "triads.imu2.parameters.scale_nonlinearity.value", "expected 3 finite numbers"),
+    (lambda d: d["effects"].update(included=["accelerometer.warp"]), "effects.included", "found 'accelerometer.warp'"),
+    (lambda d: d.update(effects={"included": "all"}), "effects.included", "expected a list"),
+    (lambda d: d["units"].update(input=[1, 2]), "units.input", "expected a mapping of accelerometer"),
+    (lambda d: d["units"].update(input={"accelerometer": {"unit": "furlongs"}}), "units.input.accelerometer.unit", "furlongs"),
+])
+def test_bad_results_are_refused(tmp_path, change, where, message):
     from castimate.errors import InputError
 
     doc, _ = results_doc(["accelerometer.scale_nonlinearity"], np.random.default_rng(1))
-    doc["triads"]["imu2"]["parameters"]["scale_nonlinearity"]["value"] = [1.0, 2.0]
+    change(doc)
     (tmp_path / "r.json").write_text(json.dumps(doc))
-    with pytest.raises(InputError, match=r"triads\.imu2\.parameters\.scale_nonlinearity\.value: expected 3 finite"):
+    with pytest.raises(InputError, match=message) as e:
         Calibration.read(tmp_path / "r.json")
+    assert e.value.where == where and "r.json" in str(e.value) and "\n" not in str(e.value)
 
 
 COUNTS = {"accelerometer": {"unit": "counts", "scale": [9.80665 / 2048] * 3, "offset": [1.0, -2.0, 3.0],
