@@ -8,12 +8,23 @@ exact reduced Hessian against finite differences of the reduced objective.
 import numpy as np
 import pytest
 
+from castimate.problem.static import build_static
 from castimate.solve import Solver, SolverOptions
 
 from test_assembly import dynamic_case, static_case
+from test_static import make_case
+
+
+def static_directions(direction: str):
+    """Static poses as tilt quaternions (a fixed component in the unit-norm row) or pitch/roll
+    angles (no constraint)."""
+    cfg, poses, _, _ = make_case(M=4, P=20, gyro=True, direction=direction)
+    return build_static(cfg, poses)
+
 
 CASES = {"dynamic": lambda: dynamic_case(40, True), "dynamic_no_process_model": lambda: dynamic_case(40, False),
-         "static": static_case}
+         "static": static_case, "static_quaternion": lambda: static_directions("quaternion"),
+         "static_pitch_roll": lambda: static_directions("pitch_roll")}
 
 
 def relative(a, b):
@@ -47,7 +58,7 @@ def test_families_found():
     block diagonal without); static: the pose directions with their unit-norm constraint."""
     fams = {k: [(f.R, f.m, f.width, len(f.unit)) for f in Solver(mk().lsq).projection.fams] for k, mk in CASES.items()}
     assert fams == {"dynamic": [(40, 9, 2, 0)], "dynamic_no_process_model": [(40, 9, 1, 0)],
-                    "static": [(8, 3, 1, 1)]}
+                    "static": [(8, 3, 1, 1)], "static_quaternion": [(20, 3, 1, 1)], "static_pitch_roll": [(20, 2, 1, 0)]}
 
 
 @pytest.mark.parametrize("kind", list(CASES))

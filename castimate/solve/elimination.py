@@ -53,11 +53,14 @@ class Family:
         self.R = groups[0].rows
         self.X = np.hstack([lay.w_index(g.name)[:, g.free[0]] for g in groups])  # (R, m) layout x indices
         self.m = self.X.shape[1]
-        n = lay.n_x
-        self.stage_of = np.full(n, -1)
-        self.stage_of[self.X] = np.arange(self.R)[:, None]
-        self.within = np.full(n, -1)
-        self.within[self.X] = np.arange(self.m)[None, :]
+        # stage and position of every w index: the variables at 0 ... m - 1, the groups' fixed
+        # components (a tilt quaternion's zero) after them, so that a factor reads them per stage
+        fixed = np.hstack([lay.w_index(g.name)[:, ~g.free[0]] for g in groups])
+        self.stage_of = np.full(lay.n_x + lay.n_p, -1)
+        self.within = np.full(lay.n_x + lay.n_p, -1)
+        for cols, offset in ((self.X, 0), (fixed, self.m)):
+            self.stage_of[cols] = np.arange(self.R)[:, None]
+            self.within[cols] = offset + np.arange(cols.shape[1])[None, :]
         self.scale = lay.x_scale[self.X[0]]
         self.unit = []  # unit-norm groups: (stage positions (k,), w indices of fixed components (R, nf))
         col = 0
@@ -128,7 +131,7 @@ def _stage(b, fam):
     n = len(fam.stage_of)
     stage_of = np.full(max(int(W.max()) + 1, n), np.iinfo(np.int32).max, np.int32)
     stage_of[:n][fam.stage_of >= 0] = fam.stage_of[fam.stage_of >= 0]
-    base = stage_of[W].min(axis=1)
+    base = np.take(stage_of, W).min(axis=1)
     if (base == np.iinfo(np.int32).max).all():
         raise LookupError
     order = None
@@ -176,7 +179,8 @@ class _Map:
         self.starts = None if len(starts) == len(dest) else starts
 
     def __call__(self, V):
-        X = V[:, self.src] * self.val
+        X = np.take(V, self.src, axis=1)
+        X *= self.val
         return X if self.starts is None else np.add.reduceat(X, self.starts, axis=1)
 
 
@@ -196,7 +200,8 @@ class _Plan:
         a = np.tile(act, K)
         src = k * na + np.tile(np.arange(na), K)
         st, r, qq = is_st[a], rel[k, a], q[k, a]
-        cal = ~st & (qq < n)
+        st &= qq < m  # stage variables (not a row's fixed components)
+        cal = ~is_st[a] & (qq < n)
         self.gc = _Map(src[cal], tpos[qq[cal]], xscale[qq[cal]]) if cal.any() else None
         # stage targets are the same for every instance of a stage group (StagedBlock): their
         # entries are summed over the group first, and the maps read instance 0's sources
@@ -208,7 +213,7 @@ class _Plan:
         src = k * P + np.tile(np.arange(P), K)
         sa, sb = is_st[pa], is_st[pb]
         qa, qb, ra, rb = q[k, pa], q[k, pb], rel[k, pa], rel[k, pb]
-        keep = (sa | (qa < n)) & (sb | (qb < n))
+        keep = np.where(sa, qa < m, qa < n) & np.where(sb, qb < m, qb < n)  # variables only
         s = keep & ~sa & ~sb
         i, j, v, mirror = tpos[qa[s]], tpos[qb[s]], xscale[qa[s]] * xscale[qb[s]], pa[s] != pb[s]
         self.hcc = _Map(np.concatenate([src[s], src[s][mirror]]), np.concatenate([i * c + j, (j * c + i)[mirror]]),
@@ -274,6 +279,11 @@ class _Factor:
             return np.matmul(self.Linv.transpose(0, 2, 1), v)
         k = v.shape[2]
         return _tbtrs(self.L, np.asfortranarray(v.reshape(-1, k)), "T").reshape(self.R, self.m, k)
+
+
+def _inputs(w, W, nc) -> list[np.ndarray]:
+    """The local functions' (z_cal, z_stage) of instances W (rows of a block's index matrix)."""
+    return [np.take(w, W[:, :nc]), np.take(w, W[:, nc:])]
 
 
 def _banded(B, m):
@@ -384,8 +394,7 @@ class Projection:
             R = np.empty((b.block.n, fn.size1_out(0) * fn.size2_out(0)))
             for t0 in range(0, b.block.n, CHUNK):
                 t1 = min(b.block.n, t0 + CHUNK)
-                z = w[b.w_idx[t0:t1]]
-                b.f(fn, [np.ascontiguousarray(z[:, :nc]), np.ascontiguousarray(z[:, nc:]), D[t0:t1]], [R[t0:t1]])
+                b.f(fn, _inputs(w, b.w_idx[t0:t1], nc) + [D[t0:t1]], [R[t0:t1]])
             out.append(R)
         return out
 
@@ -423,17 +432,14 @@ class Projection:
                 outs = [np.empty((b.block.n, fn.size1_out(k))) for k in range(fn.n_out())]
                 for t0 in range(0, b.block.n, CHUNK):
                     t1 = min(b.block.n, t0 + CHUNK)
-                    z = w[W[t0:t1]]
-                    b.f(fn, [np.ascontiguousarray(z[:, :nc]), np.ascontiguousarray(z[:, nc:]), D[t0:t1]],
-                        [o[t0:t1] for o in outs])
+                    b.f(fn, _inputs(w, W[t0:t1], nc) + [D[t0:t1]], [o[t0:t1] for o in outs])
                 self._scatter(parts, fn, outs, plan, mode, 0, 1, 0, None)
                 continue
             for j0 in range(0, J, step):
                 j1 = min(J, j0 + step)
                 t0, t1 = j0 * K, j1 * K
-                z = w[W[t0:t1]]
                 outs = [np.empty((t1 - t0, fn.size1_out(k))) for k in range(fn.n_out())]
-                b.f(fn, [np.ascontiguousarray(z[:, :nc]), np.ascontiguousarray(z[:, nc:]), D[t0:t1]], outs)
+                b.f(fn, _inputs(w, W[t0:t1], nc) + [D[t0:t1]], outs)
                 self._scatter(parts, fn, outs, plan, mode, j0, j1, base, fi)
         pi, pm, ps = self.prior
         pr = (w[pi] - pm) / ps
