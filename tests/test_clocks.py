@@ -204,3 +204,19 @@ def test_real_mimu4444_chip_beats(shared_data, tmp_path):
     for name, nu in whole.items():
         assert abs(beats[name].nu - nu) < 0.02, (name, beats[name])
         assert 0.6e-3 < beats[name].amplitude < 1.1e-3, (name, beats[name])
+
+
+def test_peak_p_value_holds_its_level_on_white_noise():
+    """No sawtooth: the periodogram peak's false-alarm probability (searched over all frequencies)
+    falls below 5 % in at most about 5 % of white-noise series."""
+    from castimate.problem.clocks import peak_p_value
+
+    rng = np.random.default_rng(7)
+    t = np.arange(1000) / 62.5
+    p = []
+    for _ in range(200):
+        w = rng.uniform(0.5, 2.0, t.size)
+        f, frac, _ = periodogram(t, rng.standard_normal(t.size) / np.sqrt(w), w)
+        p.append(peak_p_value(frac.max(), t.size, f[-1] * (t[-1] - t[0])))
+    assert np.mean(np.array(p) < 0.05) <= 0.08
+    assert peak_p_value(0.6, 1000, 500) < 1e-100  # a real chip clock explains most of the implied age

@@ -90,11 +90,13 @@ class Beat:
                 "explained": self.explained, "peak_p_value": self.p}
 
 
-def peak_p_value(fraction: float, n: int) -> float:
-    """Probability that white noise of n samples puts a periodogram peak as high as ``fraction`` at
-    any of the about n/2 independent frequencies: a sinusoid's Δχ² ≈ (n − 1) · fraction is χ²(2) at
-    one frequency, so P ≈ n/2 · exp(−(n − 1) fraction / 2) (a Bonferroni bound over frequencies)."""
-    return float(min(1.0, n / 2 * np.exp(-(n - 1) * fraction / 2)))
+def peak_p_value(fraction: float, n: int, bandwidth: float) -> float:
+    """Probability that white noise of n samples puts a periodogram peak as high as ``fraction``
+    anywhere in the searched band: with z = (n − 1) · fraction / 2 (half the sinusoid's Δχ², χ²(2)/2
+    at one frequency), Baluev's (2008) bound for a continuous search, P ≈ e^−z (1 + W √z), W the
+    band width times the duration (``bandwidth``: about n/2 for a uniform series)."""
+    z = (n - 1) * fraction / 2
+    return float(min(1.0, np.exp(-z) * (1 + bandwidth * np.sqrt(z))))
 
 
 def _grid(t, a, W, nus, phis):
@@ -122,7 +124,7 @@ def estimate_beat(t, age, weight) -> Beat:
     df = freqs[1] - freqs[0]
     frac = np.where(freqs >= 1 / (t[-1] - t[0]), frac, 0.0)  # a slower beat never wraps: a drift, not a sawtooth
     nu0 = freqs[int(np.argmax(frac))]
-    p = peak_p_value(float(np.max(frac)), int(np.count_nonzero(np.asarray(weight) > 0)))
+    p = peak_p_value(float(np.max(frac)), int(np.count_nonzero(np.asarray(weight) > 0)), freqs[-1] * (t[-1] - t[0]))
     W = np.asarray(weight, float) / np.sum(weight)
     a = np.asarray(age, float) - W @ age
     steps = np.arange(-2, 2.001, 0.2) * df
