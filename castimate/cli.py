@@ -106,6 +106,36 @@ def cmd_diagnose(args) -> int:
     return 0
 
 
+def cmd_noise(args) -> int:
+    from .io.atomic import write_atomic
+    from .io.results import write_json
+    from .kinds.noise import characterise_noise
+    from .output.noise import kalibr_imu_yaml, noise_document
+    from .report.noise import allan_figure
+    from .spec import load_problem
+
+    spec = load_problem(args.problem)
+    outcome = characterise_noise(spec, log=_log if not args.quiet else (lambda m: None))
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    single = len(outcome.accelerometer) == 1
+    written = [out / "noise.json"]
+    write_json(written[0], noise_document(outcome))
+    for n in outcome.accelerometer:
+        suffix = "" if single else f"_{n}"
+        write_atomic(out / f"imu{suffix}.yaml", kalibr_imu_yaml(outcome, n))
+        allan_figure(outcome, n).savefig(out / f"allan{suffix}.png", dpi=110)
+        written += [out / f"imu{suffix}.yaml", out / f"allan{suffix}.png"]
+        for sensor, r in (("accelerometer", outcome.accelerometer[n]), ("gyroscope", outcome.gyroscope.get(n))):
+            if r is not None:
+                print(f"{n} {sensor}: noise density {r.axis_max('noise_density'):.3g}, bias instability "
+                      f"{r.axis_max('bias_instability'):.3g}, random walk {r.axis_max('random_walk'):.3g}"
+                      + ("" if all(t.random_walk_resolved for t in r.terms) else " (bound)"))
+    for p in written:
+        print(f"wrote {p}")
+    return 0
+
+
 def cmd_codegen(args) -> int:
     from .codegen import CodegenOptions, generate_c
     from .io.atomic import StagedOutput
@@ -167,6 +197,15 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("-o", "--output", required=True, help="output directory (created if missing)")
     s.add_argument("-q", "--quiet", **quiet)
     s.set_defaults(func=cmd_diagnose)
+    s = verb("noise", "Allan deviation of the static segments of a problem's data: write DIR/imu.yaml, "
+                      "DIR/noise.json and DIR/allan.png",
+             "Pools the static segments (detected, or data.segments) per triad and reads the white-noise density N, "
+             "bias instability B and rate random walk K off the overlapping Allan deviation (IEEE 952). imu.yaml is "
+             "Kalibr's IMU noise file (the largest axis); arrays get imu_<triad>.yaml and allan_<triad>.png.")
+    s.add_argument("problem", help="problem file; its data, units, time range and static detection are used")
+    s.add_argument("-o", "--output", required=True, help="output directory (created if missing)")
+    s.add_argument("-q", "--quiet", **quiet)
+    s.set_defaults(func=cmd_noise)
     s = verb("codegen", "write C99 code into DIR: the solver of a problem file, or the compensation function "
                         "of a results.json", "Builds and checks with `make -C DIR check` (gcc and make needed).")
     s.add_argument("source", help="a problem file (PROBLEM.yaml: its solver in C, test vectors from the "
