@@ -15,6 +15,7 @@ from castimate.codegen import CodegenOptions, generate_c
 from castimate.codegen.gn_structure import arithmetic_runs, expand_runs
 from castimate.codegen.solvers import FILES, TOLERANCE
 from castimate.errors import InputError
+from castimate.errors import InputError
 from castimate.simulate.scenarios import simulate_scenario
 
 from test_codegen import make_check
@@ -80,8 +81,17 @@ def test_static_parametrisations_match_ipopt(simulated, tmp_path, model):
     assert ("no unit-norm constraints" in readme) == ("pitch_roll" in model)
 
 
-def test_static_single_triad_with_gyroscope_matches_ipopt(tmp_path):
-    emit_and_check(PROBLEMS / "xsens_imutk.yaml", tmp_path / "c")
+def test_static_single_triad_with_gyroscope_matches_ipopt(shared_data, tmp_path):
+    """The Xsens session with its gyroscope gain and misalignment fixed (the C solver has no transition
+    factors, and refuses them)."""
+    text = (PROBLEMS / "xsens_imutk.yaml").read_text().replace("../../shared/data", str(shared_data))
+    (tmp_path / "with_transitions.yaml").write_text(text)
+    with pytest.raises(InputError, match="model.gyroscope.*rotations between them"):
+        generate_c(tmp_path / "with_transitions.yaml", tmp_path / "c")
+    fixed = text.replace("  gyroscope: {gain: free, misalignment: free}", "")
+    assert fixed != text
+    (tmp_path / "xsens.yaml").write_text(fixed)
+    emit_and_check(tmp_path / "xsens.yaml", tmp_path / "c")
 
 
 def test_static_real_mimu4444_matches_ipopt(shared_data, tmp_path):

@@ -17,7 +17,9 @@ from ..errors import InputError, NotConvergedError
 from ..io.readers import read_recording
 from ..io.recording import Recording
 from ..problem.compensation import linear_inverse
-from ..problem.effects import BY_KEY, TEMPERATURE
+from ..problem.effects import BY_KEY, TEMPERATURE, included
+from ..problem.transitions import add_transitions, transition_chain
+from ..prepare.transitions import check_sample_angles, transition_samples
 from ..spec import ProblemSpec
 from ..problem.dynamic import geometry_fixed
 from ..problem.static import StaticConfig, StaticProblem, build_static, initial_directions, recover_nominal_rotation, single_triad_config
@@ -145,6 +147,38 @@ def session_config(spec: ProblemSpec, data: "StaticData") -> tuple[StaticConfig,
     (so that every model variant and every cross-validation fold of it shares them)."""
     config, notes = static_config(spec, data.averages)
     return replace(config, regressors=Regressors.from_poses(data.averages)), notes
+
+
+# ---------------------------------------------------------------------------------------------
+# Gyroscope calibration from the rotations between poses (Tedaldi 2014)
+# ---------------------------------------------------------------------------------------------
+
+def uses_transitions(config: StaticConfig, detection: Detection | None) -> bool:
+    """A time series whose gyroscope gain or misalignment is free: the transitions between the poses
+    determine them (a static pose does not)."""
+    return detection is not None and any(
+        t.gyroscope is not None and any(any(t.gyroscope[g].free) for g in ("gain", "misalignment"))
+        for t in config.triads)
+
+
+def with_transitions(spec: ProblemSpec, problem: StaticProblem, rec: Recording, det: Detection,
+                     avg: PoseAverages, log: Log = quiet) -> StaticProblem:
+    """Add the transition factors (castimate.problem.transitions); the intermediate directions start
+    from the rates integrated with the starting calibration and the poses' mean gyroscope bias."""
+    for e in included(problem.config.effects, "gyroscope"):
+        raise InputError(spec.path, f"model.gyroscope.{e.name}",
+                         "is not modelled during the rotations between the poses, which a free gyroscope gain or "
+                         "misalignment is calibrated from: leave the effect out or fix the gain and misalignment")
+    names = problem.gyro_triads
+    trans = transition_samples(rec, det.segments)
+    check_sample_angles(rec, trans, names, spec.data.gyro_path or spec.data.path)
+    start = {g.name: g.shaped(g.initial) for g in problem.lsq.layout.groups}
+    T0, _ = problem.gyro_calibration(start)[names[0]]
+    b0 = avg.gyro_mean[names[0]].mean(axis=0)
+    chain = transition_chain(trans, {n: rec.gyro[n] for n in names}, avg.gyro_sigma_sample, avg.n_poses,
+                             initial_directions(problem.config, avg), lambda y: np.linalg.solve(T0, (y - b0).T).T)
+    log(f"gyroscope calibration from {len(trans)} transitions between the poses ({chain.n_samples} samples)")
+    return add_transitions(problem, chain)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -296,6 +330,8 @@ def calibrate_static(spec: ProblemSpec, log: Log = quiet, data: StaticData | Non
         log(f"  {n}: {note}")
     log(f"building the NLP: {len(config.triads)} triads, {avg.n_poses} poses")
     problem = build_static(config, avg)
+    if uses_transitions(config, det):
+        problem = with_transitions(spec, problem, rec, det, avg, log)
     solver = Solver(problem.lsq, spec.solver)
     check_identifiable(spec.path, problem, solver, avg)
     log(f"solving with IPOPT ({problem.lsq.layout.n_x} variables, {solver.n_residuals} residuals)")
@@ -306,7 +342,7 @@ def calibrate_static(spec: ProblemSpec, log: Log = quiet, data: StaticData | Non
     P = avg.n_poses
     names = config.names + problem.gyro_triads
     sig = np.vstack([d[:, 3:6] for d in problem.block_data(avg)])  # σ of every residual, (M+Mg)*P x 3
-    res = (sol.residual.reshape(-1, 3) * sig).reshape(len(names), P, 3)
+    res = (sol.residual[:sig.size].reshape(-1, 3) * sig).reshape(len(names), P, 3)
     spread = None
     if consistency and len(config.names) > 1:
         log("calibrating each triad alone for the before/after consistency")

@@ -61,6 +61,8 @@ class StaticTruthScale:
     nonorthogonality: float = 0.005  # rad
     misalignment: float = 0.01  # rad
     gyro_bias: float = 0.02  # rad/s
+    gyro_gain: float = 0.0  # -, drawn only when positive
+    gyro_misalignment: float = 0.0  # rad, drawn only when positive
 
 
 @dataclass
@@ -81,6 +83,12 @@ class StaticTruth:
 
     def b(self, name: str) -> np.ndarray:
         return self.values[f"{name}.accelerometer.bias"]
+
+    def Tg(self, name: str) -> np.ndarray:
+        """T_g = diag(k_g) (I + [xi_g]x) Rbar of the gyroscope (unit gain, no misalignment unless set)."""
+        v = self.values
+        k, xi = v.get(f"{name}.gyroscope.gain", np.ones(3)), v.get(f"{name}.gyroscope.misalignment", np.zeros(3))
+        return np.diag(k) @ (np.eye(3) + _skew(xi)) @ self.R_nominal[name]
 
     def to_dict(self) -> dict:
         triads = {}
@@ -107,6 +115,10 @@ def random_static_truth(names: list[str], reference: str, rng: np.random.Generat
             v[f"{n}.accelerometer.misalignment"] = scale.misalignment * rng.standard_normal(3)
         if gyroscope:
             v[f"{n}.gyroscope.bias"] = scale.gyro_bias * rng.standard_normal(3)
+            if scale.gyro_gain > 0:
+                v[f"{n}.gyroscope.gain"] = 1 + scale.gyro_gain * rng.standard_normal(3)
+            if scale.gyro_misalignment > 0:
+                v[f"{n}.gyroscope.misalignment"] = scale.gyro_misalignment * rng.standard_normal(3)
     return truth
 
 
@@ -139,47 +151,62 @@ def static_pose_means(truth: StaticTruth, U: np.ndarray, sigma: float, n_samples
     return acc, gyro
 
 
-def _slerp_directions(u0: np.ndarray, u1: np.ndarray, s: np.ndarray) -> np.ndarray:
-    """Great-circle interpolation between unit vectors for s in [0, 1]."""
-    ang = np.arccos(np.clip(u0 @ u1, -1, 1))
-    if ang < 1e-9:
-        return np.repeat(u0[None], len(s), axis=0)
-    return (np.sin((1 - s) * ang)[:, None] * u0 + np.sin(s * ang)[:, None] * u1) / np.sin(ang)
+def _rotate(axis: np.ndarray, angle: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Rodrigues: u (3,) rotated by angle (N,) about the unit axis (3,), (N, 3)."""
+    c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
+    return u * c + np.cross(axis, u)[None] * s + np.outer(1 - c[:, 0], axis * (axis @ u))
 
 
 def static_time_series(truth: StaticTruth, U: np.ndarray, sigma: float, rng: np.random.Generator, *,
                        rate: float = 100.0, pose_duration: float = 10.0, transition: float = 3.0,
-                       gyro_sigma: float | None = None) -> tuple[Recording, list[tuple[float, float]]]:
+                       gyro_sigma: float | None = None, heading_swing: float = 0.0
+                       ) -> tuple[Recording, list[tuple[float, float]]]:
     """A raw static session: each pose held for ``pose_duration`` s, joined by smooth rotations.
 
-    During a transition the specific force follows a great circle with a smooth (raised-cosine)
-    speed profile and the gyroscopes see the corresponding rotation rate; the small centripetal
-    terms are ignored. Returns the recording and the true static intervals in seconds.
+    During a transition of duration D the specific force turns along the great circle from one pose
+    direction to the next, by the angle α about the fixed body axis a, with the raised-cosine
+    profile s(τ) = (1 - cos(π τ / D)) / 2; on top, the body swings about the vertical by
+    ψ(τ) = ``heading_swing`` sin(π s) (which leaves the specific force alone), so the body-frame
+    axis of the rotation wanders and the rotations of successive samples do not commute. The body
+    rate is ω = -α ṡ a + ψ̇ u(τ) in closed form. Accelerometers sample u at t_k, gyroscopes the rate
+    at the middle of their sample interval [t_k, t_k+1] (what a gyroscope that averages over its
+    interval reads, to O(Δt³)); the small centripetal terms are ignored.
+    Gyroscopes read T_g ω + b_g with the truth's T_g. Returns the recording and the true static
+    intervals in seconds.
     """
     n_hold, n_move = int(round(pose_duration * rate)), int(round(transition * rate))
-    dirs, omega, intervals = [], [], []
-    t_now = 0.0
-    for i, u in enumerate(U):
-        dirs.append(np.repeat(u[None], n_hold, axis=0))
-        omega.append(np.zeros((n_hold, 3)))
+    dt, D = 1 / rate, (n_move + 1) / rate
+    intervals, plan, t_now = [], [], 0.0
+    for i in range(len(U)):
         intervals.append((t_now, t_now + n_hold / rate))
-        t_now += n_hold / rate
-        if i + 1 < len(U):
-            s = 0.5 - 0.5 * np.cos(np.pi * np.arange(1, n_move + 1) / (n_move + 1))
-            path = _slerp_directions(u, U[i + 1], s)
-            dirs.append(path)
-            axis = np.cross(u, U[i + 1])
+        t_now += (n_hold + (n_move if i + 1 < len(U) else 0)) / rate
+        if i + 1 < len(U):  # the transition starts at the hold's last sample
+            axis = np.cross(U[i], U[i + 1])
             axis = axis / (np.linalg.norm(axis) or 1.0)
-            ang = np.arccos(np.clip(u @ U[i + 1], -1, 1))
-            ds = np.gradient(s) * rate
-            omega.append(-ang * ds[:, None] * axis[None])  # the body turns opposite to the apparent force
-            t_now += n_move / rate
-    D, W = np.vstack(dirs), np.vstack(omega)
-    t = np.arange(len(D)) / rate
-    acc = {n: truth.gravity * D @ truth.T(n).T + truth.b(n) + sigma * rng.standard_normal(D.shape)
+            plan.append((intervals[-1][1] - dt, axis, np.arccos(np.clip(U[i] @ U[i + 1], -1, 1))))
+    N = len(U) * n_hold + (len(U) - 1) * n_move
+    t = np.arange(N) / rate
+
+    def state(tq):
+        """Specific-force direction and body rate at times tq."""
+        u, w = np.zeros((len(tq), 3)), np.zeros((len(tq), 3))
+        k = np.clip(np.searchsorted([iv[0] for iv in intervals], tq, side="right") - 1, 0, len(U) - 1)
+        u[:] = U[k]
+        for i, (t0, axis, ang) in enumerate(plan):
+            m = (tq > t0) & (tq < t0 + D)
+            x = (tq[m] - t0) / D
+            s, sd = 0.5 - 0.5 * np.cos(np.pi * x), 0.5 * np.pi / D * np.sin(np.pi * x)
+            u[m] = _rotate(axis, s * ang, U[i])
+            psid = heading_swing * np.pi * np.cos(np.pi * s) * sd
+            w[m] = -ang * sd[:, None] * axis[None] + psid[:, None] * u[m]
+        return u, w
+
+    D_u, _ = state(t)
+    _, W = state(t + dt / 2)
+    acc = {n: truth.gravity * D_u @ truth.T(n).T + truth.b(n) + sigma * rng.standard_normal(D_u.shape)
            for n in truth.names}
     gyro = {}
     if gyro_sigma is not None:
-        gyro = {n: W @ truth.R_nominal[n].T + truth.values[f"{n}.gyroscope.bias"]
-                + gyro_sigma * rng.standard_normal(D.shape) for n in truth.names}
+        gyro = {n: W @ truth.Tg(n).T + truth.values[f"{n}.gyroscope.bias"]
+                + gyro_sigma * rng.standard_normal(D_u.shape) for n in truth.names}
     return Recording(t=t, acc=acc, gyro=gyro, source="simulation"), intervals
