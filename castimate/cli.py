@@ -22,7 +22,7 @@ def _log(msg: str) -> None:
 
 def _inputs_of(spec) -> tuple:
     """The files a problem reads: an output must never replace one of them."""
-    return (spec.path, spec.data.path, spec.data.gyro_path, spec.model.intrinsics)
+    return (spec.path, spec.data.path, spec.data.gyro_path, spec.data.sections, spec.model.intrinsics)
 
 
 def cmd_solve(args) -> int:

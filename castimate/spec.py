@@ -37,8 +37,8 @@ from .problem.graph import SolverOptions
 from .problem.effects import DYNAMIC, STATIC, effects_for
 from .problem.triads import QUATERNION_MISALIGNMENT, SENSOR_GROUPS, GroupSetting
 
-KINDS = ("static_array", "dynamic_array")
-FORMATS = ("csv", "npz", "mimu", "imutk")
+KINDS = ("static_array", "dynamic_array", "ferraris")
+FORMATS = ("csv", "npz", "mimu", "imutk", "imucal")
 DIRECTIONS = ("unit_vector", "quaternion", "pitch_roll")
 MISALIGNMENTS = ("small_angle", "rotation")
 
@@ -59,7 +59,14 @@ DEFAULT_FREE = {
         "accelerometer": {"gain": False, "bias": False, "nonorthogonality": False, "misalignment": False},
         "gyroscope": {"gain": False, "bias": True, "misalignment": False},
     },
+    # Ferraris: known faces and turns of known angle determine both sensors' matrices.
+    "ferraris": {
+        "accelerometer": {"gain": True, "bias": True, "nonorthogonality": True, "misalignment": True},
+        "gyroscope": {"gain": True, "bias": True, "misalignment": True},
+    },
 }
+#: Ferraris protocol: imucal's default turn, clockwise seen from above (the gyroscope reads negative).
+FERRARIS_TURN_DEG = -360.0
 SATURATION = ("auto", "none")
 #: Physical ranges of the numbers of a problem file, named in the errors.
 GRAVITY_RANGE = (9.7, 9.9)  # m/s^2: the gravity anywhere on the Earth's surface
@@ -86,6 +93,9 @@ class DataSpec:
     detection: DetectionOptions = DetectionOptions()
     saturation: dict = field(default_factory=lambda: {"accelerometer": "auto", "gyroscope": "auto"})
     static_range: tuple[float, float] | None = None  # dynamic kind: static poses of the same recording (joint problem)
+    rate: float | None = None  # Hz, declared sample rate (imucal tables have sample numbers only)
+    sections: Path | None = None  # ferraris: imucal's section list (labelled faces and turns)
+    turn_angle_deg: float = FERRARIS_TURN_DEG  # ferraris: the angle of every turn about the face's up axis
 
 
 @dataclass(frozen=True)
@@ -172,9 +182,16 @@ def parse_problem(raw: Any, path: Path, sha256: str = "") -> ProblemSpec:
     if "motion" in top and kind != "dynamic_array":
         c.fail("motion", f"process-model settings are not used by kind {kind}")
     data = _data(c, top["data"], path.parent)
+    if kind == "ferraris" and data.sections is None:
+        c.fail("data", "missing required key 'sections' (the labelled faces and turns of the Ferraris protocol)")
+    if kind != "ferraris" and data.sections is not None or "turn_angle_deg" in top["data"]:
+        c.fail("data.sections" if data.sections is not None else "data.turn_angle_deg",
+               f"labelled faces and turns are for kind ferraris, not {kind}")
     if data.static_range is not None and kind != "dynamic_array":
         c.fail("data.static", f"a static phase beside the dynamic one is for kind dynamic_array, not {kind}")
     array = _array(c, top["array"])
+    if kind == "ferraris" and len(array.triads) > 1:
+        c.fail("array.triads", f"the Ferraris protocol calibrates one IMU; found {len(array.triads)} triads")
     model = _model(c, top.get("model"), array, kind, path.parent, joint=data.static_range is not None)
     noise = _noise(c, top.get("noise"), array)
     solver = _solver(c, top.get("solver"))
@@ -191,7 +208,7 @@ def parse_problem(raw: Any, path: Path, sha256: str = "") -> ProblemSpec:
 
 def _data(c: Check, d, base: Path) -> DataSpec:
     d = c.mapping(d, "data", ("path", "format", "units", "gyro_path", "time_range", "segments", "detection",
-                              "saturation", "static"), required=("path", "format"))
+                              "saturation", "static", "rate", "sections", "turn_angle_deg"), required=("path", "format"))
     fmt = c.choice(d["format"], "data.format", FORMATS)
     if not isinstance(d["path"], str):
         c.fail("data.path", f"expected a file path, found {d['path']!r}")
@@ -245,7 +262,22 @@ def _data(c: Check, d, base: Path) -> DataSpec:
         static_range = (c.number(v[0], "data.static.time_range[0]"), c.number(v[1], "data.static.time_range[1]"))
         if static_range[1] <= static_range[0]:
             c.fail("data.static.time_range", f"end must be after start, found {list(static_range)}")
-    return DataSpec(p, fmt, acc_u, gyro_u, gp, tr, seg, det, saturation, static_range)
+    rate = c.number(d["rate"], "data.rate", positive=True) if "rate" in d else None
+    if fmt == "imucal" and rate is None:
+        c.fail("data", "missing required key 'rate': an imucal table has sample numbers, not times (Hz)")
+    if rate is not None and fmt != "imucal":
+        c.fail("data.rate", f"only imucal tables need a declared rate; format {fmt} has times")
+    sections = None
+    if "sections" in d:
+        if not isinstance(d["sections"], str):
+            c.fail("data.sections", f"expected the path of imucal's section list (JSON), found {d['sections']!r}")
+        sections = (base / d["sections"]).resolve()
+        if not sections.is_file():
+            c.fail("data.sections", f"section list {sections} does not exist")
+    turn = c.number(d.get("turn_angle_deg", FERRARIS_TURN_DEG), "data.turn_angle_deg")
+    if turn == 0:
+        c.fail("data.turn_angle_deg", "expected a non-zero angle in degrees, found 0")
+    return DataSpec(p, fmt, acc_u, gyro_u, gp, tr, seg, det, saturation, static_range, rate, sections, turn)
 
 
 def _array(c: Check, a) -> ArraySpec:

@@ -25,7 +25,7 @@ from castimate.io.atomic import atomic_write
 from castimate.io.recording import Recording
 from castimate.io.units import UnitConversion, UnitSpec, parse_units
 
-FORMATS = ("csv", "npz", "mimu", "imutk")
+FORMATS = ("csv", "npz", "mimu", "imutk", "imucal")
 
 # A triad name is a plain identifier-like token: it must not contain the "." that separates
 # it from the channel, nor anything that would need quoting in a CSV header.
@@ -415,6 +415,7 @@ def read_recording(
     temp_units: UnitSpec | None = None,
     gyro_path: str | os.PathLike | None = None,
     name: str = "imu",
+    rate: float | None = None,
 ) -> Recording:
     """Read a recording in one of :data:`FORMATS`.
 
@@ -430,7 +431,9 @@ def read_recording(
     gyro_path
         ``imutk`` only: the gyroscope table.
     name
-        ``imutk`` only: the triad name.
+        ``imutk`` and ``imucal``: the triad name.
+    rate
+        ``imucal`` only: the sample rate [Hz] (the table has sample numbers, not times).
     """
     if fmt == "csv":
         return read_csv(path, acc_units, gyro_units, temp_units)
@@ -450,6 +453,12 @@ def read_recording(
             gyro_units=imutk.XSENS_GYRO_UNITS if gyro_units is None else gyro_units,
             name=name,
         )
+    if fmt == "imucal":
+        from castimate.io.imucal import read_imucal
+
+        if rate is None:
+            raise InputError(path, "rate", "an imucal table has sample numbers only: declare the sample rate")
+        return read_imucal(path, rate, acc_units, gyro_units, name)
     raise InputError(path, "format", f"expected one of {', '.join(FORMATS)}, found {fmt!r}")
 
 
@@ -466,6 +475,10 @@ def input_units(fmt: str, acc_units: UnitSpec | None = None, gyro_units: UnitSpe
         from castimate.io.imutk import XSENS_ACC_UNITS, XSENS_GYRO_UNITS
 
         defaults = (XSENS_ACC_UNITS, XSENS_GYRO_UNITS)
+    elif fmt == "imucal":
+        from castimate.io.imucal import DEFAULT_ACC_UNITS as acc_default, DEFAULT_GYRO_UNITS as gyro_default
+
+        defaults = (acc_default, gyro_default)
     else:
         defaults = ("m/s^2", "rad/s")
     return {q: _units(spec, default, fmt, f"{q}_units", q)

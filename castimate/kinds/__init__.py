@@ -29,7 +29,7 @@ from ..spec import ProblemSpec
 Log = Callable[[str], None]
 
 #: spec.kind -> module of castimate.kinds whose ``KIND`` implements :class:`Kind`.
-REGISTRY = {"static_array": "static", "dynamic_array": "dynamic"}
+REGISTRY = {"static_array": "static", "dynamic_array": "dynamic", "ferraris": "ferraris"}
 
 #: sensor -> triad -> (residual (n, 3), σ (n, 3)) in physical units
 Residuals = dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]

@@ -40,7 +40,8 @@ from ..prepare.plausibility import (Declared, check_accelerometer_units, check_c
 def load_recording(spec: ProblemSpec) -> Recording:
     """Read the problem's data file in SI units and keep the declared time range."""
     d = spec.data
-    rec = read_recording(d.format, d.path, acc_units=d.acc_units, gyro_units=d.gyro_units, gyro_path=d.gyro_path)
+    rec = read_recording(d.format, d.path, acc_units=d.acc_units, gyro_units=d.gyro_units, gyro_path=d.gyro_path,
+                         rate=d.rate)
     if d.time_range is not None:
         keep = (rec.t >= d.time_range[0]) & (rec.t <= d.time_range[1])
         if keep.sum() < 2:
@@ -80,7 +81,12 @@ def pose_averages(spec: ProblemSpec, rec: Recording) -> tuple[PoseAverages, Dete
                          f"{len(det.rejected)} candidate(s) rejected): the array never rests for "
                          f"{spec.data.detection.min_duration:g} s (data.detection.min_duration) with a steady signal; "
                          "check data.time_range, or give the poses as data.segments: [[t0, t1], ...]")
-    avg = average_poses(rec, det, triads=names)
+    return declared_noise(spec, average_poses(rec, det, triads=names)), det
+
+
+def declared_noise(spec: ProblemSpec, avg: PoseAverages) -> PoseAverages:
+    """The σ's of the pose means from the problem file's ``noise`` section where it gives them."""
+    names = spec.array.names
     sqn = np.sqrt(avg.n)[:, None]
     if spec.noise.accelerometer:
         avg = replace(avg, acc_sigma={n: np.full((avg.n_poses, 3), spec.noise.accelerometer[n]) / sqn
@@ -88,7 +94,7 @@ def pose_averages(spec: ProblemSpec, rec: Recording) -> tuple[PoseAverages, Dete
     if spec.noise.gyroscope:
         avg = replace(avg, gyro_sigma={n: np.full((avg.n_poses, 3), spec.noise.gyroscope[n]) / sqn
                                        for n in avg.gyro_mean})
-    return avg, det
+    return avg
 
 
 def check_temperature(spec: ProblemSpec, logged: set[str]) -> None:
@@ -332,6 +338,15 @@ def calibrate_static(spec: ProblemSpec, log: Log = quiet, data: StaticData | Non
     problem = build_static(config, avg)
     if uses_transitions(config, det):
         problem = with_transitions(spec, problem, rec, det, avg, log)
+    return solve_static(spec, data, problem, notes, log, consistency)
+
+
+def solve_static(spec: ProblemSpec, data: StaticData, problem: StaticProblem, notes: dict[str, str],
+                 log: Log = quiet, consistency: bool = True) -> StaticOutcome:
+    """Check, solve and interpret a composed static problem (its pose blocks first, as build_static
+    makes them; further blocks such as transitions or turns after them)."""
+    rec, avg, det = data.recording, data.averages, data.detection
+    config = problem.config
     solver = Solver(problem.lsq, spec.solver)
     check_identifiable(spec.path, problem, solver, avg)
     log(f"solving with IPOPT ({problem.lsq.layout.n_x} variables, {solver.n_residuals} residuals)")

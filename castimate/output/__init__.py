@@ -27,6 +27,7 @@ class Outputs:
 OUTPUTS = {
     "static_array": Outputs(static_results, write_details, static_summary),
     "dynamic_array": Outputs(dynamic_results, write_dynamic_details, dynamic_summary),
+    "ferraris": Outputs(static_results, write_details, static_summary),  # a static outcome of six faces
 }
 
 
