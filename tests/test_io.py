@@ -558,8 +558,10 @@ def test_read_recording_dispatch(tmp_path):
     x = read_recording("imutk", a, gyro_path=g, name="xsens")
     np.testing.assert_allclose(x.acc["xsens"], 0, atol=1e-12)
     np.testing.assert_allclose(x.gyro["xsens"], 0, atol=1e-12)
-    with pytest.raises(InputError, match=rx(tmp_path / "r.csv", "format", "expected one of csv, npz, mimu, imutk, found 'hdf5'")):
+    with pytest.raises(InputError, match=rx(tmp_path / "r.csv", "format", "expected one of csv, npz, mimu, imutk, imucal, found 'hdf5'")):
         read_recording("hdf5", tmp_path / "r.csv")
+    with pytest.raises(InputError, match="rate: an imucal table has sample numbers only"):
+        read_recording("imucal", tmp_path / "r.csv")
 
 
 # ============================================================================ real data
