@@ -272,8 +272,7 @@ def _data(c: Check, d, base: Path) -> DataSpec:
         if not isinstance(d["sections"], str):
             c.fail("data.sections", f"expected the path of imucal's section list (JSON), found {d['sections']!r}")
         sections = (base / d["sections"]).resolve()
-        if not sections.is_file():
-            c.fail("data.sections", f"section list {sections} does not exist")
+        input_file(sections, "section list", c.source, "data.sections")
     turn = c.number(d.get("turn_angle_deg", FERRARIS_TURN_DEG), "data.turn_angle_deg")
     if turn == 0:
         c.fail("data.turn_angle_deg", "expected a non-zero angle in degrees, found 0")

@@ -137,3 +137,15 @@ def test_shared_imucal_session_matches_imucal(shared_data):
     np.testing.assert_allclose(Ta, imucal_Ta, atol=5e-4)
     np.testing.assert_allclose(np.diag(Tg), [1.0279, 0.98242, 0.99823], atol=4e-4)
     np.testing.assert_allclose(np.degrees(bg), [-0.5997, -0.3698, 0.05877], atol=0.04)
+
+
+def test_other_jobs_refuse_the_ferraris_kind(tmp_path):
+    from castimate.codegen import generate_c
+    from castimate.kinds.diagnose import open_session
+    from castimate.spec import load_problem
+
+    p, _ = _session(tmp_path)
+    with pytest.raises(InputError, match="kind: C solvers are emitted for static_array and dynamic_array"):
+        generate_c(p, tmp_path / "c")
+    with pytest.raises(InputError, match="kind: diagnose tests the effect library"):
+        open_session(load_problem(p))

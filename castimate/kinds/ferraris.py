@@ -12,7 +12,7 @@ from ..prepare.detect import Detection
 from ..prepare.poses import average_poses
 from ..problem.ferraris import FACES, TURNS, build_ferraris, turn_data
 from ..spec import ProblemSpec
-from .static import StaticData, StaticOutcome, declared_noise, load_recording, solve_static, static_config
+from .static import StaticData, StaticOutcome, declared_noise, gyro_sample_sigma, load_recording, solve_static, static_config
 
 
 def ferraris_sections(spec: ProblemSpec, n_samples: int) -> dict[str, tuple[int, int]]:
@@ -43,7 +43,7 @@ def calibrate_ferraris(spec: ProblemSpec, log: Log = quiet) -> StaticOutcome:
     avg = declared_noise(spec, average_poses(rec, det, triads=[name]))
     config, notes = static_config(spec, avg)
     turns = turn_data(rec.t, rec.gyro[name], [sec[k] for k in TURNS], np.array(list(TURNS.values())),
-                      np.radians(spec.data.turn_angle_deg), avg.gyro_sigma_sample[name], config.triads[0].R_nominal)
+                      np.radians(spec.data.turn_angle_deg), gyro_sample_sigma(spec, avg)[name], config.triads[0].R_nominal)
     log(f"Ferraris protocol: 6 faces, 3 turns of {spec.data.turn_angle_deg:g} deg")
     problem = build_ferraris(config, avg, np.array(list(FACES.values()), float), turns)
     return solve_static(spec, StaticData(rec, avg, det), problem, notes, log, consistency=False)

@@ -97,6 +97,12 @@ def declared_noise(spec: ProblemSpec, avg: PoseAverages) -> PoseAverages:
     return avg
 
 
+def gyro_sample_sigma(spec: ProblemSpec, avg: PoseAverages) -> dict[str, np.ndarray]:
+    """Per gyroscope triad, the per-sample white-noise σ (3,): declared in ``noise`` or estimated."""
+    given = spec.noise.gyroscope or {}
+    return {n: np.full(3, given[n]) if n in given else avg.gyro_sigma_sample[n] for n in avg.gyro_mean}
+
+
 def check_temperature(spec: ProblemSpec, logged: set[str]) -> None:
     """Refuse an included temperature effect on a triad whose temperature the data do not log."""
     for e in (BY_KEY[k] for k in spec.model.effects):
@@ -171,8 +177,9 @@ def with_transitions(spec: ProblemSpec, problem: StaticProblem, rec: Recording, 
                      avg: PoseAverages, log: Log = quiet) -> StaticProblem:
     """Add the transition factors (castimate.problem.transitions); the intermediate directions start
     from the rates integrated with the starting calibration and the poses' mean gyroscope bias."""
-    for e in included(problem.config.effects, "gyroscope"):
-        raise InputError(spec.path, f"model.gyroscope.{e.name}",
+    effects = included(problem.config.effects, "gyroscope")
+    if effects:
+        raise InputError(spec.path, f"model.gyroscope.{effects[0].name}",
                          "is not modelled during the rotations between the poses, which a free gyroscope gain or "
                          "misalignment is calibrated from: leave the effect out or fix the gain and misalignment")
     names = problem.gyro_triads
@@ -181,7 +188,7 @@ def with_transitions(spec: ProblemSpec, problem: StaticProblem, rec: Recording, 
     start = {g.name: g.shaped(g.initial) for g in problem.lsq.layout.groups}
     T0, _ = problem.gyro_calibration(start)[names[0]]
     b0 = avg.gyro_mean[names[0]].mean(axis=0)
-    chain = transition_chain(trans, {n: rec.gyro[n] for n in names}, avg.gyro_sigma_sample, avg.n_poses,
+    chain = transition_chain(trans, {n: rec.gyro[n] for n in names}, gyro_sample_sigma(spec, avg), avg.n_poses,
                              initial_directions(problem.config, avg), lambda y: np.linalg.solve(T0, (y - b0).T).T)
     log(f"gyroscope calibration from {len(trans)} transitions between the poses ({chain.n_samples} samples)")
     return add_transitions(problem, chain)
