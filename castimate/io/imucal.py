@@ -9,6 +9,7 @@ imucal's JSON ``{label: {"start": i, "end": j}}`` of sample ranges (end exclusiv
 from __future__ import annotations
 
 import csv
+import io
 import json
 import os
 
@@ -17,6 +18,7 @@ import numpy as np
 from castimate.errors import InputError
 from castimate.io.recording import Recording
 from castimate.io.units import UnitSpec, parse_units
+from castimate.validation import read_input_text
 
 COLUMNS = ("n_samples", "gyr_x", "gyr_y", "gyr_z", "acc_x", "acc_y", "acc_z")
 DEFAULT_ACC_UNITS, DEFAULT_GYRO_UNITS = "m/s^2", "deg/s"
@@ -26,11 +28,7 @@ def read_imucal(path: str | os.PathLike, rate: float, acc_units: UnitSpec | None
                 gyro_units: UnitSpec | None = None, name: str = "imu") -> Recording:
     """An imucal CSV recording sampled at ``rate`` Hz as a one-triad Recording (t = n_samples / rate)."""
     source = str(path)
-    try:
-        with open(path, newline="") as fh:
-            rows = list(csv.reader(fh))
-    except OSError as e:
-        raise InputError(source, "", f"cannot read the file ({e.strerror})") from None
+    rows = list(csv.reader(io.StringIO(read_input_text(path, "imucal table", None))))
     if not rows:
         raise InputError(source, "", f"empty file: expected a header with columns {', '.join(COLUMNS)}")
     header = [c.strip() for c in rows[0]]
@@ -63,9 +61,7 @@ def read_sections(path: str | os.PathLike) -> dict[str, tuple[int, int]]:
     """imucal's section list: label -> (start, end) sample indices, end exclusive."""
     source = str(path)
     try:
-        raw = json.loads(open(path).read())
-    except OSError as e:
-        raise InputError(source, "", f"cannot read the section list ({e.strerror})") from None
+        raw = json.loads(read_input_text(path, "section list"))
     except json.JSONDecodeError as e:
         raise InputError(source, f"line {e.lineno}", f"not valid JSON ({e.msg})") from None
     if not isinstance(raw, dict):

@@ -76,6 +76,6 @@ def build_ferraris(config: StaticConfig, poses, face_directions: np.ndarray, tur
         groups.append(g)
     blocks = list(problem.lsq.blocks)
     if problem.gyro_triads:
-        inputs = [(group_name(t.name, "gyroscope", g), None) for g in GYRO_FACTOR_GROUPS]
+        inputs = [(group_name(t.name, "gyroscope", g), np.zeros(len(turns), int)) for g in GYRO_FACTOR_GROUPS]
         blocks.append(FactorBlock("gyroscope_turn", turn_factor(), inputs, turns))
     return replace(problem, lsq=LeastSquaresProblem(Layout(groups), blocks))
