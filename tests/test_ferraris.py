@@ -141,11 +141,12 @@ def test_shared_imucal_session_matches_imucal(shared_data):
 
 def test_other_jobs_refuse_the_ferraris_kind(tmp_path):
     from castimate.codegen import generate_c
-    from castimate.kinds.diagnose import open_session
+    from castimate.kinds import kind_of
     from castimate.spec import load_problem
 
     p, _ = _session(tmp_path)
     with pytest.raises(InputError, match="kind: C solvers are emitted for static_array and dynamic_array"):
         generate_c(p, tmp_path / "c")
+    spec = load_problem(p)
     with pytest.raises(InputError, match="kind: diagnose tests the effect library"):
-        open_session(load_problem(p))
+        kind_of(spec).cross_validate(spec, None, 3)

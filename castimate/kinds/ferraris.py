@@ -3,6 +3,8 @@ faces, integrate the turns, solve (castimate.problem.ferraris)."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from . import Log, quiet
@@ -11,8 +13,18 @@ from ..io.imucal import read_sections
 from ..prepare.detect import Detection
 from ..prepare.poses import average_poses
 from ..problem.ferraris import FACES, TURNS, build_ferraris, turn_data
+from ..problem.static import StaticConfig, StaticProblem
 from ..spec import ProblemSpec
-from .static import StaticData, StaticOutcome, declared_noise, gyro_sample_sigma, load_recording, solve_static, static_config
+from .static import StaticData, StaticKind, StaticOutcome, declared_noise, load_recording, session_config, solve_static
+
+
+@dataclass(frozen=True)
+class FerrarisData(StaticData):
+    """The six faces averaged (as static poses), and the turns' sample ranges."""
+
+    turns: tuple[tuple[int, int], ...] = ()
+    turn_angle: float = 0.0  # rad
+    problem_path: object = ""
 
 
 def ferraris_sections(spec: ProblemSpec, n_samples: int) -> dict[str, tuple[int, int]]:
@@ -28,8 +40,7 @@ def ferraris_sections(spec: ProblemSpec, n_samples: int) -> dict[str, tuple[int,
     return sections
 
 
-def calibrate_ferraris(spec: ProblemSpec, log: Log = quiet) -> StaticOutcome:
-    """Accelerometer and gyroscope calibration of one IMU from the Ferraris protocol."""
+def load_ferraris(spec: ProblemSpec, log: Log = quiet) -> FerrarisData:
     log(f"reading {spec.data.path.name} ({spec.data.format})")
     rec = load_recording(spec)
     name = spec.array.triads[0].name
@@ -41,9 +52,49 @@ def calibrate_ferraris(spec: ProblemSpec, log: Log = quiet) -> StaticOutcome:
                     segment_times=[(float(rec.t[a]), float(rec.t[b - 1])) for a, b in faces],
                     t_range=(float(rec.t[0]), float(rec.t[-1])), source=rec.source)
     avg = declared_noise(spec, average_poses(rec, det, triads=[name]))
-    config, notes = static_config(spec, avg)
-    turns = turn_data(rec.t, rec.gyro[name], [sec[k] for k in TURNS], np.array(list(TURNS.values())),
-                      np.radians(spec.data.turn_angle_deg), gyro_sample_sigma(spec, avg)[name], config.triads[0].R_nominal)
+    given = spec.noise.gyroscope or {}
+    sigma = {name: np.full(3, given[name]) if name in given else avg.gyro_sigma_sample[name]}
     log(f"Ferraris protocol: 6 faces, 3 turns of {spec.data.turn_angle_deg:g} deg")
-    problem = build_ferraris(config, avg, np.array(list(FACES.values()), float), turns)
-    return solve_static(spec, StaticData(rec, avg, det), problem, notes, log, consistency=False)
+    return FerrarisData(rec, avg, det, sigma, tuple(sec[k] for k in TURNS), float(np.radians(spec.data.turn_angle_deg)),
+                        spec.path)
+
+
+class FerrarisKind(StaticKind):
+    """One IMU on six known faces and turned by a known angle about three axes (castimate.problem.ferraris)."""
+
+    name = "ferraris"
+    sampled = False
+
+    def load(self, spec: ProblemSpec, log: Log = quiet) -> FerrarisData:
+        return load_ferraris(spec, log)
+
+    def configure(self, spec: ProblemSpec, data: FerrarisData, log: Log = quiet) -> StaticConfig:
+        return session_config(spec, data)[0]
+
+    def build(self, config: StaticConfig, data: FerrarisData, fixed_size: bool = False) -> StaticProblem:
+        if fixed_size:
+            raise InputError(data.problem_path, "kind", "C solvers are emitted for static_array and dynamic_array "
+                                                        "problems, found ferraris")
+        t = config.triads[0]
+        turns = turn_data(data.recording.t, data.recording.gyro[t.name], list(data.turns), np.array(list(TURNS.values())),
+                          data.turn_angle, data.gyro_sigma[t.name], t.R_nominal)
+        return build_ferraris(config, data.averages, np.array(list(FACES.values()), float), turns)
+
+    def calibrate(self, spec: ProblemSpec, data: FerrarisData, log: Log = quiet, quick: bool = False) -> StaticOutcome:
+        config, notes = session_config(spec, data)
+        return solve_static(spec, data, self.build(config, data), notes, log, consistency=False)
+
+    def window(self, spec: ProblemSpec, data, start: int, n: int):
+        raise InputError(spec.path, "kind", "the Ferraris protocol needs all six faces and three turns; it has no window")
+
+    def cross_validate(self, spec: ProblemSpec, data, folds: int):
+        raise InputError(spec.path, "kind", "diagnose tests the effect library on static_array and dynamic_array "
+                                            "problems, found ferraris")
+
+
+def calibrate_ferraris(spec: ProblemSpec, log: Log = quiet) -> StaticOutcome:
+    """Accelerometer and gyroscope calibration of one IMU from the Ferraris protocol."""
+    return KIND.calibrate(spec, KIND.load(spec, log), log)
+
+
+KIND = FerrarisKind()

@@ -7,7 +7,7 @@ files or plot.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -97,12 +97,6 @@ def declared_noise(spec: ProblemSpec, avg: PoseAverages) -> PoseAverages:
     return avg
 
 
-def gyro_sample_sigma(spec: ProblemSpec, avg: PoseAverages) -> dict[str, np.ndarray]:
-    """Per gyroscope triad, the per-sample white-noise σ (3,): declared in ``noise`` or estimated."""
-    given = spec.noise.gyroscope or {}
-    return {n: np.full(3, given[n]) if n in given else avg.gyro_sigma_sample[n] for n in avg.gyro_mean}
-
-
 def check_temperature(spec: ProblemSpec, logged: set[str]) -> None:
     """Refuse an included temperature effect on a triad whose temperature the data do not log."""
     for e in (BY_KEY[k] for k in spec.model.effects):
@@ -173,23 +167,40 @@ def uses_transitions(config: StaticConfig, detection: Detection | None) -> bool:
         for t in config.triads)
 
 
-def with_transitions(spec: ProblemSpec, problem: StaticProblem, rec: Recording, det: Detection,
-                     avg: PoseAverages, log: Log = quiet) -> StaticProblem:
-    """Add the transition factors (castimate.problem.transitions); the intermediate directions start
-    from the rates integrated with the starting calibration and the poses' mean gyroscope bias."""
-    effects = included(problem.config.effects, "gyroscope")
+def check_transitions(spec: ProblemSpec, config: StaticConfig, data: "StaticData") -> None:
+    """Refuse what the transition factors cannot model: gyroscope effects, and turns too fast for
+    the exact per-sample integration."""
+    if not uses_transitions(config, data.detection):
+        return
+    effects = included(config.effects, "gyroscope")
     if effects:
         raise InputError(spec.path, f"model.gyroscope.{effects[0].name}",
                          "is not modelled during the rotations between the poses, which a free gyroscope gain or "
                          "misalignment is calibrated from: leave the effect out or fix the gain and misalignment")
+    names = [t.name for t in config.triads if t.gyroscope is not None and t.name in data.averages.gyro_mean]
+    check_sample_angles(data.recording, transition_samples(data.recording, data.detection.segments), names,
+                        spec.data.gyro_path or spec.data.path)
+
+
+def static_problem(config: StaticConfig, data: "StaticData", fixed_size: bool = False,
+                   log: Log = quiet) -> StaticProblem:
+    """The static problem of the poses, plus the transition factors where the gyroscope gain or
+    misalignment is free (castimate.problem.transitions); their intermediate directions start from
+    the rates integrated with the starting calibration and the poses' mean gyroscope bias."""
+    avg, rec, det = data.averages, data.recording, data.detection
+    problem = build_static(config, avg)
+    if not uses_transitions(config, det):
+        return problem
+    if fixed_size:
+        raise InputError(rec.source, "model.gyroscope", "the C solver covers the static poses; a free gyroscope gain "
+                         "or misalignment is calibrated from the rotations between them, which are not emitted: fix them")
     names = problem.gyro_triads
     trans = transition_samples(rec, det.segments)
-    check_sample_angles(rec, trans, names, spec.data.gyro_path or spec.data.path)
     start = {g.name: g.shaped(g.initial) for g in problem.lsq.layout.groups}
     T0, _ = problem.gyro_calibration(start)[names[0]]
     b0 = avg.gyro_mean[names[0]].mean(axis=0)
-    chain = transition_chain(trans, {n: rec.gyro[n] for n in names}, gyro_sample_sigma(spec, avg), avg.n_poses,
-                             initial_directions(problem.config, avg), lambda y: np.linalg.solve(T0, (y - b0).T).T)
+    chain = transition_chain(trans, {n: rec.gyro[n] for n in names}, data.gyro_sigma or avg.gyro_sigma_sample,
+                             avg.n_poses, initial_directions(config, avg), lambda y: np.linalg.solve(T0, (y - b0).T).T)
     log(f"gyroscope calibration from {len(trans)} transitions between the poses ({chain.n_samples} samples)")
     return add_transitions(problem, chain)
 
@@ -295,6 +306,7 @@ class StaticData:
     recording: Recording
     averages: PoseAverages
     detection: Detection | None
+    gyro_sigma: dict = field(default_factory=dict)  # triad -> per-sample σ (3,) declared in noise, else empty
 
 
 def declared(spec: ProblemSpec) -> Declared:
@@ -326,7 +338,8 @@ def load_static(spec: ProblemSpec, log: Log = quiet) -> StaticData:
     if det is not None:
         log(det.summary())
         check_gyroscope_noise({n: float(np.max(s)) for n, s in avg.gyro_sigma_sample.items()}, declared(spec))
-    return StaticData(rec, avg, det)
+    given = spec.noise.gyroscope or {}
+    return StaticData(rec, avg, det, {n: np.full(3, given[n]) for n in avg.gyro_mean if n in given})
 
 
 def calibrate_static(spec: ProblemSpec, log: Log = quiet, data: StaticData | None = None,
@@ -342,10 +355,8 @@ def calibrate_static(spec: ProblemSpec, log: Log = quiet, data: StaticData | Non
     for n, note in notes.items():
         log(f"  {n}: {note}")
     log(f"building the NLP: {len(config.triads)} triads, {avg.n_poses} poses")
-    problem = build_static(config, avg)
-    if uses_transitions(config, det):
-        problem = with_transitions(spec, problem, rec, det, avg, log)
-    return solve_static(spec, data, problem, notes, log, consistency)
+    check_transitions(spec, config, data)
+    return solve_static(spec, data, static_problem(config, data, log=log), notes, log, consistency)
 
 
 def solve_static(spec: ProblemSpec, data: StaticData, problem: StaticProblem, notes: dict[str, str],
@@ -396,10 +407,11 @@ class StaticKind:
         config, notes = session_config(spec, data)
         for n, note in notes.items():
             log(f"  {n}: {note}")
+        check_transitions(spec, config, data)
         return config
 
     def build(self, config: StaticConfig, data: StaticData, fixed_size: bool = False) -> StaticProblem:
-        return build_static(config, data.averages)  # pose averages: no masked readings, any size is fixed
+        return static_problem(config, data, fixed_size)  # pose averages: no masked readings, any size is fixed
 
     def check(self, spec: ProblemSpec, problem: StaticProblem, solver: Solver, data: StaticData) -> None:
         check_identifiable(spec.path, problem, solver, data.averages)
