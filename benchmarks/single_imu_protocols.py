@@ -1,6 +1,6 @@
 """Single-IMU protocols on the shared real sessions, side by side with what users compare against.
 
-1. The imu_tk Xsens session (Tedaldi 2014 multi-position protocol, problems/xsens_imutk.yaml):
+1. The imu_tk Xsens session (Tedaldi 2014 multi-position protocol, problems/xsens_imutk_gyro.yaml):
    castimate's accelerometer and gyroscope (from the rotations between poses) against the
    manufacturer's nominal offsets and scales in the data README.
 2. The imucal Ferraris session (problems/imucal_ferraris.yaml): castimate's ``kind: ferraris``
@@ -51,7 +51,7 @@ def rotate_back(w, u):
 
 
 def xsens():
-    spec = load_problem(ROOT / "problems" / "xsens_imutk.yaml")
+    spec = load_problem(ROOT / "problems" / "xsens_imutk_gyro.yaml")
     t0 = time.perf_counter()
     out = calibrate(spec)
     wall = time.perf_counter() - t0

@@ -84,7 +84,7 @@ def test_static_parametrisations_match_ipopt(simulated, tmp_path, model):
 def test_static_single_triad_with_gyroscope_matches_ipopt(shared_data, tmp_path):
     """The Xsens session with its gyroscope gain and misalignment fixed (the C solver has no transition
     factors, and refuses them)."""
-    text = (PROBLEMS / "xsens_imutk.yaml").read_text().replace("../../shared/data", str(shared_data))
+    text = (PROBLEMS / "xsens_imutk_gyro.yaml").read_text().replace("../../shared/data", str(shared_data))
     (tmp_path / "with_transitions.yaml").write_text(text)
     with pytest.raises(InputError, match="model.gyroscope.*rotations between them"):
         generate_c(tmp_path / "with_transitions.yaml", tmp_path / "c")

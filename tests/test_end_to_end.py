@@ -67,7 +67,7 @@ def test_mimu4444_exp1_static(shared_data, tmp_path, monkeypatch):
 
 def test_xsens_counts_match_manufacturer(shared_data, tmp_path):
     from pathlib import Path
-    problem = Path(__file__).resolve().parents[1] / "problems" / "xsens_imutk.yaml"
+    problem = Path(__file__).resolve().parents[1] / "problems" / "xsens_imutk_gyro.yaml"
     assert main(["solve", str(problem), "-o", str(tmp_path), "-q"]) == 0
     res = json.loads((tmp_path / "results.json").read_text())
     acc = res["triads"]["imu"]["accelerometer"]

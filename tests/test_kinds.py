@@ -36,7 +36,7 @@ def test_every_registered_kind_implements_the_protocol_and_has_outputs():
 
 
 def test_an_unknown_kind_is_refused():
-    with pytest.raises(InputError, match=r"kind: expected one of static_array, dynamic_array, found 'nope'"):
+    with pytest.raises(InputError, match=r"kind: expected one of static_array, dynamic_array, ferraris, found 'nope'"):
         kind_of("nope")
 
 
