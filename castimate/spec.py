@@ -93,7 +93,8 @@ class DataSpec:
     detection: DetectionOptions = DetectionOptions()
     saturation: dict = field(default_factory=lambda: {"accelerometer": "auto", "gyroscope": "auto"})
     static_range: tuple[float, float] | None = None  # dynamic kind: static poses of the same recording (joint problem)
-    rate: float | None = None  # Hz, declared sample rate (imucal tables have sample numbers only)
+    rate: float | None = None  # Hz, declared sample rate (required by imucal tables, which have sample numbers only;
+    # others: the stamps are checked against it and repaired from it, castimate.io.timestamps)
     sections: Path | None = None  # ferraris: imucal's section list (labelled faces and turns)
     turn_angle_deg: float = FERRARIS_TURN_DEG  # ferraris: the angle of every turn about the face's up axis
 
@@ -265,8 +266,6 @@ def _data(c: Check, d, base: Path) -> DataSpec:
     rate = c.number(d["rate"], "data.rate", positive=True) if "rate" in d else None
     if fmt == "imucal" and rate is None:
         c.fail("data", "missing required key 'rate': an imucal table has sample numbers, not times (Hz)")
-    if rate is not None and fmt != "imucal":
-        c.fail("data.rate", f"only imucal tables need a declared rate; format {fmt} has times")
     sections = None
     if "sections" in d:
         if not isinstance(d["sections"], str):

@@ -76,7 +76,6 @@ def test_cli_solve_writes_results(tmp_path):
     (lambda s: s.replace("kind: ferraris", "kind: static_array"), "data.sections: labelled faces and turns are for kind ferraris"),
     (lambda s: s.replace("sections.json}", "sections.json, turn_angle_deg: 0}"), "data.turn_angle_deg: expected a non-zero"),
     (lambda s: s.replace("[{name: imu}]", "[{name: imu}, {name: imu2}]"), "array.triads: the Ferraris protocol calibrates one IMU"),
-    (lambda s: s.replace("format: imucal", "format: csv"), "data.rate: only imucal tables need a declared rate"),
 ])
 def test_problem_file_refusals(tmp_path, edit, match):
     from castimate.spec import load_problem

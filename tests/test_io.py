@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from castimate.errors import InputError
-from castimate.io.imutk import XSENS_ACC_UNITS, XSENS_GYRO_UNITS, read_imutk, read_imutk_table
+from castimate.io.imutk import XSENS_ACC_UNITS, XSENS_GYRO_UNITS, imutk_times, read_imutk
 from castimate.io.mimu import MimuStats, read_mimu, read_mimu_with_stats
 from castimate.io.readers import read_csv, read_npz, read_recording, write_csv, write_npz
 from castimate.io.recording import Recording
@@ -511,7 +511,8 @@ class TestImutk:
             ("0 1 2 3\n\n0.1 1 2 3 4\n", "line 3", "found 5"),
             ("0 1 2 3\n0.1 1 zz 3\n", "line 2", "column y: expected a number, found 'zz'"),
             ("0 1 2 3\n0.1 1 nan 3\n", "line 2", "finite"),
-            ("0 1 2 3\n% c\n0 1 2 3\n", "line 3", "column time: expected strictly increasing time"),
+            ("0 1 2 3\n% c\n0 1 2 3\n", "column time", "expected strictly increasing time, found 0.0 at line 3 after 0.0 "
+                                                    "at line 1 (with 2 rows, too few to repair"),
             ("\n% nothing\n", "", "empty file"),
         ],
     )
@@ -519,7 +520,7 @@ class TestImutk:
         p = tmp_path / "bad.mat"
         p.write_text(text)
         with pytest.raises(InputError, match=rx(p, where, found)):
-            read_imutk_table(p)
+            imutk_times(p)
         with pytest.raises(InputError, match=rx(p, where, found)):
             read_imutk(p)
 
@@ -606,7 +607,9 @@ def test_real_xsens_tables(shared_data):
     d = shared_data / "imu_tk_xsens"
     rec = read_imutk(d / "xsens_acc.mat", d / "xsens_gyro.mat")
     assert len(rec) == 51175
-    assert rec.notes == ()  # identical time stamps: combined without interpolation
+    # identical time stamps: combined without interpolation; stamps within 0.6 ms of a 100.01 Hz grid, kept
+    assert rec.notes == ("xsens_acc.mat: column time: 51175 samples at 100.01 Hz (estimated from the stamps); "
+                         "timestamps within 0.585 ms of a uniform grid, kept",)
     assert abs(np.median(np.diff(rec.t)) - 0.01) < 1e-4
     assert 510 < rec.t[-1] < 513
     # first file row: 2.9840000e-02 3.3108e4 3.3329e4 3.6429e4 (acc), 3.2786e4 3.2429e4 3.2499e4 (gyro)

@@ -17,6 +17,7 @@ import numpy as np
 
 from castimate.errors import InputError
 from castimate.io.recording import Recording
+from castimate.io.timestamps import regular_times
 from castimate.io.units import UnitSpec, parse_units
 from castimate.validation import read_input_text
 
@@ -48,13 +49,19 @@ def read_imucal(path: str | os.PathLike, rate: float, acc_units: UnitSpec | None
         i, c = np.argwhere(bad)[0]
         raise InputError(source, COLUMNS[c], f"line {i + 2}: expected a finite number, found {data[i, c]}")
     n = data[:, 0]
-    if len(n) < 2 or np.any(np.diff(n) <= 0):
-        i = int(np.argmax(np.diff(n) <= 0)) + 1 if len(n) > 1 else 0
-        raise InputError(source, "n_samples", f"expected strictly increasing sample numbers, found {n[i]!r} at line {i + 2}")
+    if len(n) < 2:
+        raise InputError(source, "n_samples", f"expected at least 2 samples, found {len(n)}")
+    if np.any(n != np.round(n)):
+        i = int(np.flatnonzero(n != np.round(n))[0])
+        raise InputError(source, "n_samples", f"expected integer sample numbers, found {n[i]!r} at line {i + 2}")
+    # the sample numbers are the clock: the times are n / rate, a gap in n is a gap in the recording
+    times = regular_times(n / rate, source, "n_samples", lambda i: f"line {i + 2}", rate=rate,
+                          index=n.astype(np.int64), index_name="sample numbers")
     acc = parse_units(acc_units or DEFAULT_ACC_UNITS, source, "acc_units", "accelerometer")
     gyro = parse_units(gyro_units or DEFAULT_GYRO_UNITS, source, "gyro_units", "gyroscope")
-    return Recording(t=n / rate, acc={name: acc.to_si(data[:, 4:7])}, gyro={name: gyro.to_si(data[:, 1:4])},
-                     source=source, notes=(f"imucal table: {len(n)} samples at the declared {rate:g} Hz",))
+    return Recording(t=times.t, acc={name: acc.to_si(data[:, 4:7])}, gyro={name: gyro.to_si(data[:, 1:4])},
+                     source=source, notes=(f"imucal table: {len(n)} samples at the declared {rate:g} Hz",)
+                     + times.notes[1:])  # [0] restates the rate
 
 
 def read_sections(path: str | os.PathLike) -> dict[str, tuple[int, int]]:

@@ -16,6 +16,7 @@ import numpy as np
 from castimate.errors import InputError
 from castimate.validation import read_input_bytes
 from castimate.io.recording import Recording
+from castimate.io.timestamps import TimeBase, regular_times
 from castimate.io.units import UnitSpec, parse_units
 
 #: Xsens MTi nominal values from the IMU-TK Matlab scripts: raw offsets in counts and
@@ -48,14 +49,15 @@ def _data_lines(text: str) -> list[int]:
     ]
 
 
-def read_imutk_table(path: str | os.PathLike) -> np.ndarray:
-    """Read one imu_tk table as an (N, 4) float array: time [s], x, y, z (raw).
+def read_imutk_table(path: str | os.PathLike) -> tuple[np.ndarray, list[int]]:
+    """Read one imu_tk table as an (N, 4) float array, time [s], x, y, z (raw), as written, and
+    the line number of each row.
 
     Raises
     ------
     InputError
-        Missing or empty file, a row without exactly 4 numbers (its line number named),
-        non-finite values, or non-increasing time.
+        Missing or empty file, a row without exactly 4 numbers (its line number named), or
+        non-finite values.
     """
     source = str(path)
     raw = read_input_bytes(path)
@@ -99,17 +101,13 @@ def read_imutk_table(path: str | os.PathLike) -> np.ndarray:
     if not finite.all():
         i = int(np.flatnonzero(~finite)[0])
         raise InputError(source, f"line {lines[i]}", f"expected finite numbers, found {table[i].tolist()}")
-    dt = np.diff(table[:, 0])
-    bad = np.flatnonzero(~(dt > 0))
-    if bad.size:
-        i = int(bad[0]) + 1
-        raise InputError(
-            source,
-            f"line {lines[i]}",
-            f"column time: expected strictly increasing time, found {float(table[i, 0])!r} "
-            f"after {float(table[i - 1, 0])!r} on line {lines[i - 1]}",
-        )
-    return table
+    return table, lines
+
+
+def imutk_times(path: str | os.PathLike, rate: float | None = None) -> tuple[np.ndarray, TimeBase]:
+    """One imu_tk table and its sample times (:func:`castimate.io.timestamps.regular_times`)."""
+    table, lines = read_imutk_table(path)
+    return table, regular_times(table[:, 0], path, "column time", lambda i: f"line {lines[i]}", rate=rate)
 
 
 def read_imutk(
@@ -118,6 +116,7 @@ def read_imutk(
     acc_units: UnitSpec = XSENS_ACC_UNITS,
     gyro_units: UnitSpec = XSENS_GYRO_UNITS,
     name: str = "imu",
+    rate: float | None = None,
 ) -> Recording:
     """Read imu_tk accelerometer (and gyroscope) tables into a one-triad recording.
 
@@ -133,33 +132,39 @@ def read_imutk(
         :data:`XSENS_GYRO_UNITS`).
     name
         Triad name.
+    rate
+        Declared sampling rate, Hz; ``None``: estimated from the stamps.
 
     Returns
     -------
     Recording
-        ``t`` in seconds as in the accelerometer table. If the gyroscope table has other time
-        stamps it is linearly interpolated onto them, accelerometer samples outside the
-        gyroscope's time span are dropped, and a note says so.
+        ``t`` in seconds from the accelerometer table's stamps, repaired where they are rounded,
+        repeated or jittered (:func:`castimate.io.timestamps.regular_times`, noted). If the
+        gyroscope table has other stamps it is linearly interpolated onto those times,
+        accelerometer samples outside the gyroscope's time span are dropped, and a note says so.
 
     Raises
     ------
     InputError
-        Bad tables (see :func:`read_imutk_table`) or tables that do not overlap in time.
+        Bad tables (see :func:`read_imutk_table`), time running backwards, or tables that do
+        not overlap in time.
     """
     source = str(acc_path) if gyro_path is None else f"{acc_path} + {gyro_path}"
     acc_conv = parse_units(acc_units, acc_path, "acc_units", "accelerometer")
-    acc_tab = read_imutk_table(acc_path)
-    t = acc_tab[:, 0]
+    acc_tab, acc_time = imutk_times(acc_path, rate)
+    t = acc_time.t
     acc_raw = acc_tab[:, 1:4]
-    notes: list[str] = []
+    notes: list[str] = [f"{Path(acc_path).name}: {note}" for note in acc_time.notes]
     gyro: dict[str, np.ndarray] = {}
     if gyro_path is not None:
         gyro_conv = parse_units(gyro_units, gyro_path, "gyro_units", "gyroscope")
-        gyro_tab = read_imutk_table(gyro_path)
-        tg = gyro_tab[:, 0]
-        if tg.size == t.size and np.all(np.abs(tg - t) <= TIME_MATCH_TOL):
-            gyro_raw = gyro_tab[:, 1:4]
+        gyro_tab, _ = read_imutk_table(gyro_path)
+        if gyro_tab.shape[0] == acc_tab.shape[0] and np.all(np.abs(gyro_tab[:, 0] - acc_tab[:, 0]) <= TIME_MATCH_TOL):
+            gyro_raw = gyro_tab[:, 1:4]  # the same stamps: the same samples
         else:
+            gyro_tab, gyro_time = imutk_times(gyro_path, rate)
+            tg = gyro_time.t
+            notes += [f"{Path(gyro_path).name}: {note}" for note in gyro_time.notes]
             # Interpolating outside the gyroscope's span would invent data; keep the overlap.
             inside = (t >= tg[0]) & (t <= tg[-1])
             if not inside.any():

@@ -26,6 +26,7 @@ import numpy as np
 from castimate.errors import InputError
 from castimate.validation import read_input_bytes
 from castimate.io.recording import Recording
+from castimate.io.timestamps import regular_times
 from castimate.io.units import UnitSpec, parse_units
 
 HEADER = 0xAA
@@ -192,42 +193,11 @@ def _find_packet_starts(data: np.ndarray, source: str) -> tuple[np.ndarray, int,
     return starts, psize, counts
 
 
-#: A timestamp step that differs from the packet counter's count times the nominal period by more
-#: than this fraction of a period is a clock anomaly (backwards, stuck or jumping).
-CLOCK_TOLERANCE = 0.5
-
-
-def _repair_clock(dticks: np.ndarray, dcount: np.ndarray) -> tuple[np.ndarray, str]:
-    """Timestamp steps checked against the packet counter; anomalous steps replaced by the counter's.
-
-    The counter counts packets, the clock ticks; between consecutive packets the clock must advance
-    by the number of packets (1, more after dropped packets) times the sampling period. A step that
-    does not (time running backwards, which modular unwrapping would read as a 67 s wrap; a repeated
-    stamp on a new packet; a jump while no packet is missing) is replaced by counter x period, the
-    median period of the consistent steps. Returns the steps and a note ('' if none was repaired).
-    """
-    counted = dcount > 0
-    if not counted.any():
-        return dticks, ""
-    period = float(np.median(dticks[counted] / dcount[counted]))
-    expected = dcount * period
-    bad = counted & (np.abs(dticks - expected) > CLOCK_TOLERANCE * period * np.maximum(dcount, 1))
-    if not bad.any() or period <= 0:
-        return dticks, ""
-    i = int(np.flatnonzero(bad)[0])
-    signed = ((dticks[i] + (1 << 31)) % (1 << 32)) - (1 << 31)  # a step back shows as negative
-    note = (f"{int(bad.sum())} timestamp step(s) disagree with the packet counter (first after sample {i}: "
-            f"{signed / CLOCK_HZ:+.6g} s where the counter says {expected[i] / CLOCK_HZ:.6g} s); their times were "
-            f"repaired from the counter at the median period {1e3 * period / CLOCK_HZ:.6g} ms")
-    out = dticks.copy()
-    out[bad] = np.round(expected[bad]).astype(out.dtype)
-    return out, note
-
-
 def read_mimu_with_stats(
     path: str | os.PathLike,
     acc_units: UnitSpec | None = None,
     gyro_units: UnitSpec | None = None,
+    rate: float | None = None,
 ) -> tuple[Recording, MimuStats]:
     """Read a MIMU packet stream and report what was found in it.
 
@@ -238,12 +208,15 @@ def read_mimu_with_stats(
     acc_units, gyro_units
         Unit declarations of the raw int16 values (see :func:`castimate.io.units.parse_units`).
         Default: MPU9150 nominal, raw * 9.80665 / 2048 m/s^2 and raw / 16.4 deg/s.
+    rate
+        Declared sampling rate, Hz; ``None``: from the timestamps per counted packet.
 
     Returns
     -------
     recording
         Triads ``imu1`` .. ``imuN`` with acc (m/s^2) and gyro (rad/s); ``t`` in seconds from
-        the first packet, from the unwrapped 64 MHz timestamps.
+        the first packet, from the unwrapped 64 MHz timestamps, or where they disagree with the
+        packet counter from the counter (:func:`castimate.io.timestamps.regular_times`, noted).
     stats
         Packet, resynchronisation and dropped-packet counts.
 
@@ -282,10 +255,14 @@ def read_mimu_with_stats(
         counter, ticks, values = counter[keep], ticks[keep], values[keep]
         dticks = np.diff(ticks) % (1 << 32)
         dcount = np.diff(counter) % (1 << 16)
-    dticks, clock_note = _repair_clock(dticks, dcount)
     elapsed = np.concatenate(([0], np.cumsum(dticks)))
     timestamp_wraps = int((int(ticks[0]) + int(elapsed[-1])) >> 32)  # times the 32-bit clock rolled over
-    t = elapsed / CLOCK_HZ
+    # The counter numbers the samples: stamps that disagree with it (time running backwards, which the
+    # unwrapping reads as a 67 s wrap; a stuck or jumping clock) are repaired from it, with a note.
+    index = np.concatenate(([0], np.cumsum(dcount)))
+    times = regular_times(elapsed / CLOCK_HZ, source, "timestamp", lambda i: f"packet {i + 1}", rate=rate,
+                          index=index, index_name="packet counter")
+    t = times.t - times.t[0]  # seconds from the first packet
 
     missing = np.where(dcount >= 1, dcount - 1, 0)
     gap_idx = np.flatnonzero(missing)
@@ -310,7 +287,7 @@ def read_mimu_with_stats(
         name = f"imu{j + 1}"
         acc[name] = acc_conv.to_si(values[:, j, 0:3], source, name)
         gyro[name] = gyro_conv.to_si(values[:, j, 3:6], source, name)
-    notes = (stats.summary(), stats.details()) + ((clock_note,) if clock_note else ())
+    notes = (stats.summary(), stats.details()) + times.notes
     return Recording(t=t, acc=acc, gyro=gyro, source=source, notes=notes), stats
 
 
@@ -318,10 +295,11 @@ def read_mimu(
     path: str | os.PathLike,
     acc_units: UnitSpec | None = None,
     gyro_units: UnitSpec | None = None,
+    rate: float | None = None,
 ) -> Recording:
     """Read a MIMU packet stream; see :func:`read_mimu_with_stats`.
 
     The packet, bad-checksum and dropped-packet counts are in ``Recording.notes``.
     """
-    rec, _ = read_mimu_with_stats(path, acc_units, gyro_units)
+    rec, _ = read_mimu_with_stats(path, acc_units, gyro_units, rate)
     return rec

@@ -23,6 +23,7 @@ from castimate.errors import InputError
 from castimate.validation import input_file, read_input_bytes
 from castimate.io.atomic import atomic_write
 from castimate.io.recording import Recording
+from castimate.io.timestamps import regular_times
 from castimate.io.units import UnitConversion, UnitSpec, parse_units
 
 FORMATS = ("csv", "npz", "mimu", "imutk", "imucal")
@@ -44,20 +45,6 @@ _GYRO_AXES = ("gx", "gy", "gz")
 def _units(spec: UnitSpec | None, default: str, source: str, arg: str, quantity: str) -> UnitConversion:
     """Resolve a units argument; ``None`` means the data are already SI."""
     return parse_units(default if spec is None else spec, source, arg, quantity)
-
-
-def _check_time(t: np.ndarray, source: str, where: str, row_label: Callable[[int], str]) -> None:
-    """Raise unless ``t`` is strictly increasing; ``row_label(i)`` names sample ``i``."""
-    dt = np.diff(t)
-    bad = np.flatnonzero(~(dt > 0))
-    if bad.size:
-        i = int(bad[0]) + 1
-        raise InputError(
-            source,
-            where,
-            f"expected strictly increasing time, found {float(t[i])!r} at {row_label(i)} "
-            f"after {float(t[i - 1])!r} at {row_label(i - 1)}",
-        )
 
 
 def _check_finite(arr: np.ndarray, source: str, where: str, row_label: Callable[[int], str]) -> None:
@@ -172,6 +159,7 @@ def read_csv(
     acc_units: UnitSpec | None = "m/s^2",
     gyro_units: UnitSpec | None = "rad/s",
     temp_units: UnitSpec | None = None,
+    rate: float | None = None,
 ) -> Recording:
     """Read a CSV recording.
 
@@ -183,18 +171,22 @@ def read_csv(
     acc_units, gyro_units, temp_units
         Unit declarations of the accelerometer, gyroscope and temperature columns (see
         :func:`castimate.io.units.parse_units`); ``None`` means SI (m/s^2, rad/s, K).
+    rate
+        Declared sampling rate, Hz; ``None``: estimated from the stamps.
 
     Returns
     -------
     Recording
-        Triads in column order; ``t`` in seconds as written in the file.
+        Triads in column order; ``t`` in seconds: the stamps, or where they are rounded,
+        repeated or jittered the uniform grid of :func:`castimate.io.timestamps.regular_times`
+        (noted, with any gaps, in ``notes``).
 
     Raises
     ------
     InputError
         Missing or empty file, unknown or duplicate columns, missing ``t``, a triad with only
         some of its axes, a row of the wrong length, non-numeric or non-finite values (column
-        and line named), non-increasing time.
+        and line named), time running backwards.
     """
     source = str(path)
     acc_conv = _units(acc_units, "m/s^2", source, "acc_units", "accelerometer")
@@ -227,8 +219,7 @@ def read_csv(
 
     for c, name in enumerate(columns):
         _check_finite(data[:, c], source, name, row_label)
-    t = data[:, columns.index("t")].copy()
-    _check_time(t, source, "t", row_label)
+    times = regular_times(data[:, columns.index("t")], source, "t", row_label, rate=rate)
 
     acc: dict[str, np.ndarray] = {}
     gyro: dict[str, np.ndarray] = {}
@@ -239,7 +230,7 @@ def read_csv(
             gyro[triad] = gyro_conv.to_si(data[:, [chans[a] for a in _GYRO_AXES]], source, f"{triad}.gx")
         if "temp" in chans:
             temp[triad] = temp_conv.to_si(data[:, chans["temp"]], source, f"{triad}.temp")
-    return Recording(t=t, acc=acc, gyro=gyro, temp=temp, source=source)
+    return Recording(t=times.t, acc=acc, gyro=gyro, temp=temp, source=source, notes=times.notes)
 
 
 def write_csv(path: str | os.PathLike, recording: Recording) -> None:
@@ -287,6 +278,7 @@ def read_npz(
     acc_units: UnitSpec | None = "m/s^2",
     gyro_units: UnitSpec | None = "rad/s",
     temp_units: UnitSpec | None = None,
+    rate: float | None = None,
 ) -> Recording:
     """Read an NPZ recording.
 
@@ -295,8 +287,8 @@ def read_npz(
     path
         ``.npz`` archive with keys ``t`` (N,), ``<triad>.acc`` (N, 3), optional
         ``<triad>.gyro`` (N, 3) and ``<triad>.temp`` (N,).
-    acc_units, gyro_units, temp_units
-        As for :func:`read_csv`; ``None`` means SI.
+    acc_units, gyro_units, temp_units, rate
+        As for :func:`read_csv`; ``None`` means SI (and a rate estimated from the stamps).
 
     Returns
     -------
@@ -307,7 +299,7 @@ def read_npz(
     ------
     InputError
         Missing file, not an npz archive, unknown keys, missing ``t``, wrong shapes or
-        non-numeric arrays (key named), non-finite values, non-increasing time.
+        non-numeric arrays (key named), non-finite values, time running backwards.
     """
     source = str(path)
     acc_conv = _units(acc_units, "m/s^2", source, "acc_units", "accelerometer")
@@ -353,7 +345,7 @@ def read_npz(
             return f"index {i}"
 
         _check_finite(t, source, "t", row_label)
-        _check_time(t, source, "t", row_label)
+        times = regular_times(t, source, "t", row_label, rate=rate)
 
         acc: dict[str, np.ndarray] = {}
         gyro: dict[str, np.ndarray] = {}
@@ -383,7 +375,7 @@ def read_npz(
                 temp[triad] = temp_conv.to_si(arr, source, f"{triad}.temp")
     if not acc:
         raise InputError(source, "", "expected at least one '<triad>.acc' array, found only 't'")
-    return Recording(t=t, acc=acc, gyro=gyro, temp=temp, source=source)
+    return Recording(t=times.t, acc=acc, gyro=gyro, temp=temp, source=source, notes=times.notes)
 
 
 def write_npz(path: str | os.PathLike, recording: Recording) -> None:
@@ -422,7 +414,7 @@ def read_recording(
     Parameters
     ----------
     fmt
-        ``"csv"``, ``"npz"``, ``"mimu"`` or ``"imutk"``.
+        ``"csv"``, ``"npz"``, ``"mimu"``, ``"imutk"`` or ``"imucal"``.
     path
         The data file (for ``imutk`` the accelerometer table).
     acc_units, gyro_units, temp_units
@@ -433,16 +425,18 @@ def read_recording(
     name
         ``imutk`` and ``imucal``: the triad name.
     rate
-        ``imucal`` only: the sample rate [Hz] (the table has sample numbers, not times).
+        The declared sampling rate [Hz]: required for ``imucal`` (the table has sample numbers,
+        not times); for the others the stamps are checked against it and repaired from it, and
+        without it the rate is estimated from them (:mod:`castimate.io.timestamps`).
     """
     if fmt == "csv":
-        return read_csv(path, acc_units, gyro_units, temp_units)
+        return read_csv(path, acc_units, gyro_units, temp_units, rate)
     if fmt == "npz":
-        return read_npz(path, acc_units, gyro_units, temp_units)
+        return read_npz(path, acc_units, gyro_units, temp_units, rate)
     if fmt == "mimu":
         from castimate.io.mimu import read_mimu
 
-        return read_mimu(path, acc_units, gyro_units)
+        return read_mimu(path, acc_units, gyro_units, rate)
     if fmt == "imutk":
         from castimate.io import imutk
 
@@ -452,6 +446,7 @@ def read_recording(
             acc_units=imutk.XSENS_ACC_UNITS if acc_units is None else acc_units,
             gyro_units=imutk.XSENS_GYRO_UNITS if gyro_units is None else gyro_units,
             name=name,
+            rate=rate,
         )
     if fmt == "imucal":
         from castimate.io.imucal import read_imucal

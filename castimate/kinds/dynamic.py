@@ -43,7 +43,8 @@ GYRO_GROUPS = ("gain", "bias", "misalignment")
 
 def read_full(spec: ProblemSpec) -> Recording:
     d = spec.data
-    return read_recording(d.format, d.path, acc_units=d.acc_units, gyro_units=d.gyro_units, gyro_path=d.gyro_path)
+    return read_recording(d.format, d.path, acc_units=d.acc_units, gyro_units=d.gyro_units, gyro_path=d.gyro_path,
+                          rate=d.rate)
 
 
 def noise_from_static(spec: ProblemSpec, full: Recording, log: Log) -> tuple[dict, dict]:
