@@ -13,7 +13,7 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
-from .errors import EXIT_INVALID_INPUT, CastimateError, InputError
+from .errors import EXIT_INVALID_INPUT, EXIT_PARTIAL, CastimateError, InputError
 
 
 def _log(msg: str) -> None:
@@ -150,11 +150,126 @@ def cmd_codegen(args) -> int:
     return 0
 
 
+def _scale_options(s) -> None:
+    s.add_argument("--scheduler", metavar="ADDRESS", help="an existing Dask scheduler (tcp://host:8786; its workers need "
+                                                         "castimate installed and the input files at the same paths); "
+                                                         "default: a LocalCluster on this machine")
+    s.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="LocalCluster worker processes (default: one per core)")
+
+
+def cmd_batch(args) -> int:
+    from .io.atomic import StagedOutput, write_atomic
+    from .io.results import write_json
+    from .report.scale import render_batch
+    from .scale.batch import load_template, recordings_of, run_batch
+    from .scale.engine import check_workers, dask_client
+
+    out = Path(args.output)
+    check_workers(args.workers)
+    load_template(args.template)
+    names = ("summary.csv", "summary.json", "summary.html")
+    with StagedOutput(out, names=names, inputs=(args.template, *recordings_of(args.recordings))) as stage:
+        with dask_client(args.scheduler, args.workers) as client:
+            summary = run_batch(client, args.template, args.recordings, _log, args.outlier_threshold)
+        for name, r in zip(summary.names, summary.results):
+            if r.ok:
+                for f, data in r.value["files"].items():
+                    write_atomic(stage / name / f, data)
+        write_atomic(stage / names[0], summary.csv())
+        write_json(stage / names[1], summary.document())
+        write_atomic(stage / names[2], render_batch(summary))
+    rows = summary.rows()
+    ok = sum(r["status"] == "ok" for r in rows)
+    print(f"{ok} of {len(rows)} recordings calibrated; {sum(r['outliers'] or 0 for r in rows)} outlying parameter "
+          f"values (|x - median| > {summary.threshold:g} sigma)")
+    for name in names:
+        print(f"wrote {out / name}")
+    return 0 if ok == len(rows) else EXIT_PARTIAL
+
+
+def cmd_montecarlo(args) -> int:
+    import numpy as np
+
+    from .io.atomic import StagedOutput, write_atomic
+    from .io.results import write_json
+    from .output.tables import csv_text
+    from .report.scale import montecarlo_figure, montecarlo_rows, render_montecarlo
+    from .scale.engine import check_workers, dask_client
+    from .scale.montecarlo import check_runs, load_scenario, run_montecarlo
+
+    out = Path(args.output)
+    check_runs(args.runs)
+    check_workers(args.workers)
+    load_scenario(args.scenario)
+    names = ("montecarlo.json", "parameters.csv", "runs.csv", "montecarlo.html", "montecarlo.png")
+    with StagedOutput(out, names=names, inputs=(args.scenario,)) as stage:
+        with dask_client(args.scheduler, args.workers) as client:
+            study = run_montecarlo(client, args.scenario, args.runs, _log)
+        rows = montecarlo_rows(study)
+        runs = [{"run": r.name, "status": "ok" if r.ok else "failed", "chi2_per_dof": r.value.chi2_per_dof if r.ok
+                 else None, "wall_s": r.wall_s, "message": r.error} for r in study.results]
+        sc = study.score
+        write_json(stage / names[0], {"format": "castimate.montecarlo/1", "scenario": study.scenario, "runs": study.runs,
+                                      "solved": len(sc.errors), "failures": study.failures(), "parameters": rows})
+        write_atomic(stage / names[1], csv_text(rows))
+        write_atomic(stage / names[2], csv_text(runs))
+        write_atomic(stage / names[3], render_montecarlo(study, names[4]))
+        montecarlo_figure(study).savefig(stage / names[4], dpi=110)
+    r = sc.rmse_over_crb
+    print(f"{len(sc.errors)} of {study.runs} runs solved; RMSE/CRB {np.nanmin(r):.3f}..{np.nanmax(r):.3f} "
+          f"(RMS {np.sqrt(np.nanmean(r ** 2)):.3f}); std(error/sigma) {np.nanmin(sc.z_std):.3f}..{np.nanmax(sc.z_std):.3f}")
+    for name in names:
+        print(f"wrote {out / name}")
+    return 0
+
+
+def cmd_plan(args) -> int:
+    import numpy as np
+
+    from .io.atomic import StagedOutput, write_atomic
+    from .io.results import write_json
+    from .output.tables import csv_text
+    from .report.scale import plan_figure, render_plan
+    from .scale.engine import check_workers, dask_client
+    from .scale.plan import load_plan, run_plan
+    from .scale.stats import crb_table, duration_exponent
+
+    out = Path(args.output)
+    check_workers(args.workers)
+    load_plan(args.plan)
+    names = ("plan.json", "plan.csv", "plan.html", "crb_vs_duration.png")
+    with StagedOutput(out, names=names, inputs=(args.plan,)) as stage:
+        with dask_client(args.scheduler, args.workers) as client:
+            plan, cases = run_plan(client, args.plan, _log)
+        labels, crb = crb_table(cases)
+        a = duration_exponent(plan.durations, crb)
+        units = cases[0].units
+        rows = [{"parameter": lab, "unit": units.get(lab, ""), **{f"crb_{d:g}s": crb[i, j] for i, d in
+                                                                  enumerate(plan.durations)}, "exponent": a[j]}
+                for j, lab in enumerate(labels)]
+        write_json(stage / names[0], {"format": "castimate.plan/1", "plan": str(args.plan), "durations_s": plan.durations,
+                                      "undetermined": {f"{c.duration:g} s": list(c.undetermined) for c in cases},
+                                      "parameters": rows})
+        write_atomic(stage / names[1], csv_text(rows))
+        write_atomic(stage / names[2], render_plan(str(args.plan), cases, names[3]))
+        plan_figure(cases).savefig(stage / names[3], dpi=110)
+    und = sorted({u for c in cases for u in c.undetermined})
+    print(f"{len(labels)} parameters, {len(und)} undetermined direction(s){': ' + '; '.join(und) if und else ''}")
+    finite = np.isfinite(crb[-1])
+    print(f"at {plan.durations[-1]:g} s the bound exponent (CRB ~ duration^a) is a = {np.nanmedian(a):.3f} (median); "
+          f"{int(finite.sum())} finite bounds")
+    for name in names:
+        print(f"wrote {out / name}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     from .version import __version__
 
     p = argparse.ArgumentParser(prog="castimate", description="Maximum-likelihood calibration of inertial sensor "
-                                "arrays (CasADi + IPOPT). Exit codes: 0 success, 2 invalid input, 3 no convergence.")
+                                "arrays (CasADi + IPOPT). Exit codes: 0 success, 2 invalid input, 3 no convergence, 4 a batch "
+                                "with failed recordings.")
     p.add_argument("--version", action="version", version=f"castimate {__version__}")
     sub = p.add_subparsers(dest="verb", required=True, metavar="VERB")
 
@@ -218,6 +333,35 @@ def build_parser() -> argparse.ArgumentParser:
                    help="dynamic problems: the array motion estimator (omega, omega_dot, s per sample; intrinsics "
                         "and positions fixed at the problem's values, passed at run time as the fixed values)")
     s.set_defaults(func=cmd_codegen)
+    s = verb("batch", "calibrate many recordings with one problem template, in parallel on Dask",
+             "Replaces the template's data.path by each recording and solves each on a Dask worker (a LocalCluster, "
+             "or --scheduler). Writes DIR/<recording>/results.json and details.npz per recording, and DIR/summary.csv, "
+             "summary.json and summary.html: status and χ²/dof per recording, parameter spread against σ, outliers. "
+             "A failed recording is reported and the batch goes on (exit code 4 if any failed).")
+    s.add_argument("template", help="problem file whose data.path each recording replaces")
+    s.add_argument("recordings", nargs="+", help="recordings: paths or quoted globs (e.g. 'data/exp_*/data.bin')")
+    s.add_argument("-o", "--output", required=True, help="output directory (created if missing)")
+    s.add_argument("--outlier-threshold", type=float, default=5.0, metavar="Z",
+                   help="flag a parameter of a recording when |x - median| exceeds Z of its σ (default 5)")
+    _scale_options(s)
+    s.set_defaults(func=cmd_batch)
+    s = verb("montecarlo", "simulate, solve and score many noise realisations of a scenario on Dask",
+             "The scenario's seed fixes the truth; run k draws its noise with noise seed k. Scores every parameter "
+             "against the truth and the Cramér-Rao bound (the σ's of the noise-free session's solution): RMSE/CRB, "
+             "std(error/σ), failures; writes montecarlo.json, parameters.csv, runs.csv, montecarlo.html and montecarlo.png.")
+    s.add_argument("scenario", help="scenario file (as for castimate simulate)")
+    s.add_argument("--runs", type=int, required=True, help="number of noise realisations (at least 2)")
+    s.add_argument("-o", "--output", required=True, help="output directory (created if missing)")
+    _scale_options(s)
+    s.set_defaults(func=cmd_montecarlo)
+    s = verb("plan", "the Cramér-Rao bound of every parameter for a planned protocol, against its duration",
+             "A scenario file with plan: {durations: [s, ...]}: the pose set or motion profile, rate and noise. Each "
+             "duration's noise-free session is solved; its σ's are the bound. Names undetermined directions; writes "
+             "plan.json, plan.csv, plan.html and crb_vs_duration.png.")
+    s.add_argument("plan", help="plan file (a scenario with a plan key)")
+    s.add_argument("-o", "--output", required=True, help="output directory (created if missing)")
+    _scale_options(s)
+    s.set_defaults(func=cmd_plan)
     return p
 
 

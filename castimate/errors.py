@@ -9,6 +9,7 @@ from __future__ import annotations
 EXIT_OK = 0
 EXIT_INVALID_INPUT = 2
 EXIT_NOT_CONVERGED = 3
+EXIT_PARTIAL = 4  # castimate batch: some recordings failed (each reported; the others' results written)
 
 
 class CastimateError(Exception):

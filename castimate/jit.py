@@ -7,10 +7,18 @@ costs about 1-2 s of gcc per library, so each library is cached under its source
 ``$CASTIMATE_CACHE_DIR`` (default ``$XDG_CACHE_HOME/castimate/jit`` or ``~/.cache/castimate/jit``):
 only the first build of a problem structure pays it. Without a C compiler, or if compiling fails,
 the functions stay on the virtual machine (same results, slower).
+
+Several processes share the cache (``castimate batch`` and ``castimate montecarlo`` run Dask
+workers that build the same structures at the same moment): a library is compiled under an
+exclusive lock on ``KEY.lock`` (``flock``), into a private temporary file, and renamed into place,
+so one worker compiles while the others wait and then load the finished library; nobody loads a
+half-written one.
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import hashlib
 import os
 import shutil
@@ -51,11 +59,25 @@ def compile_functions(functions: list[ca.Function]) -> list[ca.Function] | None:
     if not lib.exists():
         try:
             lib.parent.mkdir(parents=True, exist_ok=True)
-            with tempfile.TemporaryDirectory(dir=lib.parent) as tmp:
-                src, out = Path(tmp) / "local.c", Path(tmp) / "local.so"
-                src.write_text(source)
-                subprocess.run([cc, *FLAGS, str(src), "-o", str(out), "-lm"], check=True, capture_output=True)
-                os.replace(out, lib)  # atomic: concurrent builds of the same structure are harmless
+            with locked(lib.with_suffix(".lock")):
+                if not lib.exists():  # another process may have built it while this one waited
+                    with tempfile.TemporaryDirectory(dir=lib.parent) as tmp:
+                        src, out = Path(tmp) / "local.c", Path(tmp) / "local.so"
+                        src.write_text(source)
+                        subprocess.run([cc, *FLAGS, str(src), "-o", str(out), "-lm"], check=True, capture_output=True)
+                        os.replace(out, lib)  # atomic: a reader sees no library or the whole one
         except (OSError, subprocess.CalledProcessError):
             return None
     return [ca.external(f.name(), str(lib)) for f in functions]
+
+
+@contextlib.contextmanager
+def locked(path: Path):
+    """An exclusive advisory lock on ``path`` (created if missing) for the duration of the block;
+    other processes block in :func:`locked` on the same path until it is released."""
+    with open(path, "a") as fh:
+        fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_UN)

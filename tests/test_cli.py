@@ -15,7 +15,8 @@ XSENS_RESULTS = ROOT / "reports" / "xsens_imutk" / "results.json"
 def test_every_verb_and_argument_is_described():
     p = build_parser()
     sub = next(a for a in p._actions if a.dest == "verb")  # argparse keeps its parsers there
-    assert set(sub.choices) == {"solve", "simulate", "apply", "report", "diagnose", "codegen", "noise"}
+    assert set(sub.choices) == {"solve", "simulate", "apply", "report", "diagnose", "codegen", "noise", "batch",
+                                 "montecarlo", "plan"}
     for name, verb in sub.choices.items():
         assert verb.description and len(verb.description) > 40, name
         for a in verb._actions:

@@ -26,6 +26,7 @@ LAYERS = [
     ("calibration",),  # a calibration from results.json, applied to data
     ("simulate",),     # independent truth models, scenarios, Monte Carlo
     ("output",),       # results.json, diagnose.json, details.npz, summaries from outcomes
+    ("scale",),        # Dask: batches, Monte Carlo studies, plans (the arithmetic in scale/stats.py)
     ("report",),       # HTML pages and figures
     ("codegen",),      # C emission
     ("api",),          # the public Python surface

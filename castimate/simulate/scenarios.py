@@ -41,8 +41,17 @@ def _flag(c: Check, s: dict, key: str) -> bool:
     return v
 
 
-def simulate_scenario(path: str | Path, out: str | Path) -> dict[str, Path]:
-    """Read a scenario file, simulate it and write ``data.csv``, ``truth.json`` and ``problem.yaml``."""
+def simulate_scenario(path: str | Path, out: str | Path, *, noise_seed: int | None = None,
+                      noise_free: bool = False) -> dict[str, Path]:
+    """Read a scenario file, simulate it and write ``data.csv``, ``truth.json`` and ``problem.yaml``.
+
+    The scenario's ``seed`` draws the truth (parameters, poses, motion) and, by default, the noise.
+    ``noise_seed``: the noise is drawn from its own generator seeded with (seed, noise_seed), so runs
+    with different noise seeds share one truth (``castimate montecarlo``). ``noise_free``: the
+    readings are exact while the problem still declares the scenario's noise σ, so its solution is
+    the truth and its σ's are the Cramér-Rao bound (``castimate plan``); static scenarios then need
+    pose means (``time_series: false``), whose σ is declared rather than estimated from the data.
+    """
     path, out = Path(path), Path(out)
     raw = load_yaml(path, "scenario file")
     c = Check(path)
@@ -54,9 +63,26 @@ def simulate_scenario(path: str | Path, out: str | Path) -> dict[str, Path]:
     if "kind" not in raw:
         c.fail("(top level)", "missing required key 'kind'")
     kind = c.choice(raw["kind"], "kind", ("static_array", "dynamic_array"))
+    draw = NoiseDraw(noise_seed, 0.0 if noise_free else 1.0)
     if kind == "dynamic_array":
-        return _dynamic_scenario(c, raw, path, out)
-    return _static_scenario(c, raw, path, out)
+        return _dynamic_scenario(c, raw, path, out, draw)
+    if noise_free and raw.get("time_series"):
+        c.fail("time_series", "a noise-free session (plan, the Monte Carlo CRB) needs pose means, whose σ is declared: "
+                              "set time_series: false")
+    return _static_scenario(c, raw, path, out, draw)
+
+
+class NoiseDraw:
+    """Where a scenario's noise comes from: the truth's generator (no noise seed) or its own seeded
+    (seed, noise_seed); ``scale`` multiplies every simulated noise σ (0: exact readings)."""
+
+    def __init__(self, noise_seed: int | None = None, scale: float = 1.0):
+        if noise_seed is not None and (not isinstance(noise_seed, (int, np.integer)) or noise_seed < 0):
+            raise ValueError(f"noise_seed must be a non-negative integer, found {noise_seed!r}")
+        self.noise_seed, self.scale = noise_seed, scale
+
+    def rng(self, seed: int, truth_rng: np.random.Generator) -> np.random.Generator:
+        return truth_rng if self.noise_seed is None else np.random.default_rng([int(seed), int(self.noise_seed)])
 
 
 def _check_size(c: Check, samples: float, channels: int, what: str) -> None:
@@ -66,11 +92,11 @@ def _check_size(c: Check, samples: float, channels: int, what: str) -> None:
                    f"{channels} channels; simulate fewer samples or triads")
 
 
-def _seed(c: Check, s: dict) -> np.random.Generator:
+def _seed(c: Check, s: dict) -> tuple[int, np.random.Generator]:
     seed = c.number(s.get("seed", 0), "seed", integer=True, hi=2 ** 63)
     if seed < 0:
         c.fail("seed", f"expected a non-negative integer, found {seed}")
-    return np.random.default_rng(seed)
+    return seed, np.random.default_rng(seed)
 
 
 def _effects(c: Check, s: dict, gyro: bool, realistic: dict[str, float] = REALISTIC_EFFECTS) -> dict[str, float]:
@@ -87,12 +113,9 @@ def _effects(c: Check, s: dict, gyro: bool, realistic: dict[str, float] = REALIS
     return out
 
 
-def _static_scenario(c: Check, raw: dict, path: Path, out: Path) -> dict[str, Path]:
+def _static_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDraw) -> dict[str, Path]:
     s = c.mapping(raw, "", SCENARIO_KEYS, required=("kind",))
-    seed = c.number(s.get("seed", 0), "seed", integer=True, hi=2 ** 63)
-    if seed < 0:
-        c.fail("seed", f"expected a non-negative integer, found {seed}")
-    rng = np.random.default_rng(seed)
+    seed, rng = _seed(c, s)
     g = c.number(s.get("gravity", 9.81), "gravity", positive=True, lo=GRAVITY_RANGE[0], hi=GRAVITY_RANGE[1], unit="m/s^2")
     tr = s.get("triads", 14)
     if isinstance(tr, list):
@@ -144,8 +167,8 @@ def _static_scenario(c: Check, raw: dict, path: Path, out: Path) -> dict[str, Pa
         trans = c.number(s.get("transition", 3.0), "transition", positive=True, hi=1e5, unit="s")
         _check_size(c, P * (dur + trans) * rate, len(names) * (6 if gyro else 3), "poses x (pose_duration + "
                     "transition) x rate")
-        rec, intervals = static_time_series(truth, U, sigma, rng, rate=rate, pose_duration=dur, transition=trans,
-                                            gyro_sigma=gsigma)
+        rec, intervals = static_time_series(truth, U, sigma, draw.rng(seed, rng), rate=rate, pose_duration=dur,
+                                            transition=trans, gyro_sigma=gsigma)
         problem["data"]["segments"] = "auto"
         problem["noise"] = {"accelerometer": "auto"}
     else:
@@ -158,7 +181,8 @@ def _static_scenario(c: Check, raw: dict, path: Path, out: Path) -> dict[str, Pa
             amp = c.number(tsec.get("amplitude", 5.0), "temperature.amplitude", lo=-100.0, hi=100.0, unit="K")
             # a warm-up and cool-down that no quadratic in time follows
             temp = {n: mean + rng.standard_normal() + amp * np.sin(0.75 * np.pi * (tau + 1)) for n in names}
-        acc, gy = static_pose_means(truth, U, sigma, n_samp, rng, gsigma, tau, temp or None)
+        acc, gy = static_pose_means(truth, U, sigma * draw.scale, n_samp, draw.rng(seed, rng),
+                                    None if gsigma is None else gsigma * draw.scale, tau, temp or None)
         rec = Recording(t=t, acc=acc, gyro=gy, temp=temp, source="simulation")
         problem["data"]["segments"] = "rows"
         problem["noise"] = {"accelerometer": sigma / np.sqrt(n_samp)}
@@ -182,7 +206,7 @@ DYNAMIC_KEYS = ("kind", "seed", "geometry", "samples", "rate", "max_omega", "max
                 "imus", "effects")
 
 
-def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path) -> dict[str, Path]:
+def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDraw) -> dict[str, Path]:
     """A hand-twisted dynamic session with known geometry (Carlsson 2017 or Schopp 2016 layout).
 
     Angles in the scenario file are in degrees (max_omega in deg/s, max_omega_dot in deg/s^2,
@@ -191,7 +215,7 @@ def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path) -> dict[str, P
     from .dynamic import carlsson_geometry, dynamic_measurements, euler_consistent, schopp_geometry, smooth_random_motion
 
     s = c.mapping(raw, "", DYNAMIC_KEYS, required=("kind", "geometry"))
-    rng = _seed(c, s)
+    seed, rng = _seed(c, s)
     geometry = c.choice(s["geometry"], "geometry", ("carlsson", "schopp"))
     N = c.number(s.get("samples", 1000), "samples", positive=True, integer=True, hi=MAX_SAMPLES)
     rate = c.number(s.get("rate", 100.0), "rate", positive=True, hi=1e5, unit="Hz")
@@ -222,7 +246,7 @@ def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path) -> dict[str, P
     K = len(names)
     _check_size(c, N, K * (6 if gyro else 3), "samples")
     sat = s.get("saturation")
-    gyro_model = {"T_g": np.stack([true_R[n] for n in names]), "b_g": np.zeros((K, 3)), "sigma": gyro_sigma,
+    gyro_model = {"T_g": np.stack([true_R[n] for n in names]), "b_g": np.zeros((K, 3)), "sigma": gyro_sigma * draw.scale,
                   "saturation": np.radians(c.number(sat, "saturation", positive=True, hi=1e5, unit="deg/s")) if sat is not None else None} \
         if gyro else None
     origin = true[0]
@@ -232,7 +256,8 @@ def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path) -> dict[str, P
                         else random_coefficients(key, m, rng) for n in names
                         if not (BY_KEY[key].relative and n == names[0])})  # the reference's is the gauge
     acc, gy, saturated = dynamic_measurements(motion, true - origin, np.stack([true_R[n] for n in names]),
-                                              np.zeros((K, 3)), rng, acc_sigma, gyro=gyro_model, names=names,
+                                              np.zeros((K, 3)), draw.rng(seed, rng), acc_sigma * draw.scale,
+                                              gyro=gyro_model, names=names,
                                               effects=effects)
     rec = Recording(t=motion.t, acc=acc, gyro=gy, source="simulation")
     msec = c.mapping(s.get("motion"), "motion", ("sigma_s", "sigma_omega_dot", "sigma_integration", "process_model"))

@@ -1,0 +1,166 @@
+"""The arithmetic of batches, Monte Carlo studies and plans, on plain documents: no IO, no Dask.
+
+Parameters are compared by label, ``<triad>.<sensor>.<group>[<component>]`` (``imu2.accelerometer.gain[x]``, as the solver's layout labels them)
+or ``<triad>.position[<component>]``, the same for an estimate (a results.json document) and a truth
+(a truth.json document of ``castimate simulate``). Only free components are labelled.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..simulate.montecarlo import MonteCarloResult
+
+
+@dataclass(frozen=True)
+class Estimate:
+    value: float
+    std: float
+    unit: str
+
+
+def _components(x) -> list:
+    return list(np.ravel(np.asarray(x, float)))
+
+
+def component(i: int, n: int) -> str:
+    """The name of component i of n, as the solver's layout labels them: x, y, z of a 3-vector, else i."""
+    return "xyz"[i] if n == 3 else str(i)
+
+
+def estimates(results: dict) -> dict[str, Estimate]:
+    """Label -> estimate and σ of every free parameter component of a results.json document (the
+    σ of the white-noise model, not scaled by χ²/dof)."""
+    out: dict[str, Estimate] = {}
+    for triad, t in results.get("triads", {}).items():
+        for key, p in t.get("parameters", {}).items():
+            group = key if key.startswith(("accelerometer.", "gyroscope.")) else f"accelerometer.{key}"
+            values = _components(p["value"])
+            free = _components(p.get("free", [True] * len(values)))
+            for i, (v, s, f) in enumerate(zip(values, _components(p["std"]), free)):
+                if f:
+                    out[f"{triad}.{group}[{component(i, len(values))}]"] = Estimate(v, s, str(p.get("unit", "")))
+        if "position" in t and "position_std" in t:
+            for i, (v, s) in enumerate(zip(_components(t["position"]), _components(t["position_std"]))):
+                if s > 0:  # the reference's position is the origin, fixed
+                    out[f"{triad}.position[{component(i, 3)}]"] = Estimate(v, s, "m")
+    return out
+
+
+def truth_values(truth: dict) -> dict[str, float]:
+    """Label -> true value of every parameter component a truth.json document states."""
+    out: dict[str, float] = {}
+    for triad, t in truth.get("triads", {}).items():
+        for key, v in t.get("parameters", {}).items():
+            values = _components(v)
+            for i, x in enumerate(values):
+                out[f"{triad}.{key}[{component(i, len(values))}]"] = x
+        if "position" in t and "parameters" not in t:  # dynamic scenarios: positions from the reference
+            for i, x in enumerate(_components(t["position"])):
+                out[f"{triad}.position[{component(i, 3)}]"] = x
+    return out
+
+
+def group_of(label: str) -> str:
+    """The parameter group of a label without triad and component: ``accelerometer.gain``."""
+    return label.split(".", 1)[1].split("[")[0]
+
+
+# ---------------------------------------------------------------------------------------------
+# Batches: the spread of many units or sessions against their σ's
+# ---------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class ParameterSpread:
+    """One parameter over the recordings of a batch."""
+
+    label: str
+    unit: str
+    median: float
+    spread: float  # sample std over the recordings (NaN for one)
+    sigma: float  # median reported σ
+    z: dict[str, float]  # recording -> (x - median) / σ of that recording
+    sigma_scaled: float = float("nan")  # median σ scaled by the recording's sqrt(χ²/dof)
+
+    @property
+    def spread_over_sigma(self) -> float:
+        return self.spread / self.sigma if self.sigma > 0 else float("inf")
+
+    def outliers(self, threshold: float) -> dict[str, float]:
+        return {n: z for n, z in self.z.items() if abs(z) > threshold}
+
+
+def batch_spread(params: dict[str, dict[str, Estimate]], chi2_per_dof: dict[str, float] | None = None
+                 ) -> list[ParameterSpread]:
+    """Per parameter of any recording (recording -> label -> estimate): median, spread and the
+    distance of every recording from the median in its own σ's; with the recordings' χ²/dof, also
+    the median σ scaled by sqrt(χ²/dof) (the σ if the misfit were white noise)."""
+    scale = {n: np.sqrt(max(chi2_per_dof.get(n, np.nan), 0.0)) if chi2_per_dof else np.nan for n in params}
+    labels = list(dict.fromkeys(lab for p in params.values() for lab in p))
+    out = []
+    for lab in labels:
+        have = {n: p[lab] for n, p in params.items() if lab in p}
+        x = np.array([e.value for e in have.values()])
+        s = np.array([e.std for e in have.values()])
+        med = float(np.median(x))
+        spread = float(np.std(x, ddof=1)) if len(x) > 1 else float("nan")
+        z = {n: (e.value - med) / e.std if e.std > 0 else float("inf") * np.sign(e.value - med)
+             for n, e in have.items()}
+        scaled = float(np.median([e.std * scale[n] for n, e in have.items()]))
+        out.append(ParameterSpread(lab, next(iter(have.values())).unit, med, spread, float(np.median(s)), z, scaled))
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Monte Carlo: errors against the truth, σ honesty and efficiency
+# ---------------------------------------------------------------------------------------------
+
+def sampling_band(runs: int, k: float = 3.0) -> float:
+    """Half-width of the k-standard-error band of a sample RMS or std of ``runs`` standard-normal
+    draws around 1: the standard error is about 1/sqrt(2 runs)."""
+    return k / np.sqrt(2 * max(runs, 1))
+
+
+def score_runs(truth: dict[str, float], crb: dict[str, float], runs: list[dict[str, Estimate]],
+               failures: int) -> MonteCarloResult:
+    """Errors, error/σ and the CRB of every parameter the truth, the bound and every run share."""
+    labels = [lab for lab in crb if lab in truth and all(lab in r for r in runs)]
+    errors = np.array([[r[lab].value - truth[lab] for lab in labels] for r in runs]).reshape(len(runs), len(labels))
+    sig = np.array([[r[lab].std for lab in labels] for r in runs]).reshape(len(runs), len(labels))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = errors / sig
+    return MonteCarloResult(labels, errors, z, np.array([crb[lab] for lab in labels]), failures)
+
+
+# ---------------------------------------------------------------------------------------------
+# Plans: the Cramér-Rao bound against the duration of the protocol
+# ---------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class PlanCase:
+    """The bound of one protocol length: label -> CRB σ (inf: undetermined)."""
+
+    duration: float  # s
+    crb: dict[str, float]
+    units: dict[str, str] = field(default_factory=dict)
+    undetermined: tuple[str, ...] = ()  # the undetermined directions, each named by its largest components
+
+
+def crb_table(cases: list[PlanCase]) -> tuple[list[str], np.ndarray]:
+    """Labels and the (durations, labels) CRB matrix (NaN where a case lacks the parameter)."""
+    labels = list(dict.fromkeys(lab for c in cases for lab in c.crb))
+    return labels, np.array([[c.crb.get(lab, np.nan) for lab in labels] for c in cases])
+
+
+def duration_exponent(durations, crb: np.ndarray) -> np.ndarray:
+    """Per column of ``crb`` (durations, labels), the exponent a of CRB ∝ duration^a fitted in
+    log-log over the finite entries (-1/2 for white noise averaged longer; NaN with fewer than two)."""
+    d = np.log(np.asarray(durations, float))
+    out = np.full(crb.shape[1], np.nan)
+    for j in range(crb.shape[1]):
+        ok = np.isfinite(crb[:, j]) & (crb[:, j] > 0)
+        if ok.sum() >= 2 and np.ptp(d[ok]) > 0:
+            out[j] = np.polyfit(d[ok], np.log(crb[ok, j]), 1)[0]
+    return out

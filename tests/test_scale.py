@@ -1,0 +1,295 @@
+"""Scale-out on Dask: batch, montecarlo and plan on a 2-worker LocalCluster of real processes.
+
+The Monte Carlo checks compare sample RMSEs and stds of N runs with 1: their standard error is
+about 1/sqrt(2N) (:func:`castimate.scale.stats.sampling_band`), so the bands below are derived
+from N, not tuned. Seeds are fixed: the outcomes are deterministic.
+"""
+
+import json
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from castimate.cli import main
+from castimate.errors import InputError
+from castimate.scale.batch import load_template, recording_names, recordings_of, run_batch
+from castimate.scale.engine import check_workers, dask_client
+from castimate.scale.montecarlo import (
+    check_runs,
+    load_scenario,
+    run_montecarlo,
+    solve_noise_free,
+    solve_simulated,
+)
+from castimate.scale.plan import load_plan, run_plan
+from castimate.scale.stats import (
+    Estimate,
+    batch_spread,
+    duration_exponent,
+    sampling_band,
+    score_runs,
+    truth_values,
+)
+from castimate.simulate.scenarios import simulate_scenario
+
+STATIC = {"kind": "static_array", "seed": 3, "triads": 3, "poses": 20, "noise": {"accelerometer": 0.02},
+          "samples_per_pose": 200, "rate": 100}
+DYNAMIC = {"kind": "dynamic_array", "seed": 1, "geometry": "carlsson", "imus": 4, "rate": 100, "samples": 100,
+           "noise": {"accelerometer": 0.04, "gyroscope": 0.06}, "motion": {"process_model": False}}
+
+
+@pytest.fixture(scope="module")
+def client():
+    with dask_client(workers=2) as c:  # real worker processes
+        yield c
+
+
+def write(path: Path, doc: dict) -> Path:
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+# ---------------------------------------------------------------------------------------------
+# The arithmetic, by hand
+# ---------------------------------------------------------------------------------------------
+
+def test_batch_spread_by_hand():
+    p = {n: {"a": Estimate(x, s, "-")} for n, x, s in (("r1", 1.0, 0.1), ("r2", 1.2, 0.1), ("r3", 2.0, 0.2))}
+    (s,) = batch_spread(p, {"r1": 4.0, "r2": 4.0, "r3": 4.0})
+    assert s.median == 1.2 and s.sigma == 0.1 and s.sigma_scaled == pytest.approx(0.2)
+    assert s.spread == pytest.approx(np.std([1.0, 1.2, 2.0], ddof=1))
+    assert s.z == pytest.approx({"r1": -2.0, "r2": 0.0, "r3": 4.0})
+    assert s.outliers(3.0) == pytest.approx({"r3": 4.0})
+
+
+def test_score_runs_by_hand():
+    truth, crb = {"a": 1.0, "b": 0.0}, {"a": 0.5, "b": 2.0}
+    runs = [{"a": Estimate(1.5, 0.5, ""), "b": Estimate(2.0, 1.0, "")}, {"a": Estimate(0.5, 0.25, ""), "b": Estimate(-2.0, 2.0, "")}]
+    sc = score_runs(truth, crb, runs, failures=1)
+    assert sc.labels == ["a", "b"] and sc.failures == 1
+    assert np.allclose(sc.z, [[1, 2], [-2, -1]])
+    assert np.allclose(sc.rmse_over_crb, [1.0, 1.0])
+
+
+def test_duration_exponent_of_white_noise():
+    d = np.array([1.0, 2.0, 4.0, 8.0])
+    crb = np.column_stack([3 / np.sqrt(d), 5 / d, [np.inf, 1, 1, 1]])
+    a = duration_exponent(d, crb)
+    assert a[0] == pytest.approx(-0.5) and a[1] == pytest.approx(-1.0) and a[2] == pytest.approx(0.0)
+
+
+def test_recording_names():
+    p = [Path("/d/exp_1/data.bin"), Path("/d/exp_2/data.bin")]
+    assert recording_names(p) == ["exp_1", "exp_2"]
+    assert recording_names([Path("/d/a.csv"), Path("/d/b.csv")]) == ["a", "b"]
+    assert recording_names([Path("/d/a.csv"), Path("/d/a.npz")]) == ["a.csv", "a.npz"]
+
+
+# ---------------------------------------------------------------------------------------------
+# The simulator's noise seed and the noise-free bound
+# ---------------------------------------------------------------------------------------------
+
+def test_noise_seed_keeps_the_truth_and_noise_free_recovers_it(tmp_path):
+    sc = write(tmp_path / "s.yaml", STATIC)
+    docs = []
+    for k in (0, 1):
+        files = simulate_scenario(sc, tmp_path / f"n{k}", noise_seed=k)
+        docs.append((json.loads(files["truth"].read_text()), (tmp_path / f"n{k}" / "data.csv").read_text()))
+    assert truth_values(docs[0][0]) == truth_values(docs[1][0]) and docs[0][1] != docs[1][1]
+    b = solve_noise_free(STATIC)
+    for lab, e in b.estimates.items():  # exact readings: the solution is the truth, to far below the bound
+        assert abs(e.value - b.truth[lab]) < 1e-4 * e.std, lab
+    noisy = solve_simulated(STATIC, noise_seed=0)
+    z = np.array([(noisy.estimates[lab].value - b.truth[lab]) / noisy.estimates[lab].std for lab in b.estimates])
+    assert 0 < np.abs(z).max() < 5
+
+
+def test_plan_names_undetermined_parameters():
+    """Two poses cannot determine 3 triads' 33 parameters: the plan names the directions instead of refusing."""
+    b = solve_noise_free({**STATIC, "poses": 4})
+    assert b.undetermined and any(np.isinf(e.std) for e in b.estimates.values())
+
+
+# ---------------------------------------------------------------------------------------------
+# On the cluster
+# ---------------------------------------------------------------------------------------------
+
+def test_workers_run_this_castimate_in_their_own_processes(client):
+    import os
+
+    import castimate
+
+    where = client.run(lambda: (__import__("castimate").__file__, os.getpid()))
+    assert len(where) == 2
+    assert {f for f, _ in where.values()} == {castimate.__file__}
+    assert os.getpid() not in {p for _, p in where.values()}
+
+
+def test_batch_isolates_a_failure_and_flags_the_odd_board(client, tmp_path, capsys):
+    """Four sessions of one board and one of another: the other board's parameters are flagged,
+    the unreadable recording fails alone."""
+    sc = write(tmp_path / "s.yaml", STATIC)
+    for k in range(4):
+        simulate_scenario(sc, tmp_path / f"board_a{k}", noise_seed=k)
+    simulate_scenario(write(tmp_path / "t.yaml", {**STATIC, "seed": 4}), tmp_path / "board_b", noise_seed=0)
+    (tmp_path / "board_c").mkdir()
+    (tmp_path / "board_c" / "data.csv").write_text("t,imu1.ax\nnot a number,1\n")
+    template = tmp_path / "board_a0" / "problem.yaml"
+    out = tmp_path / "out"
+    rc = main(["batch", str(template), str(tmp_path / "board_*" / "data.csv"), "-o", str(out),
+               "--scheduler", client.scheduler.address])
+    assert rc == 4  # one recording failed: EXIT_PARTIAL
+    err = capsys.readouterr().err
+    assert err.count("FAILED") == 1 and "board_c" in err
+    doc = json.loads((out / "summary.json").read_text())
+    rows = {r["name"]: r for r in doc["recordings"]}
+    assert rows["board_c"]["status"] == "failed" and "data.csv" in rows["board_c"]["message"]
+    n = len(doc["parameters"])
+    assert rows["board_b"]["outliers"] > 0.8 * n
+    assert all(rows[f"board_a{k}"]["outliers"] <= 1 for k in range(4))
+    assert all(0.5 < rows[f"board_a{k}"]["chi2_per_dof"] < 1.6 for k in range(4))
+    for k in range(4):
+        assert json.loads((out / f"board_a{k}" / "results.json").read_text())["status"]["success"]
+    assert not (out / "board_c").exists()
+    assert (out / "summary.csv").read_text().count("\n") == 7  # a header and 6 recordings
+    assert "board_b" in (out / "summary.html").read_text()
+
+
+def test_plan_agrees_with_montecarlo_static(client, tmp_path):
+    """RMSE over the plan's bound within its sampling error (N = 60 runs, 33 parameters)."""
+    plan = write(tmp_path / "p.yaml", {**STATIC, "plan": {"durations": [2.0]}})  # 200 samples per pose at 100 Hz
+    _, (case,) = run_plan(client, plan, lambda m: None)
+    study = run_montecarlo(client, write(tmp_path / "s.yaml", STATIC), 60, lambda m: None)
+    sc = study.score
+    assert sc.failures == 0 and len(sc.labels) == 33
+    rmse = np.sqrt(np.mean(sc.errors ** 2, axis=0))
+    ratio = rmse / np.array([case.crb[lab] for lab in sc.labels])
+    band = sampling_band(60)  # 3 standard errors: 0.27
+    assert abs(np.sqrt(np.mean(ratio ** 2)) - 1) < band
+    assert np.all(np.abs(ratio - 1) < 1.5 * band), ratio  # 4.5 standard errors per parameter (33 of them)
+    assert np.all(np.abs(sc.z_std - 1) < 1.5 * band), sc.z_std
+
+
+def test_plan_agrees_with_montecarlo_dynamic(client, tmp_path):
+    """A 1 s Carlsson session: the positions' RMSE over the bound within the sampling error (N = 30)."""
+    plan = write(tmp_path / "p.yaml", {**DYNAMIC, "plan": {"durations": [1.0]}})
+    _, (case,) = run_plan(client, plan, lambda m: None)
+    study = run_montecarlo(client, write(tmp_path / "s.yaml", DYNAMIC), 30, lambda m: None)
+    sc = study.score
+    assert sc.failures == 0 and all(".position[" in lab for lab in sc.labels) and len(sc.labels) == 9
+    ratio = np.sqrt(np.mean(sc.errors ** 2, axis=0)) / np.array([case.crb[lab] for lab in sc.labels])
+    assert abs(np.sqrt(np.mean(ratio ** 2)) - 1) < sampling_band(30)
+
+
+def test_montecarlo_and_plan_commands_write_their_outputs(client, tmp_path):
+    sc = write(tmp_path / "s.yaml", STATIC)
+    addr = client.scheduler.address
+    assert main(["montecarlo", str(sc), "--runs", "4", "-o", str(tmp_path / "mc"), "--scheduler", addr]) == 0
+    doc = json.loads((tmp_path / "mc" / "montecarlo.json").read_text())
+    assert doc["solved"] == 4 and len(doc["parameters"]) == 33
+    assert (tmp_path / "mc" / "montecarlo.png").stat().st_size > 10_000
+    plan = write(tmp_path / "p.yaml", {**STATIC, "plan": {"durations": [1, 4]}})
+    assert main(["plan", str(plan), "-o", str(tmp_path / "plan"), "--scheduler", addr]) == 0
+    rows = json.loads((tmp_path / "plan" / "plan.json").read_text())["parameters"]
+    assert all(r["exponent"] == pytest.approx(-0.5, abs=1e-6) for r in rows)  # white noise averaged 4x longer
+    assert (tmp_path / "plan" / "crb_vs_duration.png").exists() and (tmp_path / "plan" / "plan.csv").exists()
+
+
+# ---------------------------------------------------------------------------------------------
+# The JIT cache under concurrent builds
+# ---------------------------------------------------------------------------------------------
+
+def test_concurrent_builds_compile_once(tmp_path, monkeypatch):
+    import subprocess
+
+    import casadi as ca
+
+    from castimate import jit
+
+    if jit.compiler() is None:
+        pytest.skip("no C compiler")
+    monkeypatch.setenv("CASTIMATE_CACHE_DIR", str(tmp_path))
+    x = ca.SX.sym("x", 2)
+    f = ca.Function("f_concurrent", [x], [ca.sin(x) * x[0] + float(np.pi)])
+    calls, real = [], subprocess.run
+
+    def counting(*a, **k):
+        calls.append(a)
+        return real(*a, **k)
+
+    monkeypatch.setattr(jit.subprocess, "run", counting)
+    out = [None] * 4
+    threads = [threading.Thread(target=lambda i=i: out.__setitem__(i, jit.compile_functions([f]))) for i in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(calls) == 1  # one compiled, three waited on the lock and loaded it
+    for g in out:
+        assert np.allclose(np.array(g[0]([0.3, -1.2])).ravel(), np.array(f([0.3, -1.2])).ravel())
+    assert len(list(tmp_path.glob("*.so"))) == 1
+
+
+# ---------------------------------------------------------------------------------------------
+# Validation: one line each
+# ---------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("call, message", [
+    (lambda d: recordings_of([str(d / "nothing_*.csv")]), "matches no file"),
+    (lambda d: recordings_of([str(d / "missing.csv")]), "not found"),
+    (lambda d: recordings_of([]), "at least one recording"),
+    (lambda d: load_template(write(d / "t.yaml", {"kind": "static_array"})), "data"),
+    (lambda d: check_workers(0), "number of workers"),
+    (lambda d: check_runs(1), "number of runs"),
+    (lambda d: check_runs(True), "number of runs"),
+    (lambda d: load_plan(write(d / "p.yaml", STATIC)), "missing required key 'plan'"),
+    (lambda d: load_plan(write(d / "p.yaml", {**STATIC, "plan": {"durations": [4, 2]}})), "increasing"),
+    (lambda d: load_plan(write(d / "p.yaml", {**STATIC, "plan": {"durations": []}})), "non-empty list"),
+    (lambda d: load_plan(write(d / "p.yaml", {**STATIC, "plan": {"durations": [0.001]}})), "holds no sample"),
+    (lambda d: load_plan(write(d / "p.yaml", {**STATIC, "time_series": True, "plan": {"durations": [1]}})), "pose means"),
+    (lambda d: load_scenario(write(d / "s.yaml", [1, 2])), "expected a scenario mapping"),
+    (lambda d: simulate_scenario(write(d / "s.yaml", {**STATIC, "time_series": True}), d / "o", noise_free=True),
+     "needs pose means"),
+])
+def test_validation_errors(tmp_path, call, message):
+    with pytest.raises(InputError, match=message):
+        call(tmp_path)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["montecarlo", "S", "--runs", "0", "-o", "O"], "--runs: expected a number of runs"),
+    (["batch", "T", "nothing_here_*.bin", "-o", "O"], "the glob matches no file"),
+    (["plan", "S", "-o", "O", "--workers", "0"], "--workers: expected a number of workers"),
+    (["batch", "T", "R", "-o", "O", "--scheduler", "nowhere"], "expected a scheduler address"),
+])
+def test_command_errors_are_one_line(tmp_path, capsys, monkeypatch, argv, message):
+    monkeypatch.chdir(tmp_path)
+    write(tmp_path / "S", {**STATIC, "plan": {"durations": [1]}})
+    simulate_scenario(write(tmp_path / "s.yaml", STATIC), tmp_path / "sim")
+    (tmp_path / "T").write_text((tmp_path / "sim" / "problem.yaml").read_text().replace("data.csv", "sim/data.csv"))
+    (tmp_path / "R").write_text("t\n")
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and message in err, err
+    assert not (tmp_path / "O").exists()
+
+
+def test_bundled_mimu4444_batch_matches_the_single_solves(client, shared_data, tmp_path):
+    """The bundled template on two real sessions: each batch result is the session's own problem solved alone."""
+    from castimate.kinds import calibrate
+    from castimate.spec import load_problem
+
+    root = Path(__file__).resolve().parents[1]
+    recs = [str(shared_data / "mimu4444" / f"exp_{k}" / "data.bin") for k in (4, 5)]
+    s = run_batch(client, root / "problems" / "mimu4444_static_template.yaml", recs, lambda m: None)
+    assert s.names == ["exp_4", "exp_5"] and all(r.ok for r in s.results)
+    text = (root / "problems" / "mimu4444_exp5_static.yaml").read_text().replace("../../shared/data", str(shared_data))
+    (tmp_path / "p.yaml").write_text(text)
+    alone = calibrate(load_problem(tmp_path / "p.yaml")).solution
+    res = s.results[1].value["results"]
+    assert res["residuals"]["chi2_per_dof"] == pytest.approx(alone.chi2_per_dof, rel=1e-9)
+    gain = res["triads"]["imu3"]["parameters"]["gain"]
+    assert np.allclose(gain["value"], alone.values["imu3.accelerometer.gain"], rtol=0, atol=1e-9)
