@@ -32,6 +32,7 @@ import numpy as np
 from .errors import InputError
 from .validation import Check, input_file, load_yaml
 from .io.units import UnitConversion, parse_units
+from .prepare.masks import SaturationOptions
 from .prepare.options import DetectionOptions
 from .problem.graph import SolverOptions
 from .problem.effects import DYNAMIC, STATIC, effects_for
@@ -67,7 +68,6 @@ DEFAULT_FREE = {
 }
 #: Ferraris protocol: imucal's default turn, clockwise seen from above (the gyroscope reads negative).
 FERRARIS_TURN_DEG = -360.0
-SATURATION = ("auto", "none")
 #: Physical ranges of the numbers of a problem file, named in the errors.
 GRAVITY_RANGE = (9.7, 9.9)  # m/s^2: the gravity anywhere on the Earth's surface
 SI = {"accelerometer": "m/s^2", "gyroscope": "rad/s"}
@@ -91,7 +91,7 @@ class DataSpec:
     time_range: tuple[float, float] | None = None
     segments: Any = "auto"  # "auto" | "rows" | tuple of (t0, t1) in seconds
     detection: DetectionOptions = DetectionOptions()
-    saturation: dict = field(default_factory=lambda: {"accelerometer": "auto", "gyroscope": "auto"})
+    saturation: SaturationOptions = SaturationOptions()
     static_range: tuple[float, float] | None = None  # dynamic kind: static poses of the same recording (joint problem)
     rate: float | None = None  # Hz, declared sample rate (required by imucal tables, which have sample numbers only;
     # others: the stamps are checked against it and repaired from it, castimate.io.timestamps)
@@ -247,13 +247,7 @@ def _data(c: Check, d, base: Path) -> DataSpec:
     elif seg not in ("auto", "rows"):
         c.fail("data.segments", f"expected auto, rows or a list of [t_start, t_end], found {seg!r}")
     det = DetectionOptions.from_mapping(d.get("detection"), c.source, "data.detection")
-    sat = c.mapping(d.get("saturation"), "data.saturation", ("accelerometer", "gyroscope"))
-    saturation = {}
-    for sensor, unit in (("accelerometer", "m/s^2"), ("gyroscope", "rad/s")):
-        v = sat.get(sensor, "auto")
-        if isinstance(v, str) and v not in SATURATION:
-            c.fail(f"data.saturation.{sensor}", f"expected auto, none or a level in {unit}, found {v!r}")
-        saturation[sensor] = v if v in SATURATION else c.number(v, f"data.saturation.{sensor}", positive=True)
+    saturation = SaturationOptions.from_mapping(d.get("saturation"), c.source)
     static_range = None
     if "static" in d:
         st = c.mapping(d["static"], "data.static", ("time_range",), required=("time_range",))

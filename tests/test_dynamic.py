@@ -131,15 +131,6 @@ def test_minimum_checks_name_the_diverged_minima():
     assert "angular motion collapsed" in minimum_checks(cfg, still, nominal, t)[0]
 
 
-def test_saturation_mask():
-    y = np.zeros((10, 3))
-    y[:, 0] = [1, 2, 34.9, 34.9, 34.9, 3, -34.9, 0, 1, 2]  # a rail at ±34.9 reached 4 times
-    y[:, 1] = np.arange(10)  # the maximum once: no rail
-    assert saturation_mask(y, "auto").tolist() == [False, False, True, True, True, False, True, False, False, False]
-    assert not saturation_mask(y, "none").any()
-    assert saturation_mask(y, 8.5).sum() == 5  # |y| >= 8.5 on axis 0 (4) or axis 1 (9)
-
-
 def test_saturated_gyro_samples_are_masked_and_reported(tmp_path):
     sc = tmp_path / "s.yaml"
     sc.write_text("kind: dynamic_array\nseed: 5\ngeometry: carlsson\nsamples: 150\nrate: 100\nmax_omega: 2200\n"

@@ -18,7 +18,7 @@ import numpy as np
 from castimate.errors import InputError
 from castimate.io.recording import Recording
 from castimate.io.timestamps import regular_times
-from castimate.io.units import UnitSpec, parse_units
+from castimate.io.units import UnitSpec, declared_rails, parse_units
 from castimate.validation import read_input_text
 
 COLUMNS = ("n_samples", "gyr_x", "gyr_y", "gyr_z", "acc_x", "acc_y", "acc_z")
@@ -61,7 +61,8 @@ def read_imucal(path: str | os.PathLike, rate: float, acc_units: UnitSpec | None
     gyro = parse_units(gyro_units or DEFAULT_GYRO_UNITS, source, "gyro_units", "gyroscope")
     return Recording(t=times.t, acc={name: acc.to_si(data[:, 4:7])}, gyro={name: gyro.to_si(data[:, 1:4])},
                      source=source, notes=(f"imucal table: {len(n)} samples at the declared {rate:g} Hz",)
-                     + times.notes[1:])  # [0] restates the rate
+                     + times.notes[1:],  # [0] restates the rate
+                     rails=declared_rails(acc, gyro, [name], [name]))
 
 
 def read_sections(path: str | os.PathLike) -> dict[str, tuple[int, int]]:

@@ -17,7 +17,7 @@ from castimate.errors import InputError
 from castimate.validation import read_input_bytes
 from castimate.io.recording import Recording
 from castimate.io.timestamps import TimeBase, regular_times
-from castimate.io.units import UnitSpec, parse_units
+from castimate.io.units import UnitSpec, declared_rails, parse_units
 
 #: Xsens MTi nominal values from the IMU-TK Matlab scripts: raw offsets in counts and
 #: sensitivities of about 415 counts per m/s^2 and 4770 counts per rad/s.
@@ -184,4 +184,5 @@ def read_imutk(
             )
         gyro[name] = gyro_conv.to_si(gyro_raw, gyro_path, name)
     acc = {name: acc_conv.to_si(acc_raw, acc_path, name)}
-    return Recording(t=t.copy(), acc=acc, gyro=gyro, source=source, notes=tuple(notes))
+    return Recording(t=t.copy(), acc=acc, gyro=gyro, source=source, notes=tuple(notes),
+                     rails=declared_rails(acc_conv, gyro_conv if gyro else None, acc, gyro))

@@ -18,7 +18,7 @@ checksum validates. Dropped packets are found from gaps in the packet counter.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +27,7 @@ from castimate.errors import InputError
 from castimate.validation import read_input_bytes
 from castimate.io.recording import Recording
 from castimate.io.timestamps import regular_times
-from castimate.io.units import UnitSpec, parse_units
+from castimate.io.units import UnitSpec, declared_rails, parse_units
 
 HEADER = 0xAA
 #: Timestamp clock, Hz.
@@ -39,6 +39,8 @@ _POST = 2
 _TS_BYTES = 4
 _IMU_BYTES = 12
 
+#: The lowest and highest int16 count: the rails of every channel.
+INT16_RAILS = (-32768.0, 32767.0)
 #: Nominal MPU9150 scale factors at +-16 g and +-2000 deg/s.
 DEFAULT_ACC_UNITS: dict = {"unit": "counts", "scale": 1.0 / 2048.0, "scale_unit": "g"}
 DEFAULT_GYRO_UNITS: dict = {"unit": "counts", "scale": 1.0 / 16.4, "scale_unit": "deg/s"}
@@ -288,7 +290,9 @@ def read_mimu_with_stats(
         acc[name] = acc_conv.to_si(values[:, j, 0:3], source, name)
         gyro[name] = gyro_conv.to_si(values[:, j, 3:6], source, name)
     notes = (stats.summary(), stats.details()) + times.notes
-    return Recording(t=t, acc=acc, gyro=gyro, source=source, notes=notes), stats
+    # The packets carry int16 counts whatever the declared conversion: the converter clips there.
+    rails = declared_rails(replace(acc_conv, rails=INT16_RAILS), replace(gyro_conv, rails=INT16_RAILS), acc, gyro)
+    return Recording(t=t, acc=acc, gyro=gyro, source=source, notes=notes, rails=rails), stats
 
 
 def read_mimu(

@@ -24,7 +24,7 @@ from castimate.validation import input_file, read_input_bytes
 from castimate.io.atomic import atomic_write
 from castimate.io.recording import Recording
 from castimate.io.timestamps import regular_times
-from castimate.io.units import UnitConversion, UnitSpec, parse_units
+from castimate.io.units import UnitConversion, UnitSpec, declared_rails, parse_units
 
 FORMATS = ("csv", "npz", "mimu", "imutk", "imucal")
 
@@ -230,7 +230,8 @@ def read_csv(
             gyro[triad] = gyro_conv.to_si(data[:, [chans[a] for a in _GYRO_AXES]], source, f"{triad}.gx")
         if "temp" in chans:
             temp[triad] = temp_conv.to_si(data[:, chans["temp"]], source, f"{triad}.temp")
-    return Recording(t=times.t, acc=acc, gyro=gyro, temp=temp, source=source, notes=times.notes)
+    return Recording(t=times.t, acc=acc, gyro=gyro, temp=temp, source=source, notes=times.notes,
+                     rails=declared_rails(acc_conv, gyro_conv, acc, gyro))
 
 
 def write_csv(path: str | os.PathLike, recording: Recording) -> None:
@@ -375,7 +376,8 @@ def read_npz(
                 temp[triad] = temp_conv.to_si(arr, source, f"{triad}.temp")
     if not acc:
         raise InputError(source, "", "expected at least one '<triad>.acc' array, found only 't'")
-    return Recording(t=times.t, acc=acc, gyro=gyro, temp=temp, source=source, notes=times.notes)
+    return Recording(t=times.t, acc=acc, gyro=gyro, temp=temp, source=source, notes=times.notes,
+                     rails=declared_rails(acc_conv, gyro_conv, acc, gyro))
 
 
 def write_npz(path: str | os.PathLike, recording: Recording) -> None:

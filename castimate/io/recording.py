@@ -27,6 +27,10 @@ class Recording:
         The file(s) it was read from, for error messages.
     notes
         Human-readable remarks from the reader (dropped packets, resynchronisations).
+    rails
+        Sensor (``accelerometer``, ``gyroscope``) -> triad name -> (2, 3) the low and high rail per axis
+        (SI units): the converter's extreme counts after the reader's unit conversion, where the reader
+        knows them (MIMU int16 packets; counts declared with ``rails``). Absent: not known.
     """
 
     t: np.ndarray
@@ -35,10 +39,15 @@ class Recording:
     temp: dict[str, np.ndarray] = field(default_factory=dict)
     source: str = ""
     notes: tuple[str, ...] = ()
+    rails: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
 
     @property
     def triads(self) -> list[str]:
         return list(self.acc)
+
+    def rails_of(self, name: str, sensor: str) -> np.ndarray | None:
+        """(2, 3) [low; high] rails of a triad's sensor in SI units, or None where not known."""
+        return self.rails.get(sensor, {}).get(name)
 
     def __len__(self) -> int:
         return len(self.t)
@@ -52,4 +61,5 @@ class Recording:
             temp={k: v[mask] for k, v in self.temp.items()},
             source=self.source,
             notes=self.notes,
+            rails=self.rails,
         )

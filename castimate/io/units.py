@@ -9,7 +9,9 @@ problem file, either as a plain unit name or as a raw-counts mapping::
 A counts mapping means ``SI = (counts - offset) * scale * (scale_unit in SI)``. Both ``scale``
 and ``offset`` may be one number or one per axis (a list of three). :func:`parse_units` turns
 either form into a :class:`UnitConversion`, which always has the normalised form
-``SI = (raw - offset) * scale`` with ``scale`` and ``offset`` of shape (3,).
+``SI = (raw - offset) * scale`` with ``scale`` and ``offset`` of shape (3,). An optional
+``rails: [lowest, highest]`` declares the converter's range in counts (e.g. [0, 65535]), so that the
+samples it clipped are masked at both rails (:mod:`castimate.prepare.masks`).
 """
 
 from __future__ import annotations
@@ -60,7 +62,7 @@ _ALIASES: dict[str, str] = {
     "°c": "degC",
 }
 
-_MAPPING_KEYS = ("unit", "scale", "offset", "scale_unit")
+_MAPPING_KEYS = ("unit", "scale", "offset", "scale_unit", "rails")
 
 UnitSpec = Union[str, Mapping[str, Any], "UnitConversion"]
 
@@ -80,12 +82,16 @@ class UnitConversion:
         Shape (3,), in input units (counts, g, ...), subtracted before scaling.
     label
         Short description of how the conversion was declared, for :meth:`describe`.
+    rails
+        The converter's lowest and highest count ``(low, high)`` where declared (an int16 ADC:
+        (−32768, 32767)), else None: where its readings clip.
     """
 
     quantity: str
     scale: np.ndarray
     offset: np.ndarray
     label: str = ""
+    rails: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         # Read-only copies so that a "frozen" conversion really cannot change under a reader.
@@ -101,6 +107,7 @@ class UnitConversion:
             self.quantity == other.quantity
             and np.array_equal(self.scale, other.scale)
             and np.array_equal(self.offset, other.offset)
+            and self.rails == other.rails
         )
 
     __hash__ = None  # type: ignore[assignment]  # mutable-looking arrays: not hashable
@@ -140,6 +147,12 @@ class UnitConversion:
             raise InputError(source, where, f"expected shape (N, 3) for {self.quantity}, found {arr.shape}")
         return (arr - self.offset) * self.scale
 
+    def rails_si(self) -> np.ndarray | None:
+        """(2, 3) the low and high rail per axis in SI units (sorted: a negative scale swaps them), or None."""
+        if self.rails is None:
+            return None
+        return np.sort(self.to_si(np.array([[self.rails[0]] * 3, [self.rails[1]] * 3])), axis=0)
+
     def describe(self) -> str:
         """A short human-readable description, e.g. ``"g (x 9.80665 -> m/s^2)"``."""
         if self.label:
@@ -160,7 +173,7 @@ class UnitConversion:
             "scale": [float(v) for v in self.scale],
             "offset": [float(v) for v in self.offset],
             "scale_unit": self.si_unit,
-        }
+        } | ({"rails": list(self.rails)} if self.rails is not None else {})
 
 
 def _fmt_vec(v: np.ndarray) -> str:
@@ -240,6 +253,22 @@ def _per_axis(value: Any, quantity: str, source: object, where: str) -> np.ndarr
     return np.full(3, number(value, where))
 
 
+def _rails(value: Any, quantity: str, source: object, where: str) -> tuple[float, float]:
+    """``[low, high]`` counts of the converter (accelerometer and gyroscope only)."""
+    if quantity == "temperature":
+        raise InputError(source, where, "rails are for accelerometer and gyroscope counts, not temperature")
+    if not (isinstance(value, (list, tuple)) and len(value) == 2):
+        raise InputError(source, where, f"expected [lowest, highest] count of the converter, found {value!r}")
+    ok = all(isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) and math.isfinite(v)
+             for v in value)
+    if not ok:
+        raise InputError(source, where, f"expected two finite numbers [lowest, highest], found {value!r}")
+    lo, hi = float(value[0]), float(value[1])
+    if not lo < hi:
+        raise InputError(source, where, f"expected the lowest count below the highest, found {value!r}")
+    return lo, hi
+
+
 def parse_units(spec: UnitSpec, source: object, where: str, quantity: str) -> UnitConversion:
     """Parse a unit declaration from a problem file.
 
@@ -247,8 +276,8 @@ def parse_units(spec: UnitSpec, source: object, where: str, quantity: str) -> Un
     ----------
     spec
         A unit name (``"m/s^2"``, ``"g"``, ``"rad/s"``, ``"deg/s"``, ``"K"``, ``"degC"``), a
-        counts mapping ``{unit: counts, scale: X, offset: O, scale_unit: U}`` meaning
-        ``SI = (counts - O) * X * (U in SI)``, or an existing :class:`UnitConversion`
+        counts mapping ``{unit: counts, scale: X, offset: O, scale_unit: U, rails: [L, H]}`` meaning
+        ``SI = (counts - O) * X * (U in SI)``, clipped at L and H counts (optional), or an existing :class:`UnitConversion`
         (returned unchanged after checking its quantity). ``X`` and ``O`` are a number or a
         list of three (per axis; temperature: a number). ``U`` defaults to the SI unit.
     source
@@ -315,9 +344,9 @@ def parse_units(spec: UnitSpec, source: object, where: str, quantity: str) -> Un
             spec.get("scale_unit", SI_UNIT[quantity]), quantity, source, f"{where}.scale_unit"
         )
         si_scale = scale * factor
+        rails = _rails(spec["rails"], quantity, source, f"{where}.rails") if "rails" in spec else None
         # (c - o) * s + a == (c - (o - a / s)) * s: fold the additive part into the offset.
-        conv = UnitConversion(quantity, si_scale, offset - add / si_scale)
-        return conv
+        return UnitConversion(quantity, si_scale, offset - add / si_scale, rails=rails)
 
     raise InputError(
         source,
@@ -325,6 +354,16 @@ def parse_units(spec: UnitSpec, source: object, where: str, quantity: str) -> Un
         f"expected a {quantity} unit name ({_units_of(quantity)}) or a mapping "
         f"{{unit: counts, scale: ...}}, found {spec!r}",
     )
+
+
+def declared_rails(acc: UnitConversion, gyro: UnitConversion | None, acc_names, gyro_names) -> dict:
+    """``Recording.rails`` from conversions that declare their converter's range (empty where none does)."""
+    out = {}
+    for sensor, conv, names in (("accelerometer", acc, acc_names), ("gyroscope", gyro, gyro_names)):
+        r = conv.rails_si() if conv is not None else None
+        if r is not None and names:
+            out[sensor] = {n: r for n in names}
+    return out
 
 
 def si_units(quantity: str) -> UnitConversion:

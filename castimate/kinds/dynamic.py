@@ -195,7 +195,7 @@ class DynamicInput:
 
     full: Recording
     data: DynamicData
-    saturation: dict  # "<triad>.<sensor>" -> number of masked samples
+    saturation: dict  # "<triad>.<sensor>" -> masked counts per rail (RailMask.counts), source and rails
     regressors: Regressors  # of the whole session, also for parts of it (cross-validation folds)
 
 
@@ -205,7 +205,7 @@ class DynamicInputs:
 
     config: DynamicConfig
     data: DynamicData
-    saturation: dict  # "<triad>.<sensor>" -> number of masked samples
+    saturation: dict  # "<triad>.<sensor>" -> masked counts per rail (RailMask.counts), source and rails
     nominal: dict  # name -> nominal position in the body frame
     static_problem: object = None  # StaticProblem of data.static (joint problems), else None
 
@@ -218,26 +218,27 @@ def load_dynamic(spec: ProblemSpec, log: Log = quiet) -> DynamicInput:
     check_plausible(spec, rec, "dynamic", log)
     acc_sigma, gyro_sigma = noise_from_static(spec, full, log)
     names = spec.array.names
+    opt = spec.data.saturation
     sat, acc_valid, gyro_valid = {}, {}, {}
     for n in names:
-        m = saturation_mask(rec.acc[n], spec.data.saturation["accelerometer"])
-        acc_valid[n] = ~m
-        sat[f"{n}.accelerometer"] = int(m.sum())
-        if n in rec.gyro:
-            m = saturation_mask(rec.gyro[n], spec.data.saturation["gyroscope"])
-            gyro_valid[n] = ~m
-            sat[f"{n}.gyroscope"] = int(m.sum())
+        for sensor, readings, valid in (("accelerometer", rec.acc, acc_valid), ("gyroscope", rec.gyro, gyro_valid)):
+            if n not in readings:
+                continue
+            m = saturation_mask(readings[n], opt.level(sensor), rec.rails_of(n, sensor), opt.margin, opt.adjacent)
+            valid[n] = ~m.masked
+            sat[f"{n}.{sensor}"] = m.counts() | {"source": m.source, "rails": m.rails}
     for key, count in sat.items():
-        if count > MAX_MASKED * len(rec.t):
+        if count["masked"] > MAX_MASKED * len(rec.t):
             name, sensor = key.split(".")
-            level = spec.data.saturation[sensor]
             raise InputError(spec.path, f"data.saturation.{sensor}",
-                             f"{level!r} masks {count} of {len(rec.t)} samples of {name}'s {sensor} (columns "
+                             f"{opt.level(sensor)!r} masks {count['masked']} of {len(rec.t)} samples of {name}'s "
+                             f"{sensor} (columns "
                              f"{', '.join(f'{name}.{a}' for a in (('ax', 'ay', 'az') if sensor == 'accelerometer' else ('gx', 'gy', 'gz')))}"
                              f"); too few are left to fit: give a level above the readings, or auto or none")
-    masked = {k: v for k, v in sat.items() if v}
+    masked = {k: v for k, v in sat.items() if v["masked"]}
     log(f"{len(rec.t)} samples; saturated samples masked out of the likelihood: "
-        + (", ".join(f"{k} {v}" for k, v in masked.items()) if masked else "none"))
+        + (", ".join(f"{k} {v['masked']} (low rail {v['low']}, high {v['high']})" for k, v in masked.items())
+           if masked else "none"))
     data = DynamicData(rec.t, {n: rec.acc[n] for n in names}, acc_sigma,
                        {n: rec.gyro[n] for n in names if n in rec.gyro}, gyro_sigma, acc_valid, gyro_valid,
                        {n: rec.temp[n] for n in names if n in rec.temp})

@@ -25,6 +25,17 @@ def _units(spec, **extra) -> dict:
             "input": {q: c.to_dict() for q, c in input_units(d.format, d.acc_units, d.gyro_units).items()}}
 
 
+def _saturation(spec, sat: dict) -> dict:
+    """The masking settings and, per "<triad>.<sensor>", the samples masked on each rail and where the rails came
+    from (adc, plateau, level, none) with their values per axis (null where none was found)."""
+    opt = spec.data.saturation
+    return {"accelerometer": opt.accelerometer, "gyroscope": opt.gyroscope, "margin": opt.margin,
+            "adjacent": opt.adjacent, "unit": {"accelerometer": "m/s^2", "gyroscope": "rad/s"},
+            "sensors": {k: {"low": v["low"], "high": v["high"], "adjacent": v["adjacent"], "masked": v["masked"],
+                            "source": v["source"], "rail_low": v["rails"][0], "rail_high": v["rails"][1]}
+                        for k, v in sat.items()}}
+
+
 def _parameters(layout, sol, name: str) -> dict:
     """The estimated or fixed parameter groups of one triad, with σ and units."""
     params = {}
@@ -122,7 +133,8 @@ def dynamic_results(outcome) -> dict:
         "reference": cfg.reference,
         "units": _units(spec, position="m"),
         "samples": outcome.data.n,
-        "saturated_samples_masked": outcome.saturation,
+        "saturated_samples_masked": {k: v["masked"] for k, v in outcome.saturation.items()},
+        "saturation": _saturation(spec, outcome.saturation),
         "motion_model": {"process_model": m.process_model, "sigma_s": m.sigma_s, "sigma_omega_dot": m.sigma_omega_dot,
                          "sigma_integration": m.sigma_integration},
         "noise": {"accelerometer": outcome.data.acc_sigma, "gyroscope": outcome.data.gyro_sigma},

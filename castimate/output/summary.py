@@ -43,9 +43,11 @@ def dynamic_summary(outcome) -> str:
     lines = [f"{outcome.spec.path.name}: {sol.message} in {sol.iterations} iterations "
              f"({len(outcome.attempts)} attempt(s)), {sol.wall_s:.2f} s solve + {outcome.solver.build_s:.2f} s build",
              f"  {outcome.data.n} samples, {len(outcome.config.triads)} triads, chi2/dof = {sol.chi2_per_dof:.3f}"]
-    masked = {k: v for k, v in outcome.saturation.items() if v}
+    masked = {k: v for k, v in outcome.saturation.items() if v["masked"]}
     if masked:
-        lines.append("  saturated samples masked: " + ", ".join(f"{k} {v}" for k, v in masked.items()))
+        lines.append("  saturated samples masked (on the low rail / the high rail): " + ", ".join(
+            f"{k} {v['masked']} ({v['low']} / {v['high']}" + (f", {v['adjacent']} adjacent" if v["adjacent"] else "")
+            + ")" for k, v in masked.items()))
     lines.append("  position [mm] (body frame, origin at the reference triad)  estimate ± σ   | nominal")
     for n in outcome.config.names:
         r, s = outcome.positions[n]

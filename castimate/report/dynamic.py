@@ -150,7 +150,8 @@ def _noise_table(results: dict, names: list[str], n_samples: int) -> str:
     has_gyro = bool(gyro) or any(k.endswith(".gyroscope") for k in sat)
     head = ('<tr><th class="name">triad</th><th>accelerometer σ x, y, z [mm/s²]</th>'
             + ("<th>gyroscope σ x, y, z [deg/s]</th>" if has_gyro else "")
-            + "<th>accelerometer samples masked</th>" + ("<th>gyroscope samples masked</th>" if has_gyro else "")
+            + "<th>accelerometer samples masked (saturated)</th>"
+            + ("<th>gyroscope samples masked (saturated)</th>" if has_gyro else "")
             + "</tr>")
 
     def vec(v, scale):
@@ -159,12 +160,17 @@ def _noise_table(results: dict, names: list[str], n_samples: int) -> str:
         v = np.atleast_1d(np.asarray([np.nan if x is None else x for x in np.atleast_1d(v)], float)) * scale
         return "<td>" + escape(", ".join(f"{x:.3g}" for x in v)) + "</td>"
 
+    rails = (results.get("saturation") or {}).get("sensors") or {}
+
     def masked(key):
         c = sat.get(key)
         if c is None:
             return '<td class="na">—</td>'
         pct = f" ({100 * c / n_samples:.1f} %)" if c and n_samples else ""
-        return (f'<td class="bad">{c}{pct}</td>' if c else f"<td>{c}</td>")
+        r = rails.get(key)
+        split = (f"; low rail {r['low']}, high rail {r['high']}" + (f", {r['adjacent']} adjacent" if r["adjacent"] else "")
+                 if c and r else "")
+        return (f'<td class="bad">{c}{pct}{escape(split)}</td>' if c else f"<td>{c}</td>")
 
     body = []
     for name in names:
