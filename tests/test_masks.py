@@ -38,9 +38,11 @@ def test_int16_rails_are_asymmetric_and_both_are_masked():
     for m in (saturation_mask(y, "auto", rails), saturation_mask(y, "auto")):  # from the ADC; as plateaus
         # The one-rail mask (samples at the largest |y| only) leaves the +32767 samples in: this fails on it.
         assert m.masked.tolist() == (clipped_low | clipped_high).tolist()
-        assert m.low.tolist() == clipped_low.tolist() and m.high.tolist() == clipped_high.tolist()
+        assert m.low.any(axis=1).tolist() == clipped_low.tolist() and m.high.any(axis=1).tolist() == clipped_high.tolist()
+        # each axis on its own: the unclipped axes of a clipped sample still count
+        assert m.axes.tolist() == ((true < lo) | (true > hi)).tolist()
         assert m.counts() == {"low": clipped_low.sum(), "high": clipped_high.sum(), "adjacent": 0,
-                              "masked": (clipped_low | clipped_high).sum()}
+                              "masked": (clipped_low | clipped_high).sum(), "axes": ((true < lo) | (true > hi)).sum()}
         np.testing.assert_allclose(m.rails, rails, rtol=1e-12)
     assert saturation_mask(y, "auto", rails).source == "adc" and saturation_mask(y, "auto").source == "plateau"
 
@@ -55,11 +57,12 @@ def test_hand_computed_margin_and_adjacent_samples():
     assert (m.counts()["low"], m.counts()["high"]) == (1, 2)
     # margin 0.05 of the range 9 = 0.45: 4.9 >= 5 - 0.45 and 4.6 >= 4.55 join the high rail; -3.9 <= -3.55 the low
     m = saturation_mask(y, "auto", rails, margin=0.05)
-    assert np.flatnonzero(m.high).tolist() == [1, 2, 3, 8] and np.flatnonzero(m.low).tolist() == [5, 6]
+    assert np.flatnonzero(m.high[:, 0]).tolist() == [1, 2, 3, 8] and np.flatnonzero(m.low[:, 0]).tolist() == [5, 6]
+    assert not m.axes[:, 1:].any()
     # one sample on each side of every run on a rail (runs 2-3 and 6): 1, 4, 5, 7 join
     m = saturation_mask(y, "auto", rails, adjacent=1)
     assert np.flatnonzero(m.masked).tolist() == [1, 2, 3, 4, 5, 6, 7]
-    assert m.counts() == {"low": 1, "high": 2, "adjacent": 4, "masked": 7}
+    assert m.counts() == {"low": 1, "high": 2, "adjacent": 4, "masked": 7, "axes": 7}
     # a declared level: |y| >= 4.6 -> 4.9, 5, 5, 4.6 (high), none low
     m = saturation_mask(y, 4.6)
     assert np.flatnonzero(m.masked).tolist() == [1, 2, 3, 8] and m.counts()["low"] == 0

@@ -225,7 +225,7 @@ def load_dynamic(spec: ProblemSpec, log: Log = quiet) -> DynamicInput:
             if n not in readings:
                 continue
             m = saturation_mask(readings[n], opt.level(sensor), rec.rails_of(n, sensor), opt.margin, opt.adjacent)
-            valid[n] = ~m.masked
+            valid[n] = ~m.axes
             sat[f"{n}.{sensor}"] = m.counts() | {"source": m.source, "rails": m.rails}
     for key, count in sat.items():
         if count["masked"] > MAX_MASKED * len(rec.t):
@@ -236,8 +236,9 @@ def load_dynamic(spec: ProblemSpec, log: Log = quiet) -> DynamicInput:
                              f"{', '.join(f'{name}.{a}' for a in (('ax', 'ay', 'az') if sensor == 'accelerometer' else ('gx', 'gy', 'gz')))}"
                              f"); too few are left to fit: give a level above the readings, or auto or none")
     masked = {k: v for k, v in sat.items() if v["masked"]}
-    log(f"{len(rec.t)} samples; saturated samples masked out of the likelihood: "
-        + (", ".join(f"{k} {v['masked']} (low rail {v['low']}, high {v['high']})" for k, v in masked.items())
+    log(f"{len(rec.t)} samples; saturated readings masked out of the likelihood (each axis on its own): "
+        + (", ".join(f"{k} {v['masked']} samples (low rail {v['low']}, high {v['high']}; {v['axes']} axis readings)"
+                     for k, v in masked.items())
            if masked else "none"))
     data = DynamicData(rec.t, {n: rec.acc[n] for n in names}, acc_sigma,
                        {n: rec.gyro[n] for n in names if n in rec.gyro}, gyro_sigma, acc_valid, gyro_valid,
@@ -405,7 +406,7 @@ def _solve_bcd(spec: ProblemSpec, config: DynamicConfig, data: DynamicData, log:
     gyro_cal = problem.gyro_calibration(start)
     acc = np.stack([linear_inverse(*acc_cal[n], data.acc[n]) for n in config.names])
     gyro = np.stack([linear_inverse(*gyro_cal[n], data.gyro[n]) for n in problem.gyro_triads])
-    mask = np.stack([data.valid("gyro", n) for n in problem.gyro_triads])
+    mask = np.stack([data.axis_valid("gyro", n).all(axis=1) for n in problem.gyro_triads])
     r0 = np.stack([start[f"{n}.position"] for n in config.names])
     ref = config.names.index(config.reference)
     res = bcd_positions(acc, gyro, np.stack([data.acc_sigma[n] for n in config.names]).mean(axis=1),
@@ -464,18 +465,18 @@ def estimate_clocks(outcome: DynamicOutcome) -> dict[str, Beat]:
 
 
 def measurement_residuals(problem, data: DynamicData, sol: Solution) -> tuple[dict, dict]:
-    """Residuals y - model per triad and sample (m/s^2, rad/s), NaN where a sample was masked.
-    The solution's residuals are those of the valid instances, sample-major over the triads."""
+    """Residuals y - model per triad and sample (m/s^2, rad/s), NaN where an axis was masked.
+    The solution's residuals are those of the valid axes, sample-major over the triads."""
     r = sol.residual
     out_a, out_g, off = {}, {}, 0
     for kind, names, sig, out in (("acc", problem.config.names, data.acc_sigma, out_a),
                                   ("gyro", problem.gyro_triads, data.gyro_sigma, out_g)):
         if not names:
             continue
-        ok = problem.valid(kind, names)  # (N, K)
+        ok = problem.valid_axes(kind, names)  # (N, K, 3)
         full = np.full((data.n, len(names), 3), np.nan)
-        full[ok] = r[off: off + 3 * int(ok.sum())].reshape(-1, 3)
-        off += 3 * int(ok.sum())
+        full[ok] = r[off: off + int(ok.sum())]
+        off += int(ok.sum())
         for i, n in enumerate(names):
             out[n] = full[:, i] * sig[n]
     return out_a, out_g

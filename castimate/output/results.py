@@ -26,13 +26,15 @@ def _units(spec, **extra) -> dict:
 
 
 def _saturation(spec, sat: dict) -> dict:
-    """The masking settings and, per "<triad>.<sensor>", the samples masked on each rail and where the rails came
-    from (adc, plateau, level, none) with their values per axis (null where none was found)."""
+    """The masking settings and, per "<triad>.<sensor>", the samples with an axis on each rail, the samples and
+    the axis readings masked (each axis on its own), and where the rails came from (adc, plateau, level, none)
+    with their values per axis (null where none was found)."""
     opt = spec.data.saturation
     return {"accelerometer": opt.accelerometer, "gyroscope": opt.gyroscope, "margin": opt.margin,
             "adjacent": opt.adjacent, "unit": {"accelerometer": "m/s^2", "gyroscope": "rad/s"},
             "sensors": {k: {"low": v["low"], "high": v["high"], "adjacent": v["adjacent"], "masked": v["masked"],
-                            "source": v["source"], "rail_low": v["rails"][0], "rail_high": v["rails"][1]}
+                            "masked_axes": v["axes"], "source": v["source"], "rail_low": v["rails"][0],
+                            "rail_high": v["rails"][1]}
                         for k, v in sat.items()}}
 
 

@@ -45,9 +45,9 @@ def dynamic_summary(outcome) -> str:
              f"  {outcome.data.n} samples, {len(outcome.config.triads)} triads, chi2/dof = {sol.chi2_per_dof:.3f}"]
     masked = {k: v for k, v in outcome.saturation.items() if v["masked"]}
     if masked:
-        lines.append("  saturated samples masked (on the low rail / the high rail): " + ", ".join(
+        lines.append("  saturated samples masked (on the low rail / the high rail; axis readings): " + ", ".join(
             f"{k} {v['masked']} ({v['low']} / {v['high']}" + (f", {v['adjacent']} adjacent" if v["adjacent"] else "")
-            + ")" for k, v in masked.items()))
+            + f"; {v['axes']})" for k, v in masked.items()))
     lines.append("  position [mm] (body frame, origin at the reference triad)  estimate ± σ   | nominal")
     for n in outcome.config.names:
         r, s = outcome.positions[n]

@@ -70,31 +70,39 @@ class SaturationOptions:
 
 @dataclass(frozen=True)
 class RailMask:
-    """Where one sensor triad's readings sit on a rail.
+    """Where one sensor triad's readings sit on a rail. Each axis is masked on its own: an ADC clips
+    each channel separately, and the other axes of a clipped sample are good readings.
 
     Attributes
     ----------
-    masked
-        (N,) samples left out: any axis on a rail (within the margin), or ``adjacent`` samples next to it.
+    axes
+        (N, 3) readings left out: on a rail (within the margin), or ``adjacent`` samples next to a run on it.
     low, high
-        (N,) any axis on its low / high rail.
+        (N, 3) on the low / high rail.
     rails
         (2, 3) low and high rail per axis in the sensor's units, NaN where none was found.
     source
         ``adc`` (rails from the converter's range), ``plateau`` (found in the data), ``level`` (declared) or ``none``.
     """
 
-    masked: np.ndarray
+    axes: np.ndarray
     low: np.ndarray
     high: np.ndarray
     rails: np.ndarray
     source: str
 
+    @property
+    def masked(self) -> np.ndarray:
+        """(N,) samples with any axis left out."""
+        return self.axes.any(axis=1)
+
     def counts(self) -> dict:
-        """Samples on the low rail, on the high rail, masked next to a run on a rail, and masked in all."""
-        on = self.low | self.high
-        return {"low": int(self.low.sum()), "high": int(self.high.sum()),
-                "adjacent": int((self.masked & ~on).sum()), "masked": int(self.masked.sum())}
+        """Samples with an axis on the low rail, on the high rail, masked only as next to a run on a rail,
+        and masked in all; and the axis readings masked."""
+        on = (self.low | self.high).any(axis=1)
+        return {"low": int(self.low.any(axis=1).sum()), "high": int(self.high.any(axis=1).sum()),
+                "adjacent": int((self.masked & ~on).sum()), "masked": int(self.masked.sum()),
+                "axes": int(self.axes.sum())}
 
 
 def plateau_rails(y: np.ndarray) -> np.ndarray:
@@ -112,7 +120,7 @@ def plateau_rails(y: np.ndarray) -> np.ndarray:
 
 
 def _widen(mask: np.ndarray, k: int) -> np.ndarray:
-    """``mask`` with ``k`` samples on each side of every true sample set too."""
+    """``mask`` (N, 3) with ``k`` samples on each side of every true sample of an axis set too."""
     if k == 0 or not mask.any():
         return mask
     out = mask.copy()
@@ -124,7 +132,7 @@ def _widen(mask: np.ndarray, k: int) -> np.ndarray:
 
 def saturation_mask(y: np.ndarray, level, rails: np.ndarray | None = None, margin: float = 0.0,
                     adjacent: int = 0) -> RailMask:
-    """The samples of readings ``y`` (N, 3) on a rail.
+    """The readings ``y`` (N, 3) on a rail, axis by axis.
 
     ``level``: ``auto`` masks both rails of every axis: ``rails`` (2, 3) [low; high] per axis where
     given (the ADC's range in the readings' units), else those found by :func:`plateau_rails`; a sample
@@ -133,11 +141,11 @@ def saturation_mask(y: np.ndarray, level, rails: np.ndarray | None = None, margi
     a number masks |y| >= level. ``adjacent`` samples on each side of every run on a rail are masked too.
     """
     n = len(y)
-    none = np.zeros(n, bool)
+    none = np.zeros((n, 3), bool)
     if isinstance(level, str) and level == "none":
         return RailMask(none, none, none, np.full((2, 3), np.nan), "none")
     if not isinstance(level, str):
-        low, high = (y <= -level).any(axis=1), (y >= level).any(axis=1)
+        low, high = y <= -level, y >= level
         rails, source = np.array([[-level] * 3, [level] * 3], float), "level"
     else:
         if rails is not None:
@@ -147,5 +155,5 @@ def saturation_mask(y: np.ndarray, level, rails: np.ndarray | None = None, margi
         # The full range per axis: between the rails, or the data's own where a rail was not found.
         full = np.where(np.isnan(rails).any(axis=0), np.ptp(y, axis=0) if n else 0.0, rails[1] - rails[0])
         tol = margin * full + 1e-9 * np.nanmax(np.abs(np.vstack([rails, np.ones((1, 3))])), axis=0)
-        low, high = (y <= rails[0] + tol).any(axis=1), (y >= rails[1] - tol).any(axis=1)  # False against NaN
+        low, high = y <= rails[0] + tol, y >= rails[1] - tol  # False against NaN
     return RailMask(_widen(low | high, adjacent), low, high, rails, source)

@@ -60,9 +60,10 @@ class DynamicConfig:
 
 @dataclass(frozen=True)
 class DynamicData:
-    """A motion recording in SI units with per-sample validity (saturation masks).
+    """A motion recording in SI units with validity per sample and axis (saturation masks).
 
-    ``acc_sigma``/``gyro_sigma`` are per-sample white-noise σ per axis, (3,).
+    ``acc_sigma``/``gyro_sigma`` are per-sample white-noise σ per axis, (3,). ``acc_valid``/``gyro_valid``
+    per triad: (N, 3) which axes read (an ADC clips each channel on its own), or (N,) per sample.
     """
 
     t: np.ndarray
@@ -89,9 +90,16 @@ class DynamicData:
         """Samples start .. start + n - 1 (a fixed-size window, e.g. for the C solver)."""
         return self.take(np.arange(self.n)[start:start + n])
 
-    def valid(self, kind: str, name: str) -> np.ndarray:
+    def axis_valid(self, kind: str, name: str) -> np.ndarray:
+        """(N, 3) the axes of a triad's readings that count (not on a rail)."""
         m = (self.acc_valid if kind == "acc" else self.gyro_valid).get(name)
-        return np.ones(self.n, bool) if m is None else m
+        if m is None:
+            return np.ones((self.n, 3), bool)
+        return np.broadcast_to(m[:, None], (self.n, 3)) if m.ndim == 1 else m
+
+    def valid(self, kind: str, name: str) -> np.ndarray:
+        """(N,) the samples where any axis of a triad's reading counts: its instances in the problem."""
+        return self.axis_valid(kind, name).any(axis=1)
 
 
 def accelerometer_sample_factor(config: DynamicConfig) -> ca.Function:
@@ -214,15 +222,24 @@ class DynamicProblem:
     n_samples: int
     gyro_triads: list[str]
     rows: dict  # "acc" | "gyro" -> triad name -> indices of the valid samples
+    axes: dict = None  # "acc" | "gyro" -> triad name -> (N, 3) the axes that count (all where absent)
 
     def valid(self, kind: str, names) -> np.ndarray:
         """(N, K): which (sample, triad) instances of a sensor block are valid readings."""
         return _valid(self.rows[kind], names, self.n_samples)
 
+    def valid_axes(self, kind: str, names) -> np.ndarray:
+        """(N, K, 3): which axes of the valid instances count; a clipped axis of a valid instance is weighted
+        out by σ = MASKED_SIGMA."""
+        ax = (self.axes or {}).get(kind, {})
+        return self.valid(kind, names)[..., None] & np.stack(
+            [ax.get(n, np.ones((self.n_samples, 3), bool)) for n in names], axis=1)
+
     def block_data(self, data: DynamicData) -> list[np.ndarray]:
         """Data of every block in problem order (accelerometers, gyroscopes, process model). Sensor
         blocks are sample-major over every triad; a masked sample gets y = 0 and σ = inf, so its
-        residual and derivatives are exactly zero (its block instance is not ``valid``)."""
+        residual and derivatives are exactly zero (its block instance is not ``valid``); a masked axis
+        of a valid sample gets y = 0 and σ = MASKED_SIGMA (left out of the residuals and the dof)."""
         R = {t.name: t.R_nominal for t in self.config.triads}
 
         reg = self.config.regressors or Regressors.from_times(data.t, data.temp)
@@ -230,10 +247,10 @@ class DynamicProblem:
         inv_span = 1.0 / (data.t[nxt] - data.t[prev]) if data.n > 1 else np.zeros(data.n)
 
         def stack(names, kind, y, sigma):
-            ok = self.valid(kind, names)
-            Y = np.where(ok[..., None], np.stack([y[n] for n in names], axis=1), 0.0)
-            S = np.where(ok[..., None], np.stack([np.broadcast_to(sigma[n], (self.n_samples, 3)) for n in names], axis=1),
-                         np.inf)
+            ok, axes = self.valid(kind, names), self.valid_axes(kind, names)
+            Y = np.where(axes, np.stack([y[n] for n in names], axis=1), 0.0)
+            S = np.where(axes, np.stack([np.broadcast_to(sigma[n], (self.n_samples, 3)) for n in names], axis=1),
+                         np.where(ok[..., None], MASKED_SIGMA, np.inf))
             Rv = np.broadcast_to(np.stack([R[n].ravel(order="F") for n in names]), (self.n_samples, len(names), 9))
             reg_ = np.stack([reg.sample_moments(data.t, data.temp.get(n), n) for n in names], axis=1)  # (N, K, 5)
             span = np.broadcast_to(inv_span[:, None, None], (self.n_samples, len(names), 1))
@@ -304,7 +321,7 @@ def initial_motion(config: DynamicConfig, data: DynamicData, gyro_triads: list[s
             Tg = gyroscope_matrix()(init(t, "gyroscope", "gain", [1, 1, 1]), init(t, "gyroscope", "misalignment", [0, 0, 0]),
                                     t.R_nominal)
             w = linear_inverse(Tg, np.asarray(init(t, "gyroscope", "bias", [0, 0, 0]), float), data.gyro[name])
-            ok = data.valid("gyro", name)
+            ok = data.axis_valid("gyro", name).all(axis=1)  # a clipped axis leaks into the others through T_g
             est[ok] += w[ok]
             weight[ok] += 1
         good = weight > 0
@@ -343,10 +360,12 @@ def build_dynamic(config: DynamicConfig, data: DynamicData, start: dict | None =
                Group.make(S, XYZ, start[S], rows=N, unit="m/s^2", nuisance=True)]
     rows = {"acc": {n: np.flatnonzero(data.valid("acc", n)) for n in config.names},
             "gyro": {n: np.flatnonzero(data.valid("gyro", n)) for n in gyro_triads}}
+    axes = {"acc": {n: data.axis_valid("acc", n) for n in config.names},
+            "gyro": {n: data.axis_valid("gyro", n) for n in gyro_triads}}
 
-    def instances(kind, names):  # (triad index, sample index) of every instance, sample-major; which are valid
+    def instances(kind, names):  # (triad index, sample index) of every instance, sample-major; which axes count
         k, n = np.tile(np.arange(len(names)), N), np.repeat(np.arange(N), len(names))
-        return k, n, _valid(rows[kind], names, N).ravel()
+        return k, n, (_valid(rows[kind], names, N)[..., None] & np.stack([axes[kind][m] for m in names], 1)).reshape(-1, 3)
 
     if config.regressors is None:
         config = replace(config, regressors=Regressors.from_times(data.t, data.temp))
@@ -380,7 +399,7 @@ def build_dynamic(config: DynamicConfig, data: DynamicData, start: dict | None =
         blocks.append(FactorBlock("process_model", process_factor(),
                                   [(OMEGA, a), (OMEGA_DOT, a), (S, a), (OMEGA, b), (OMEGA_DOT, b), (S, b)],
                                   np.zeros((N - 1, 0))))
-    problem = DynamicProblem(config, LeastSquaresProblem(Layout(groups), blocks), N, gyro_triads, rows)
+    problem = DynamicProblem(config, LeastSquaresProblem(Layout(groups), blocks), N, gyro_triads, rows, axes)
     for blk, d in zip(blocks, problem.block_data(data)):
         blk.data = d
     return problem
@@ -403,7 +422,7 @@ def build_dynamic_sigma_masked(config: DynamicConfig, data: DynamicData) -> Dyna
     for kind, names, blk in (("acc", config.names, blocks[0]),
                              ("gyro", problem.gyro_triads, blocks[1] if problem.gyro_triads else None)):
         for k, name in enumerate(names):
-            blk[np.flatnonzero(~data.valid(kind, name)) * len(names) + k, 3:6] = MASKED_SIGMA  # sample-major
+            blk[k::len(names), 3:6][~data.axis_valid(kind, name)] = MASKED_SIGMA  # sample-major
     for b, d in zip(problem.lsq.blocks, blocks):
         b.data = d
     return problem
@@ -424,4 +443,4 @@ def build_joint(static_problem, config: DynamicConfig, data: DynamicData) -> Joi
     names = {g.name for g in dyn.lsq.layout.groups}
     groups = dyn.lsq.layout.groups + [g for g in static_problem.lsq.layout.groups if g.name not in names]
     lsq = LeastSquaresProblem(Layout(groups), dyn.lsq.blocks + static_problem.lsq.blocks)
-    return JointProblem(config, lsq, dyn.n_samples, dyn.gyro_triads, dyn.rows, static_problem)
+    return JointProblem(config, lsq, dyn.n_samples, dyn.gyro_triads, dyn.rows, dyn.axes, static_problem)

@@ -95,10 +95,10 @@ class FactorBlock:
         (N, nd) data of the instances; they enter the NLP as parameters, so one build serves any
         number of data sets.
     valid
-        (N,) instances whose residuals count (default all). The data of the others must make
-        their residuals exactly zero (a masked sample with σ = inf): they keep a block's
-        instances on a regular grid, which the solver exploits, and are left out of the reported
-        residuals and degrees of freedom.
+        (N,) instances whose residuals count (default all), or (N, m) per residual row. The data of
+        the others must make their residuals exactly zero (a masked sample with σ = inf; a masked
+        axis with σ = MASKED_SIGMA): they keep a block's instances on a regular grid, which the solver
+        exploits, and are left out of the reported residuals and degrees of freedom.
     """
 
     name: str

@@ -47,7 +47,8 @@ class Solver:
             b.data = np.ascontiguousarray(b.block.data, float)  # the default data, not copied
             off += b.block.n * b.f.nd
         self.perm = st.perm if st else np.arange(n)  # NLP order -> layout index
-        keep = [np.repeat(np.ones(b.block.n, bool) if b.block.valid is None else b.block.valid, b.f.m)
+        keep = [np.ones(b.block.n * b.f.m, bool) if b.block.valid is None else
+                np.broadcast_to(np.asarray(b.block.valid, bool).reshape(b.block.n, -1), (b.block.n, b.f.m)).ravel()
                 for b in self.blocks]
         self.prior = pi, _, _ = lay.priors()
         # residuals of instances that are not valid (masked data) are exactly zero and not reported
