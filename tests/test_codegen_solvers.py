@@ -187,8 +187,9 @@ def test_sigma_masking_has_the_optimum_of_leaving_readings_out(shared_data):
     data = inputs.data.window(1000, 60)
     assert sum((~v).sum() for v in data.gyro_valid.values()) > 20  # saturated gyro readings in the window
     a, b = build_dynamic(inputs.config, data), build_dynamic_sigma_masked(inputs.config, data)
-    # both have an instance per sample; build_dynamic leaves the masked ones out of the likelihood (not valid)
-    assert b.lsq.blocks[1].n == a.lsq.blocks[1].n == 8 * 60 > int(np.sum(a.lsq.blocks[1].valid))
+    # both have an instance per sample; build_dynamic leaves the masked axes out of the likelihood (not valid)
+    assert b.lsq.blocks[1].n == a.lsq.blocks[1].n == 8 * 60
+    assert a.lsq.blocks[1].valid.shape == (8 * 60, 3) and 8 * 60 * 3 > int(np.sum(a.lsq.blocks[1].valid))
     sa, sb = Solver(a.lsq).solve(), Solver(b.lsq).solve()
     assert sa.success and sb.success
     for g in a.lsq.layout.groups:
