@@ -234,8 +234,11 @@ def read_csv(
                      rails=declared_rails(acc_conv, gyro_conv, acc, gyro))
 
 
-def write_csv(path: str | os.PathLike, recording: Recording) -> None:
-    """Write a recording as CSV in SI units, atomically.
+SI_COMMENT = "SI units: t [s], a* [m/s^2], g* [rad/s], temp [K]"
+
+
+def write_csv(path: str | os.PathLike, recording: Recording, units: str = SI_COMMENT) -> None:
+    """Write a recording as CSV in SI units (or the ``units`` the comment line states), atomically.
 
     Parameters
     ----------
@@ -262,7 +265,7 @@ def write_csv(path: str | os.PathLike, recording: Recording) -> None:
 
     def write(fh: IO[bytes]) -> None:
         text = io.TextIOWrapper(fh, encoding="utf-8", newline="\n", write_through=True)
-        text.write("# castimate recording, SI units: t [s], a* [m/s^2], g* [rad/s], temp [K]\n")
+        text.write(f"# castimate recording, {units}\n")
         text.write(",".join(columns) + "\n")
         np.savetxt(text, table, fmt="%.17g", delimiter=",")
         text.flush()

@@ -6,7 +6,10 @@ triads read the specific force at their own position,
 
     f = s + ω×(ω×r) + ω̇×r,        y = T f + b + v,
 
-and gyroscope triads read y_g = T_g ω + b_g + v, clipped at the saturation level like an ADC.
+and gyroscope triads read y_g = T_g ω + b_g + v, clipped at the saturation level like an ADC. The
+measurements can be made messy as real ones are: each sensor reading the motion at its own delayed
+instant (evaluated exactly from the closed-form motion), pink (1/f) noise on top of the white, and an
+ADC of a given resolution whose rails are asymmetric (int16: −32768 … +32767 counts).
 
 Conventions (DESIGN.md): SI units; ω, ω̇ and s in the body frame; Hamilton quaternions, scalar
 first, for the body→world rotation; s is the specific force at the body origin including gravity,
@@ -151,7 +154,8 @@ class Motion:
     s (N, 3) [m/s²], specific force at the body origin including gravity; attitude (N, 4), unit
     quaternions of the body→world rotation (Hamilton, scalar first); accel_world (N, 3) [m/s²],
     the acceleration of the origin in the world frame; binding says which bound set the scale of
-    a random motion ("omega" or "omega_dot").
+    a random motion ("omega" or "omega_dot"); ``at`` (optional) evaluates the motion exactly at any
+    times, (M,) -> (ω, ω̇, s) (M, 3) each, where it is known in closed form (else None: only the samples).
     """
 
     t: np.ndarray
@@ -162,6 +166,7 @@ class Motion:
     accel_world: np.ndarray | None = None
     gravity: float = GRAVITY
     binding: str = ""
+    at: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
 
     def __len__(self) -> int:
         return len(self.t)
@@ -174,21 +179,66 @@ class Motion:
         """Specific force (N, 3) at a body position r (3,)."""
         return specific_force_at(self.s, self.omega, self.omega_dot, r)
 
+    def shifted_state(self, dt) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(ω, ω̇, s) at the times t + dt (dt a number or (N,)): exact where the motion is in closed form
+        (:attr:`at`), else by cubic-spline interpolation of the samples."""
+        if not np.any(dt):
+            return self.omega, self.omega_dot, self.s
+        if self.at is not None:
+            return self.at(self.t + dt)
+        return tuple(shifted(self.t, x, dt) for x in (self.omega, self.omega_dot, self.s))
+
 
 def rigid_body_motion(t, omega_fn, omega_dot_fn, accel_fn=None, q0=None, gravity: float = GRAVITY,
                       binding: str = "") -> Motion:
     """A Motion from closed-form ω(t), ω̇(t) (body frame) and a(t) (world frame, None for zero).
 
     The attitude is integrated from ``omega_fn`` (see integrate_attitude) and
-    s = Rᵀ (a − g_world), g_world = (0, 0, −gravity).
+    s = Rᵀ (a − g_world), g_world = (0, 0, −gravity). ``Motion.at`` evaluates the same motion at any
+    times (:func:`exact_state`).
     """
     t = np.asarray(t, dtype=float)
     attitude = integrate_attitude(omega_fn, t, q0)
     a = np.zeros((len(t), 3)) if accel_fn is None else np.asarray(accel_fn(t), dtype=float)
     R = quaternion_to_matrix(attitude)
     s = np.einsum("nji,nj->ni", R, a + np.array([0.0, 0.0, gravity]))
+
+    def at(tq):
+        return exact_state(tq, t, attitude, omega_fn, omega_dot_fn, accel_fn, gravity)
+
     return Motion(t=t, omega=np.asarray(omega_fn(t), dtype=float), omega_dot=np.asarray(omega_dot_fn(t), dtype=float),
-                  s=s, attitude=attitude, accel_world=a, gravity=gravity, binding=binding)
+                  s=s, attitude=attitude, accel_world=a, gravity=gravity, binding=binding, at=at)
+
+
+def exact_state(tq, t, attitude, omega_fn, omega_dot_fn, accel_fn=None, gravity: float = GRAVITY
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(ω, ω̇, s) (M, 3) of a closed-form motion at any times tq (M,): ω and ω̇ from their formulas, s =
+    Rᵀ (a + (0, 0, g)) with the attitude carried from the nearest sample of ``t``/``attitude`` to tq by
+    RK4 sub-steps on ω(t) (each turning at most 0.005 rad: error far below 1e-9 rad)."""
+    tq = np.asarray(tq, dtype=float)
+    i = np.clip(np.searchsorted(t, tq), 1, len(t) - 1) if len(t) > 1 else np.zeros(len(tq), int)
+    if len(t) > 1:
+        i = np.where(np.abs(tq - t[i - 1]) <= np.abs(tq - t[i]), i - 1, i)
+    span = tq - t[i]
+    w_max = np.max(np.linalg.norm(omega_fn(np.concatenate([t, tq])), axis=1)) if len(tq) else 0.0
+    steps = max(1, int(np.ceil(w_max * np.max(np.abs(span), initial=0.0) / 0.005)))
+    h, q, tk = span / steps, attitude[i].copy(), t[i].copy()
+
+    def qdot(q, tt):
+        w = np.asarray(omega_fn(tt), dtype=float)
+        return 0.5 * quaternion_multiply(q, np.concatenate([np.zeros((len(tt), 1)), w], axis=1))
+
+    for _ in range(steps):
+        k1 = qdot(q, tk)
+        k2 = qdot(q + 0.5 * h[:, None] * k1, tk + 0.5 * h)
+        k3 = qdot(q + 0.5 * h[:, None] * k2, tk + 0.5 * h)
+        k4 = qdot(q + h[:, None] * k3, tk + h)
+        q = q + h[:, None] / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        q /= np.linalg.norm(q, axis=1, keepdims=True)
+        tk = tk + h
+    a = np.zeros((len(tq), 3)) if accel_fn is None else np.asarray(accel_fn(tq), dtype=float)
+    s = np.einsum("nji,nj->ni", quaternion_to_matrix(q), a + np.array([0.0, 0.0, gravity]))
+    return np.asarray(omega_fn(tq), dtype=float), np.asarray(omega_dot_fn(tq), dtype=float), s
 
 
 def _wandering_axis(rng: np.random.Generator, bandwidth: float):
@@ -366,20 +416,30 @@ def schopp_geometry(rng: np.random.Generator, position_error: float = 1e-3, orie
 # ---------------------------------------------------------------------------------------------
 
 _GYRO_KEYS = {"T_g", "b_g", "sigma", "saturation"}
+SENSORS = ("accelerometer", "gyroscope")
 
 
 def dynamic_measurements(motion: Motion, positions, T, b, rng: np.random.Generator, acc_sigma, gyro=None,
-                         names: list[str] | None = None, effects: dict | None = None
+                         names: list[str] | None = None, effects: dict | None = None, *, delay: dict | None = None,
+                         pink: dict | None = None, adc: dict | None = None
                          ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], dict[str, np.ndarray]]:
     """Raw readings of K triads rigidly attached to the moving body.
 
     Accelerometers: y = T_k (s + ω×(ω×r_k) + ω̇×r_k) + b_k + v, v ~ N(0, acc_sigma²) (a scalar, or an
     array broadcastable to (K, 3)). Gyroscopes, if ``gyro`` is given as a dict with keys T_g (K, 3, 3),
-    b_g (K, 3), sigma and saturation [rad/s] (None for no limit): y_g = T_g ω + b_g + v, then clipped
-    to ±saturation per axis, like an ADC at its rails.
+    any matrices, b_g (K, 3), sigma and saturation [rad/s] (None for no limit): y_g = T_g ω + b_g + v,
+    then clipped to ±saturation per axis.
+
+    Messy measurements, per sensor (``accelerometer``, ``gyroscope``):
+
+    - ``delay`` [s]: the sensor's group delay; every triad's sensor reads the motion at t − delay,
+      evaluated exactly where the motion is in closed form (``Motion.at``);
+    - ``pink`` [m/s², rad/s]: σ of pink (1/f) noise added to the white (:func:`effects.pink_noise`);
+    - ``adc``: (lsb [SI per count], bits): the reading quantised to counts and clipped at the
+      converter's asymmetric rails (:func:`effects.adc_counts`), returned as counts × lsb.
 
     Returns (acc, gyro_readings, saturated): dicts name -> (N, 3); ``saturated`` is a boolean (N, 3)
-    per gyroscope, True where the axis was clipped (empty dicts without gyroscopes).
+    per gyroscope, True where the axis was clipped or sits on a rail (empty dicts without gyroscopes).
     Names default to imu1..imuK.
 
     ``effects`` (optional) maps "<triad>.<sensor>.<effect>" to coefficients of the effects
@@ -391,7 +451,10 @@ def dynamic_measurements(motion: Motion, positions, T, b, rng: np.random.Generat
     true signal at t − a(t)), and the sample-wise ones
     that need no temperature or specific force at the gyroscope (drifts over the record, scale terms).
     """
-    effects = effects or {}
+    effects, delay, pink, adc = effects or {}, delay or {}, pink or {}, adc or {}
+    for what, d in (("delay", delay), ("pink", pink), ("adc", adc)):
+        if set(d) - set(SENSORS):
+            raise ValueError(f"{what}: unknown sensors {sorted(set(d) - set(SENSORS))}; expected {SENSORS}")
     positions = np.asarray(positions, dtype=float).reshape(-1, 3)
     K, N = len(positions), len(motion.t)
     t0, t1 = motion.t[0], motion.t[-1]
@@ -402,11 +465,24 @@ def dynamic_measurements(motion: Motion, positions, T, b, rng: np.random.Generat
     names = list(names) if names is not None else [f"imu{k + 1}" for k in range(K)]
     if len(names) != K:
         raise ValueError(f"{len(names)} names for {K} positions")
+
+    def force_at(r, dt):  # the true specific force at body position r at the times t + dt
+        omega, omega_dot, s = motion.shifted_state(dt)
+        return specific_force_at(s, omega, omega_dot, r)
+
+    def convert(sensor, y):  # (reading, on a rail) through the sensor's ADC, if any
+        if sensor not in adc:
+            return y, np.zeros(y.shape, bool)
+        lsb, bits = adc[sensor]
+        counts, rail = fx.adc_counts(y, lsb, bits)
+        return counts * lsb, rail
+
     acc: dict[str, np.ndarray] = {}
     for k, n in enumerate(names):
-        u = sensed_specific_force(effects, n, motion.t, motion.specific_force_at, positions[k], T[k])
-        acc[n] = u + b[k] + fx.sample_terms(effects, n, "accelerometer", u, None, tau, zero) \
-            + sig[k] * rng.standard_normal((N, 3))
+        u = sensed_specific_force(effects, n, motion.t, force_at, positions[k], T[k], delay.get("accelerometer", 0.0))
+        acc[n] = convert("accelerometer", u + b[k] + fx.sample_terms(effects, n, "accelerometer", u, None, tau, zero)
+                         + sig[k] * rng.standard_normal((N, 3))
+                         + fx.pink_noise(rng, N, pink.get("accelerometer", 0.0)))[0]
     gyro_out: dict[str, np.ndarray] = {}
     saturated: dict[str, np.ndarray] = {}
     if gyro is not None:
@@ -419,13 +495,15 @@ def dynamic_measurements(motion: Motion, positions, T, b, rng: np.random.Generat
         bg = np.broadcast_to(np.asarray(gyro["b_g"], dtype=float), (K, 3))
         sg = np.broadcast_to(np.asarray(gyro["sigma"], dtype=float), (K, 3))
         sat = gyro.get("saturation")
+        if sat is not None and "gyroscope" in adc:
+            raise ValueError("gyro saturation and a gyroscope adc both clip; give one")
         for k, n in enumerate(names):
-            u = shifted(motion.t, motion.omega, fx.time_offset(effects, n, "gyroscope", motion.t)) @ Tg[k].T
+            dt = fx.time_offset(effects, n, "gyroscope", motion.t) - delay.get("gyroscope", 0.0)
+            u = motion.shifted_state(dt)[0] @ Tg[k].T
             y = u + bg[k] + fx.sample_terms(effects, n, "gyroscope", u, None, tau, zero) \
-                + sg[k] * rng.standard_normal((N, 3))
-            if sat is None:
-                saturated[n] = np.zeros((N, 3), dtype=bool)
-            else:
+                + sg[k] * rng.standard_normal((N, 3)) + fx.pink_noise(rng, N, pink.get("gyroscope", 0.0))
+            y, saturated[n] = convert("gyroscope", y)
+            if sat is not None:
                 saturated[n] = np.abs(y) >= sat
                 y = np.clip(y, -sat, sat)
             gyro_out[n] = y
@@ -438,4 +516,4 @@ def euler_consistent(motion: Motion) -> Motion:
     Monte Carlo errors can be compared with the Cramér-Rao bound. s is kept (it is free per sample)."""
     dt = np.diff(motion.t)[:, None]
     omega = np.vstack([motion.omega[:1], motion.omega[:1] + np.cumsum(motion.omega_dot[:-1] * dt, axis=0)])
-    return replace(motion, omega=omega)
+    return replace(motion, omega=omega, at=None)  # known at its samples only

@@ -121,22 +121,49 @@ def time_offset(values: dict, name: str, sensor: str, t: np.ndarray) -> np.ndarr
 
 
 def shifted(t: np.ndarray, x: np.ndarray, dt) -> np.ndarray:
-    """x(t + dt) by cubic-spline interpolation of the sampled true signal (N, 3); dt a number or (N,)."""
+    """x(t + dt) by cubic-spline interpolation of the sampled true signal (N, 3); dt a number or (N,).
+    For motions known only at their samples; closed-form motions are evaluated exactly instead."""
     from scipy.interpolate import CubicSpline
 
     return CubicSpline(t, x, axis=0)(t + dt) if np.any(dt) else x
 
 
 def sensed_specific_force(values: dict, name: str, t: np.ndarray, specific_force_at, position: np.ndarray,
-                          T: np.ndarray) -> np.ndarray:
+                          T: np.ndarray, delay: float = 0.0) -> np.ndarray:
     """(N, 3) T f as the accelerometer triad senses it, exactly: each axis at its own sensing
     element (the y and z elements at position + δ_y, + δ_z, the axis offsets) and instant (t + Δt,
-    with the chip clock's age, :func:`time_offset`).
-    ``specific_force_at(r)`` gives the true specific force (N, 3) at body position r."""
-    dt = time_offset(values, name, "accelerometer", t)
-    y = shifted(t, specific_force_at(position), dt) @ T.T
+    with the chip clock's age, :func:`time_offset`, and the sensor's ``delay`` [s], its filter's
+    group delay: it reads the signal at t − delay).
+    ``specific_force_at(r, dt)`` gives the true specific force (N, 3) at body position r at the times t + dt."""
+    dt = time_offset(values, name, "accelerometer", t) - delay
+    y = specific_force_at(position, dt) @ T.T
     delta = values.get(f"{name}.accelerometer.axis_offsets")
     if delta is not None:
         for axis, d in ((1, delta[0:3]), (2, delta[3:6])):
-            y[:, axis] = (shifted(t, specific_force_at(position + d), dt) @ T.T)[:, axis]
+            y[:, axis] = (specific_force_at(position + d, dt) @ T.T)[:, axis]
     return y
+
+
+def pink_noise(rng: np.random.Generator, n: int, sigma: float, shape: tuple = (3,)) -> np.ndarray:
+    """(n, *shape) pink noise: power spectral density ∝ 1/f from the lowest frequency of the record
+    (1/(n Δt)) to Nyquist, zero mean, standard deviation ``sigma`` over the record per channel.
+    White noise shaped by 1/√f in the frequency domain, the DC bin removed."""
+    if sigma == 0 or n < 2:
+        return np.zeros((n, *shape))
+    white = rng.standard_normal((n, *shape))
+    X = np.fft.rfft(white, axis=0)
+    f = np.arange(X.shape[0], dtype=float)
+    X[0] = 0.0
+    X[1:] /= np.sqrt(f[1:]).reshape((-1,) + (1,) * len(shape))
+    x = np.fft.irfft(X, n, axis=0)
+    return sigma * x / x.std(axis=0, keepdims=True)
+
+
+def adc_counts(y: np.ndarray, lsb: float, bits: int) -> tuple[np.ndarray, np.ndarray]:
+    """What a two's-complement ADC of ``bits`` reports for the signal y at ``lsb`` per count: the counts
+    rounded to the nearest and clipped at the asymmetric rails −2^(bits−1) and 2^(bits−1) − 1 (int16:
+    −32768 … +32767). Returns (counts as floats, (same shape) True where the count sits on a rail:
+    clipped, or rounded to the extreme count, which no reader can tell apart)."""
+    lo, hi = -2.0 ** (bits - 1), 2.0 ** (bits - 1) - 1
+    counts = np.clip(np.round(np.asarray(y, float) / lsb), lo, hi)
+    return counts, (counts == lo) | (counts == hi)

@@ -9,10 +9,11 @@ import numpy as np
 import yaml
 
 from ..errors import InputError
-from ..io.readers import write_csv
+from ..io.readers import SI_COMMENT, write_csv
 from ..io.recording import Recording
 from ..io.atomic import write_atomic
 from ..io.results import write_json
+from ..io.units import STANDARD_GRAVITY
 from ..validation import Check, load_yaml, shown
 from ..problem.effects import BY_KEY
 from .effects import REALISTIC_DYNAMIC_EFFECTS, REALISTIC_EFFECTS, chip_clock, random_coefficients, random_effects
@@ -203,7 +204,30 @@ def _static_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDraw
 
 DYNAMIC_KEYS = ("kind", "seed", "geometry", "samples", "rate", "max_omega", "max_omega_dot", "noise", "gyroscope",
                 "saturation", "position_error", "orientation_error", "motion", "euler_consistent", "linear_accel",
-                "imus", "effects")
+                "imus", "effects", "adc", "delay", "gyroscope_matrix")
+#: ``adc`` of a dynamic scenario: the converter's resolution and full-scale ranges (g, deg/s).
+ADC_KEYS = ("bits", "accelerometer_range", "gyroscope_range")
+
+
+SI = {"accelerometer": "m/s^2", "gyroscope": "rad/s"}
+
+
+def _adc(c: Check, d) -> dict:
+    """``adc: {bits, accelerometer_range [g], gyroscope_range [deg/s]}``: a two's-complement converter whose
+    full scale is the range, lsb = range / 2^(bits-1) (16 bits at 16 g: 1/2048 g per count), clipping at
+    −2^(bits−1) and 2^(bits−1) − 1 counts."""
+    d = c.mapping(d, "adc", ADC_KEYS)
+    bits = c.number(d.get("bits", 16), "adc.bits", integer=True, lo=4, hi=32)
+    acc = c.number(d.get("accelerometer_range", 16.0), "adc.accelerometer_range", positive=True, hi=1e4, unit="g")
+    gyro = c.number(d.get("gyroscope_range", 2000.0), "adc.gyroscope_range", positive=True, hi=1e5, unit="deg/s")
+    full = 2.0 ** (bits - 1)
+    return {"bits": bits, "lsb": {"accelerometer": acc * STANDARD_GRAVITY / full, "gyroscope": np.radians(gyro) / full}}
+
+
+def _by_rail(rec: Recording, rails: list[int]) -> dict:
+    """Samples with an axis on the low and on the high rail per "<triad>.<sensor>" (rec in counts)."""
+    return {f"{n}.{sensor}": {"low": int((y == rails[0]).any(axis=1).sum()), "high": int((y == rails[1]).any(axis=1).sum())}
+            for sensor, readings in (("accelerometer", rec.acc), ("gyroscope", rec.gyro)) for n, y in readings.items()}
 
 
 def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDraw) -> dict[str, Path]:
@@ -221,9 +245,17 @@ def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDra
     rate = c.number(s.get("rate", 100.0), "rate", positive=True, hi=1e5, unit="Hz")
     w_max = np.radians(c.number(s.get("max_omega", 2000.0), "max_omega", positive=True, hi=1e4, unit="deg/s"))
     wd_max = np.radians(c.number(s.get("max_omega_dot", 2000.0), "max_omega_dot", positive=True, hi=1e6, unit="deg/s^2"))
-    noise = c.mapping(s.get("noise"), "noise", ("accelerometer", "gyroscope"))
+    noise = c.mapping(s.get("noise"), "noise", ("accelerometer", "gyroscope", "pink"))
     acc_sigma = c.number(noise.get("accelerometer", 0.04), "noise.accelerometer", positive=True, hi=100.0, unit="m/s^2")
     gyro_sigma = np.radians(c.number(noise.get("gyroscope", 0.06), "noise.gyroscope", positive=True, hi=500.0, unit="deg/s"))
+    pink = c.mapping(noise.get("pink"), "noise.pink", ("accelerometer", "gyroscope"))
+    pink = {"accelerometer": c.number(pink.get("accelerometer", 0.0), "noise.pink.accelerometer", lo=0.0, hi=100.0,
+                                      unit="m/s^2"),
+            "gyroscope": np.radians(c.number(pink.get("gyroscope", 0.0), "noise.pink.gyroscope", lo=0.0, hi=500.0,
+                                             unit="deg/s"))}
+    delay = c.mapping(s.get("delay"), "delay", ("accelerometer", "gyroscope"))
+    delay = {k: c.number(delay.get(k, 0.0), f"delay.{k}", lo=0.0, hi=1.0, unit="s") for k in ("accelerometer", "gyroscope")}
+    adc = _adc(c, s.get("adc")) if "adc" in s else None
     pos_err = c.number(s.get("position_error", 1e-3), "position_error", lo=0.0, hi=1.0, unit="m")
     if geometry == "carlsson":
         names, nominal, true, R = carlsson_geometry(rng, pos_err, reference="imu1")
@@ -246,7 +278,16 @@ def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDra
     K = len(names)
     _check_size(c, N, K * (6 if gyro else 3), "samples")
     sat = s.get("saturation")
-    gyro_model = {"T_g": np.stack([true_R[n] for n in names]), "b_g": np.zeros((K, 3)), "sigma": gyro_sigma * draw.scale,
+    if sat is not None and adc is not None:
+        c.fail("saturation", "and adc both clip the gyroscopes; give adc (asymmetric int rails) or saturation (±level)")
+    # the gyroscopes' true matrices: the nominal rotation, each entry off by N(0, σ²) if gyroscope_matrix
+    # is given (a general 3x3: gains, misalignment, cross-axis coupling), except the reference's (the gauge)
+    g_sd = c.number(s.get("gyroscope_matrix", 0.0), "gyroscope_matrix", lo=0.0, hi=0.5)
+    if g_sd and not gyro:
+        c.fail("gyroscope_matrix", "needs gyroscope: true")
+    T_g = np.stack([(np.eye(3) + (g_sd * rng.standard_normal((3, 3)) if i and g_sd else 0.0)) @ true_R[n]
+                    for i, n in enumerate(names)])  # no draw without it: seeded scenarios keep their truth
+    gyro_model = {"T_g": T_g, "b_g": np.zeros((K, 3)), "sigma": gyro_sigma * draw.scale,
                   "saturation": np.radians(c.number(sat, "saturation", positive=True, hi=1e5, unit="deg/s")) if sat is not None else None} \
         if gyro else None
     origin = true[0]
@@ -257,9 +298,15 @@ def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDra
                         if not (BY_KEY[key].relative and n == names[0])})  # the reference's is the gauge
     acc, gy, saturated = dynamic_measurements(motion, true - origin, np.stack([true_R[n] for n in names]),
                                               np.zeros((K, 3)), draw.rng(seed, rng), acc_sigma * draw.scale,
-                                              gyro=gyro_model, names=names,
-                                              effects=effects)
+                                              gyro=gyro_model, names=names, effects=effects, delay=delay,
+                                              pink={k: v * draw.scale for k, v in pink.items()},
+                                              adc={k: (lsb, adc["bits"]) for k, lsb in adc["lsb"].items()} if adc else None)
     rec = Recording(t=motion.t, acc=acc, gyro=gy, source="simulation")
+    if adc:  # the file holds the counts, the problem declares their conversion and rails
+        lsb = adc["lsb"]
+        rec = Recording(t=motion.t, acc={n: np.round(v / lsb["accelerometer"]) for n, v in acc.items()},
+                        gyro={n: np.round(v / lsb["gyroscope"]) for n, v in gy.items()}, source="simulation")
+        rails = [-2 ** (adc["bits"] - 1), 2 ** (adc["bits"] - 1) - 1]
     msec = c.mapping(s.get("motion"), "motion", ("sigma_s", "sigma_omega_dot", "sigma_integration", "process_model"))
     problem: dict[str, Any] = {
         "kind": "dynamic_array",
@@ -270,12 +317,17 @@ def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDra
         "model": {"misalignment": "rotation" if geometry == "schopp" else "small_angle"},
         "noise": {"accelerometer": acc_sigma, **({"gyroscope": float(gyro_sigma)} if gyro else {})},
     }
+    if adc:
+        problem["data"]["units"] = {
+            k: {"unit": "counts", "scale": float(adc["lsb"][k]), "scale_unit": SI[k], "rails": list(rails)}
+            for k in ("accelerometer", "gyroscope") if k == "accelerometer" or gyro}
     if geometry == "schopp":
         problem["model"]["accelerometer"] = {"misalignment": "free"}
     if msec:
         problem["motion"] = msec
     out.mkdir(parents=True, exist_ok=True)
-    write_csv(out / "data.csv", rec)
+    write_csv(out / "data.csv", rec, f"ADC counts ({adc['bits']} bits, see problem.yaml data.units): t [s], a*, g*"
+              if adc else SI_COMMENT)
     write_json(out / "truth.json", {
         "format": "castimate.truth/1", "kind": "dynamic_array", "geometry": geometry, "reference": names[0],
         "triads": {n: {"position": true[i] - origin, "nominal_position": nominal[i] - nominal[0],
@@ -284,6 +336,11 @@ def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDra
                    "max_omega_dot": float(np.linalg.norm(motion.omega_dot, axis=1).max()), "binding": motion.binding},
         "noise": {"accelerometer": acc_sigma, "gyroscope": float(gyro_sigma) if gyro else None},
         "saturated_samples": {n: int(m.any(axis=1).sum()) for n, m in saturated.items()} if gyro else {},
+        "saturated_by_rail": _by_rail(rec, rails) if adc else {},
+        "gyroscope_T": {n: T_g[i] for i, n in enumerate(names)} if gyro else {},
+        "measurement": {"delay_s": delay, "pink_noise": {"accelerometer": pink["accelerometer"],
+                                                         "gyroscope": float(pink["gyroscope"])},
+                        "adc": {"bits": adc["bits"], "lsb": adc["lsb"], "rails_counts": rails} if adc else None},
         "effects": effects,
     })
     header = f"# Simulated from {path.name}; the truth is in truth.json.\n"
