@@ -11,7 +11,6 @@ import pytest
 import yaml
 
 from castimate.kinds.dynamic import minimum_checks, sign_flips
-from castimate.prepare.masks import saturation_mask
 from castimate.cli import main
 from castimate.errors import InputError
 from castimate.models import motion as mot

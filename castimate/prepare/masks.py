@@ -8,8 +8,9 @@ rails are masked, each found on its own: from the ADC's known range where the re
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -49,7 +50,7 @@ class SaturationOptions:
     adjacent: int = 0
 
     @classmethod
-    def from_mapping(cls, d: Mapping | None, source: object, where: str = "data.saturation") -> "SaturationOptions":
+    def from_mapping(cls, d: Mapping | None, source: object, where: str = "data.saturation") -> SaturationOptions:
         """Validated options from a problem file's mapping (one-line errors naming the key path)."""
         c = Check(source)
         d = c.mapping(d, where, SENSORS + ("margin", "adjacent"))
@@ -112,10 +113,9 @@ def plateau_rails(y: np.ndarray) -> np.ndarray:
     for i in range(3):
         a = y[:, i]
         tol = 1e-9 * max(np.abs(a).max(), np.finfo(float).tiny)
-        for row, extreme, at in ((0, a.min(), lambda e: a <= e + tol), (1, a.max(), lambda e: a >= e - tol)):
-            n = int(at(extreme).sum())
-            if MIN_PLATEAU <= n < len(a):
-                out[row, i] = extreme
+        for row, at in ((0, a <= a.min() + tol), (1, a >= a.max() - tol)):
+            if MIN_PLATEAU <= int(at.sum()) < len(a):
+                out[row, i] = a.min() if row == 0 else a.max()
     return out
 
 
