@@ -26,7 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from castimate.cli import main
-from castimate.report.tables import counts_comparison, dynamic_summary_table, gravity_norm_rms, position_spread, session_spread, session_summary
+from castimate.report.tables import (counts_comparison, dynamic_summary_table, gravity_norm_rms, in_plane_ratio, position_spread,
+                                     session_spread, session_summary)
 
 ROOT = Path(__file__).resolve().parents[1]
 PROBLEMS, REPORTS = ROOT / "problems", ROOT / "reports"
@@ -153,16 +154,6 @@ def main_() -> None:
     ]
     (REPORTS / "SUMMARY.md").write_text("\n".join(lines) + "\n")
     print(f"wrote {REPORTS / 'SUMMARY.md'}")
-
-
-def in_plane_ratio(res: dict) -> float:
-    """Σ of the estimated in-plane distances between triads over Σ of the nominal ones (pairs apart in x or y)."""
-    names = list(res["triads"])
-    pos = {n: np.asarray(res["triads"][n]["position"]) for n in names}
-    nom = {n: np.asarray(res["triads"][n]["nominal_position"]) for n in names}
-    pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1:] if np.linalg.norm(nom[a][:2] - nom[b][:2]) > 1e-3]
-    return float(sum(np.linalg.norm(pos[a][:2] - pos[b][:2]) for a, b in pairs)
-                 / sum(np.linalg.norm(nom[a][:2] - nom[b][:2]) for a, b in pairs))
 
 
 def timing_all() -> None:

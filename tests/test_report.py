@@ -266,3 +266,15 @@ def test_dynamic_figures():
     r[2] = np.nan  # a triad masked throughout
     fig = figures.residuals_over_time(t, r, np.full((4, 3), 0.01), names)
     assert isinstance(fig, Figure) and "RMS of residual/σ" in fig.get_suptitle()
+
+
+def test_in_plane_ratio_hand_computed():
+    from castimate.report.tables import in_plane_ratio
+
+    nominal = {"a": [0, 0, 0], "b": [0.01, 0, 0], "c": [0, 0.01, 0.001], "d": [0, 0, 0.002]}  # d above a: left out
+    est = {"a": [0, 0, 0], "b": [0.02, 0, 0.5], "c": [0, 0.01, 0], "d": [0.0005, 0, 0]}
+    res = {"triads": {n: {"position": est[n], "nominal_position": nominal[n]} for n in nominal}}
+    # pairs a-b, a-c, b-c, b-d, c-d: nominal 0.01 + 0.01 + 0.01√2 + 0.01 + 0.01; estimated in the plane
+    # 0.02 + 0.01 + √(0.02² + 0.01²) + 0.0195 + √(0.0005² + 0.01²)
+    want = (0.02 + 0.01 + np.hypot(0.02, 0.01) + 0.0195 + np.hypot(0.0005, 0.01)) / (0.04 + 0.01 * np.sqrt(2))
+    assert in_plane_ratio(res) == pytest.approx(want, rel=1e-12)

@@ -76,15 +76,30 @@ def gravity_norm_rms(acc_si: np.ndarray, T: np.ndarray, b: np.ndarray, g: float)
     return float(np.sqrt(np.mean((np.linalg.norm(f, axis=1) - g) ** 2)))
 
 
+def in_plane_ratio(res: dict) -> float:
+    """Σ of the estimated in-plane (x, y) distances between triads over Σ of the nominal ones, over the pairs
+    apart in x or y: the array's scale (1 when the geometry's scale is right)."""
+    names = list(res["triads"])
+    pos = {n: np.asarray(res["triads"][n]["position"]) for n in names}
+    nom = {n: np.asarray(res["triads"][n]["nominal_position"]) for n in names}
+    pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1:] if np.linalg.norm(nom[a][:2] - nom[b][:2]) > 1e-3]
+    return float(sum(np.linalg.norm(pos[a][:2] - pos[b][:2]) for a, b in pairs)
+                 / sum(np.linalg.norm(nom[a][:2] - nom[b][:2]) for a, b in pairs))
+
+
 def dynamic_summary_table(results: list[dict], sessions: list[str]) -> str:
-    """Per session of a dynamic calibration: samples, masked gyro samples, attempts, χ²/dof, residual RMS."""
-    lines = ["| session | samples | gyro samples masked (saturated, summed over gyroscopes) | attempts | iterations | χ²/dof | "
-             "accelerometer residual RMS [m/s²] |", "|---|---|---|---|---|---|---|"]
+    """Per session of a dynamic calibration: samples, gyro samples on each rail, attempts, χ²/dof, residual RMS,
+    the in-plane distance ratio to the nominal layout."""
+    lines = ["| session | samples | gyro samples masked (summed over gyroscopes; on the low / high rail) | attempts | "
+             "iterations | χ²/dof | accelerometer residual RMS [m/s²] | in-plane distance ratio to nominal |",
+             "|---|---|---|---|---|---|---|---|"]
     for s, r in zip(sessions, results):
         masked = sum(v for k, v in r["saturated_samples_masked"].items() if k.endswith("gyroscope"))
+        rails = [v for k, v in (r.get("saturation") or {}).get("sensors", {}).items() if k.endswith("gyroscope")]
+        split = f" ({sum(v['low'] for v in rails)} / {sum(v['high'] for v in rails)})" if rails else ""
         rms = np.sqrt(np.mean([np.mean(np.square(v)) for v in r["residuals"]["rms"].values()]))
-        lines.append(f"| {s} | {r['samples']} | {masked} | {len(r['status']['attempts'])} | {r['status']['iterations']} | "
-                     f"{r['residuals']['chi2_per_dof']:.0f} | {rms:.3f} |")
+        lines.append(f"| {s} | {r['samples']} | {masked}{split} | {len(r['status']['attempts'])} | {r['status']['iterations']} | "
+                     f"{r['residuals']['chi2_per_dof']:.0f} | {rms:.3f} | {in_plane_ratio(r):.4f} |")
     return "\n".join(lines)
 
 
