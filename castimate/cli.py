@@ -171,7 +171,7 @@ def cmd_batch(args) -> int:
     names = ("summary.csv", "summary.json", "summary.html")
     with StagedOutput(out, names=names, inputs=(args.template, *recordings_of(args.recordings))) as stage:
         with dask_client(args.scheduler, args.workers) as client:
-            summary = run_batch(client, args.template, args.recordings, _log, args.outlier_threshold)
+            summary = run_batch(client, args.template, args.recordings, _log, args.outlier_threshold, args.diagnose)
         for name, r in zip(summary.names, summary.results):
             if r.ok:
                 for f, data in r.value["files"].items():
@@ -256,9 +256,9 @@ def cmd_plan(args) -> int:
         plan_figure(cases).savefig(stage / names[3], dpi=110)
     und = sorted({u for c in cases for u in c.undetermined})
     print(f"{len(labels)} parameters, {len(und)} undetermined direction(s){': ' + '; '.join(und) if und else ''}")
-    finite = np.isfinite(crb[-1])
-    print(f"at {plan.durations[-1]:g} s the bound exponent (CRB ~ duration^a) is a = {np.nanmedian(a):.3f} (median); "
-          f"{int(finite.sum())} finite bounds")
+    if len(plan.durations) > 1:
+        print(f"the bound falls as duration^a from {plan.durations[0]:g} to {plan.durations[-1]:g} s: a = "
+              f"{np.nanmedian(a):.3f} (median over the parameters; -1/2 for white noise averaged longer)")
     for name in names:
         print(f"wrote {out / name}")
     return 0
@@ -343,6 +343,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("-o", "--output", required=True, help="output directory (created if missing)")
     s.add_argument("--outlier-threshold", type=float, default=5.0, metavar="Z",
                    help="flag a parameter of a recording when |x - median| exceeds Z of its σ (default 5)")
+    s.add_argument("--diagnose", action="store_true",
+                   help="run castimate diagnose on each recording (adds the effects its data demand; writes "
+                        "results.json of the refined model and diagnose.json) and list the added effects")
     _scale_options(s)
     s.set_defaults(func=cmd_batch)
     s = verb("montecarlo", "simulate, solve and score many noise realisations of a scenario on Dask",

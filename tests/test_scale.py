@@ -293,3 +293,45 @@ def test_bundled_mimu4444_batch_matches_the_single_solves(client, shared_data, t
     assert res["residuals"]["chi2_per_dof"] == pytest.approx(alone.chi2_per_dof, rel=1e-9)
     gain = res["triads"]["imu3"]["parameters"]["gain"]
     assert np.allclose(gain["value"], alone.values["imu3.accelerometer.gain"], rtol=0, atol=1e-9)
+
+
+def test_noise_free_gyroscopes_are_not_refused_as_stuck():
+    """A static gyroscope reads its bias: exactly constant without noise, which the plausibility
+    checks refuse; the dither keeps the session solvable and the bound of the gyroscope biases is
+    the per-pose σ over sqrt(poses)."""
+    sc = {**STATIC, "gyroscope": True, "noise": {"accelerometer": 0.02, "gyroscope": 0.002}}
+    b = solve_noise_free(sc)
+    bias = [e.std for lab, e in b.estimates.items() if ".gyroscope.bias[" in lab]
+    assert len(bias) == 9
+    assert np.allclose(bias, 0.002 / np.sqrt(200) / np.sqrt(20), rtol=1e-6)
+
+
+def test_batch_diagnose_lists_the_effects_each_recording_demands(client, tmp_path):
+    """Two sessions of the effects scenario from one template that declares no effect: the one with
+    an undeclared bias drift gets it added, the other nothing."""
+    root = Path(__file__).resolve().parents[1]
+    raw = {**yaml.safe_load((root / "problems" / "sim_effects_8x24.yaml").read_text()), "triads": 4}
+    simulate_scenario(write(tmp_path / "plain.yaml", raw), tmp_path / "plain")
+    simulate_scenario(write(tmp_path / "drift.yaml", {**raw, "effects": {"accelerometer.bias_drift": "realistic"}}),
+                      tmp_path / "drift")
+    out = tmp_path / "out"
+    assert main(["batch", str(tmp_path / "plain" / "problem.yaml"), str(tmp_path / "plain" / "data.csv"),
+                 str(tmp_path / "drift" / "data.csv"), "-o", str(out), "--diagnose",
+                 "--scheduler", client.scheduler.address]) == 0
+    rows = {r["name"]: r for r in json.loads((out / "summary.json").read_text())["recordings"]}
+    assert rows["drift"]["added_effects"] == "accelerometer.bias_drift" and rows["plain"]["added_effects"] == ""
+    assert (out / "drift" / "diagnose.json").exists()
+    assert "effects diagnose added" in (out / "summary.html").read_text()
+
+
+def test_a_bad_scenario_key_is_one_line_from_the_workers(client, tmp_path, capsys):
+    sc = write(tmp_path / "s.yaml", {**STATIC, "noise": {"accelerometer": -1}})
+    assert main(["montecarlo", str(sc), "--runs", "3", "-o", str(tmp_path / "o"), "--scheduler",
+                 client.scheduler.address]) == 2
+    (err,) = [line for line in capsys.readouterr().err.splitlines() if "error" in line or "FAILED" in line]
+    assert "noise.accelerometer" in err and err.count(str(sc)) == 1, err
+    plan = write(tmp_path / "p.yaml", {**STATIC, "poses": 0, "plan": {"durations": [1]}})
+    assert main(["plan", str(plan), "-o", str(tmp_path / "o"), "--scheduler", client.scheduler.address]) == 2
+    (err,) = [line for line in capsys.readouterr().err.splitlines() if "error" in line or "FAILED" in line]
+    assert "poses" in err and err.count(str(plan)) == 1, err
+    assert not (tmp_path / "o").exists()

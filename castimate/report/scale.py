@@ -51,12 +51,14 @@ def batch_figure(summary: BatchSummary) -> Figure:
     fig = Figure(figsize=(11, 3.6), layout="constrained")
     ax = fig.subplots()
     x = np.arange(len(labels))
+    floor = 1e-2  # the median recording of an odd batch sits at 0: shown at the floor
     for i, n in enumerate(names):
-        ax.plot(x, np.abs(z[i]), ".", ms=4, label=n)
+        ax.plot(x, np.maximum(np.abs(z[i]), floor), ".", ms=4, label=n)
     ax.axhline(summary.threshold, color="#b42318", lw=1, ls="--", label=f"threshold {summary.threshold:g}")
-    ax.set_yscale("symlog", linthresh=1)
+    ax.set_yscale("log")
+    ax.set_ylim(floor / 1.5, None)
     ax.set_xlabel("parameter (in the order of the table below)")
-    ax.set_ylabel("|x − median| / σ")
+    ax.set_ylabel(f"|x − median| / σ (below {floor:g} at {floor:g})")
     ax.grid(True, lw=0.3)
     ax.legend(fontsize=7, ncol=min(6, len(names) + 1))
     return fig
@@ -70,11 +72,14 @@ def render_batch(summary: BatchSummary) -> str:
     out.append(f'<p class="headline {cls}">{ok} of {len(rows)} recordings calibrated; outliers are parameters '
                f"whose |x − median| exceeds {summary.threshold:g} of that recording's σ.</p>")
     out.append("<h2>Recordings</h2>")
-    out.append(_table(["recording", "file", "status", "χ²/dof", "dof", "iterations", "wall [s]", "outliers", "message"],
+    diagnosed = any(r["added_effects"] is not None for r in rows)
+    out.append(_table(["recording", "file", "status", "χ²/dof", "dof", "iterations", "wall [s]", "outliers"]
+                      + (["effects diagnose added"] if diagnosed else []) + ["message"],
                       [[escape(r["name"]), f"<code>{escape(r['recording'])}</code>",
                         f'<span class="{"ok" if r["status"] == "ok" else "bad"}">{r["status"]}</span>',
                         _g(r["chi2_per_dof"]), _g(r["dof"]), _g(r["iterations"]), _g(r["wall_s"], 3),
-                        _g(r["outliers"]), escape(r["message"])] for r in rows], names=2))
+                        _g(r["outliers"])] + ([escape(r["added_effects"] or "—")] if diagnosed else [])
+                       + [escape(r["message"])] for r in rows], names=2))
     if summary.spread:
         out.append("<h2>Parameters over the recordings</h2>")
         out.append('<p class="note">spread: sample standard deviation over the recordings; σ: median of the σ\'s '

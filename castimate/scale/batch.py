@@ -105,6 +105,22 @@ def calibrate_recording(template: Template, recording: str) -> dict:
     return {"results": json.loads(files["results.json"]), "files": files}
 
 
+def diagnose_recording(template: Template, recording: str) -> dict:
+    """On a worker: ``castimate diagnose`` of one recording: the refined model's results.json
+    document, the effects it added, and the bytes of results.json and diagnose.json."""
+    from ..io.results import write_json
+    from ..kinds.diagnose import diagnose
+    from ..output.diagnosis import diagnosis_document, final_results
+
+    d = diagnose(template.problem(Path(recording)))
+    results = final_results(d)
+    with tempfile.TemporaryDirectory(prefix="castimate-batch-") as tmp:
+        write_json(Path(tmp) / "results.json", results)
+        write_json(Path(tmp) / "diagnose.json", diagnosis_document(d))
+        files = {p.name: p.read_bytes() for p in Path(tmp).iterdir()}
+    return {"results": json.loads(files["results.json"]), "added": list(d.added), "files": files}
+
+
 @dataclass(frozen=True)
 class BatchSummary:
     """What a batch found, per recording and per parameter."""
@@ -130,7 +146,8 @@ class BatchSummary:
                         "message": st.get("message", "") if r.ok else r.error,
                         "chi2_per_dof": fit.get("chi2_per_dof"), "dof": fit.get("dof"),
                         "iterations": st.get("iterations"), "wall_s": r.wall_s,
-                        "outliers": len(self.outliers_of(name)) if r.ok else None})
+                        "outliers": len(self.outliers_of(name)) if r.ok else None,
+                        "added_effects": " ".join(r.value["added"]) if r.ok and "added" in r.value else None})
         return out
 
     def document(self) -> dict:
@@ -153,9 +170,10 @@ def summarise(template: str, names: list[str], recordings: list[str], results: l
     return BatchSummary(template, names, recordings, results, batch_spread(params, chi2) if params else [], threshold)
 
 
-def run_batch(client, template_path: str | Path, patterns: list[str], log, threshold: float = OUTLIER_THRESHOLD
-              ) -> BatchSummary:
-    """Check the template and recordings here, then calibrate every recording on the cluster."""
+def run_batch(client, template_path: str | Path, patterns: list[str], log, threshold: float = OUTLIER_THRESHOLD,
+              diagnose: bool = False) -> BatchSummary:
+    """Check the template and recordings here, then calibrate every recording on the cluster
+    (``diagnose``: through ``castimate diagnose``, adding the effects each recording demands)."""
     from .engine import run_tasks
 
     if not threshold > 0:
@@ -167,8 +185,9 @@ def run_batch(client, template_path: str | Path, patterns: list[str], log, thres
     log(f"batch: {len(recordings)} recordings of {template_path}")
 
     def describe(v: dict) -> str:
-        return f"chi2/dof {v['results']['residuals']['chi2_per_dof']:.3g}"
+        added = f", added: {' '.join(v['added']) or 'nothing'}" if "added" in v else ""
+        return f"chi2/dof {v['results']['residuals']['chi2_per_dof']:.3g}{added}"
 
-    results = run_tasks(client, calibrate_recording, [(n, (template, str(r))) for n, r in zip(names, recordings)],
-                        log, describe)
+    task = diagnose_recording if diagnose else calibrate_recording
+    results = run_tasks(client, task, [(n, (template, str(r))) for n, r in zip(names, recordings)], log, describe)
     return summarise(str(template_path), names, [str(r) for r in recordings], results, threshold)

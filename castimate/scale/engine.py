@@ -75,16 +75,17 @@ def dask_client(scheduler: str | None = None, workers: int | None = None, proces
             client.close()
         return
     n = workers or os.cpu_count() or 1
-    with LocalCluster(n_workers=n, threads_per_worker=1, processes=processes, dashboard_address=None,
-                      silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
+    with LocalCluster(n_workers=n, threads_per_worker=1, processes=processes, dashboard_address=":0",
+                      silence_logs=logging.CRITICAL) as cluster, Client(cluster) as client:
         yield client
 
 
 def run_tasks(client, fn: Callable, tasks: Sequence[tuple[str, tuple]], log: Log, describe: Callable[[Any], str] =
-              lambda v: "") -> list[TaskResult]:
+              lambda v: "", log_failures: bool = True) -> list[TaskResult]:
     """Map ``fn`` over ``tasks`` (name, arguments) on the client's cluster; log one line per task as
-    it completes; return the results in the order of ``tasks``. A task whose worker died (or that
-    could not run at all) is a failed result like any other."""
+    it completes (``log_failures=False``: only the successes, for callers that turn a failure into
+    their own error); return the results in the order of ``tasks``. A task whose worker died (or
+    that could not run at all) is a failed result like any other."""
     from distributed import as_completed
 
     futures = {client.submit(guarded, fn, name, *args, key=f"castimate-{i}-{name}-{time.time_ns()}",
@@ -99,5 +100,6 @@ def run_tasks(client, fn: Callable, tasks: Sequence[tuple[str, tuple]], log: Log
         out[i] = r
         state = f"ok ({r.wall_s:.1f} s){(' ' + describe(r.value)) if describe(r.value) else ''}" if r.ok \
             else f"FAILED: {r.error}"
-        log(f"[{done}/{len(tasks)}] {name}: {state}")
+        if r.ok or log_failures:
+            log(f"[{done}/{len(tasks)}] {name}: {state}")
     return out  # type: ignore[return-value]

@@ -8,6 +8,7 @@ the same truth and the Cramér-Rao bound is one: the σ's of the noise-free sess
 
 from __future__ import annotations
 
+import json
 import re
 import tempfile
 from dataclasses import dataclass
@@ -62,8 +63,6 @@ def _simulate(scenario: dict, source: str, tmp: Path, noise_seed: int | None, no
         files = simulate_scenario(path, tmp / "sim", noise_seed=noise_seed, noise_free=noise_free)
     except InputError as e:  # name the user's file, not the worker's copy
         raise InputError(source or e.source, e.where, e.message) from None
-    import json
-
     return json.loads(files["truth"].read_text()), load_problem(files["problem"])
 
 
@@ -140,9 +139,11 @@ def run_montecarlo(client, scenario_path: str | Path, runs: int, log) -> MonteCa
     check_runs(runs)
     scenario = load_scenario(scenario_path)
     src = str(scenario_path)
-    bound = run_tasks(client, solve_noise_free, [("crb", (scenario, src))], log)[0]
+    log("the bound: solving the noise-free session")
+    bound = run_tasks(client, solve_noise_free, [("crb", (scenario, src))], log, log_failures=False)[0]
     if not bound.ok:
-        raise InputError(scenario_path, "", f"the noise-free session cannot be solved for the bound: {bound.error}")
+        raise InputError(scenario_path, "", "the noise-free session cannot be solved for the bound: "
+                                            + bound.error.removeprefix(f"{scenario_path}: "))
     if bound.value.undetermined:
         raise InputError(scenario_path, "", f"the scenario cannot determine {len(bound.value.undetermined)} "
                                             f"direction(s): {'; '.join(bound.value.undetermined)} (castimate plan names them)")

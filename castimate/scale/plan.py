@@ -81,8 +81,9 @@ def run_plan(client, plan_path: str | Path, log) -> tuple[Plan, list[PlanCase]]:
 
     plan = load_plan(plan_path)
     results = run_tasks(client, solve_noise_free, [(f"{d:g} s", (plan.case(d), str(plan_path))) for d in plan.durations],
-                        log, lambda s: f"{len(s.undetermined)} undetermined" if s.undetermined else "")
+                        log, lambda s: f"{len(s.undetermined)} undetermined" if s.undetermined else "", log_failures=False)
     for r in results:
         if not r.ok:
-            raise InputError(plan_path, "", f"the {r.name} case cannot be solved: {r.error}")
+            raise InputError(plan_path, "", f"the {r.name} case cannot be solved: "
+                                            + r.error.removeprefix(f"{plan_path}: "))
     return plan, [plan_case(d, r.value) for d, r in zip(plan.durations, results)]

@@ -30,22 +30,23 @@ def component(i: int, n: int) -> str:
     return "xyz"[i] if n == 3 else str(i)
 
 
+#: Parameter groups of a triad that belong to no sensor (results.json names the others' accelerometer
+#: groups without a prefix: ``gain`` is ``accelerometer.gain``).
+GEOMETRY = ("position",)
+
+
 def estimates(results: dict) -> dict[str, Estimate]:
     """Label -> estimate and σ of every free parameter component of a results.json document (the
     σ of the white-noise model, not scaled by χ²/dof)."""
     out: dict[str, Estimate] = {}
     for triad, t in results.get("triads", {}).items():
         for key, p in t.get("parameters", {}).items():
-            group = key if key.startswith(("accelerometer.", "gyroscope.")) else f"accelerometer.{key}"
+            group = key if key.startswith(("accelerometer.", "gyroscope.")) or key in GEOMETRY else f"accelerometer.{key}"
             values = _components(p["value"])
             free = _components(p.get("free", [True] * len(values)))
             for i, (v, s, f) in enumerate(zip(values, _components(p["std"]), free)):
                 if f:
                     out[f"{triad}.{group}[{component(i, len(values))}]"] = Estimate(v, s, str(p.get("unit", "")))
-        if "position" in t and "position_std" in t:
-            for i, (v, s) in enumerate(zip(_components(t["position"]), _components(t["position_std"]))):
-                if s > 0:  # the reference's position is the origin, fixed
-                    out[f"{triad}.position[{component(i, 3)}]"] = Estimate(v, s, "m")
     return out
 
 

@@ -27,6 +27,11 @@ MAX_SAMPLES = 10 ** 6
 MAX_VALUES = 4 * 10 ** 7
 GRAVITY_RANGE = (9.7, 9.9)  # m/s^2: the gravity anywhere on the Earth's surface
 
+#: The noise of a "noise-free" session in units of the scenario's σ: exact readings would read
+#: exactly constant on a static gyroscope (its bias), which the plausibility checks refuse as a
+#: stuck axis; 1e-6 σ moves the solution from the truth by about 1e-6 of the bound.
+NOISE_FREE_DITHER = 1e-6
+
 #: The files ``castimate simulate`` writes into its output directory.
 OUTPUT_FILES = ("data.csv", "truth.json", "problem.yaml")
 
@@ -49,9 +54,10 @@ def simulate_scenario(path: str | Path, out: str | Path, *, noise_seed: int | No
     The scenario's ``seed`` draws the truth (parameters, poses, motion) and, by default, the noise.
     ``noise_seed``: the noise is drawn from its own generator seeded with (seed, noise_seed), so runs
     with different noise seeds share one truth (``castimate montecarlo``). ``noise_free``: the
-    readings are exact while the problem still declares the scenario's noise σ, so its solution is
-    the truth and its σ's are the Cramér-Rao bound (``castimate plan``); static scenarios then need
-    pose means (``time_series: false``), whose σ is declared rather than estimated from the data.
+    readings are exact (up to a dither of :data:`NOISE_FREE_DITHER` σ) while the problem still
+    declares the scenario's noise σ, so its solution is the truth and its σ's are the Cramér-Rao
+    bound (``castimate plan``); static scenarios then need pose means (``time_series: false``),
+    whose σ is declared rather than estimated from the data.
     """
     path, out = Path(path), Path(out)
     raw = load_yaml(path, "scenario file")
@@ -64,7 +70,7 @@ def simulate_scenario(path: str | Path, out: str | Path, *, noise_seed: int | No
     if "kind" not in raw:
         c.fail("(top level)", "missing required key 'kind'")
     kind = c.choice(raw["kind"], "kind", ("static_array", "dynamic_array"))
-    draw = NoiseDraw(noise_seed, 0.0 if noise_free else 1.0)
+    draw = NoiseDraw(noise_seed, NOISE_FREE_DITHER if noise_free else 1.0)
     if kind == "dynamic_array":
         return _dynamic_scenario(c, raw, path, out, draw)
     if noise_free and raw.get("time_series"):
