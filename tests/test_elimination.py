@@ -99,3 +99,24 @@ def test_masked_samples_and_outside_nuisance_unchanged():
 def test_unknown_elimination_is_refused():
     with pytest.raises(ValueError, match="elimination"):
         Solver(dynamic_case(10).lsq, SolverOptions(elimination="schur"))
+
+
+@pytest.mark.parametrize("elimination", ["motion", "none"])
+def test_single_row_inputs_reach_casadi_in_c_order(elimination):
+    """A block whose every input is one row fed to all instances (rows=None, as a turn factor on a
+    triad's gyroscope) has an index matrix that np.hstack builds in Fortran order: the local
+    functions must still get C-order inputs (CasADi's buffers refused them). Both paths solve it
+    with a pull of 3 instances on a free gain, to the same optimum."""
+    from castimate.problem.graph import FactorBlock, LeastSquaresProblem
+    from castimate.solve.assembly import Block
+    import casadi as ca
+    prob = static_case()
+    z, d = ca.SX.sym("z", 3), ca.SX.sym("d", 3)
+    pull = FactorBlock("pull", ca.Function("pull", [z, d], [(z - d) / 0.1]), [("imu2.gyroscope.gain", None)],
+                       np.array([[1.01, 0.99, 1.0], [1.0, 1.02, 0.98], [0.99, 1.0, 1.01]]))
+    lsq = LeastSquaresProblem(prob.lsq.layout, [*prob.lsq.blocks, pull])
+    assert Block(pull, lsq.layout).w_idx.flags.c_contiguous
+    sol = Solver(lsq, SolverOptions(tol=1e-12, elimination=elimination)).solve()
+    ref = Solver(lsq, SolverOptions(tol=1e-12, elimination="none")).solve()
+    assert sol.success and relative(sol.x, ref.x) < 1e-9
+    assert np.isfinite(sol.covariance).all()

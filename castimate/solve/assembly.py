@@ -69,9 +69,12 @@ class _Compiled:
         if key not in self._buffers:
             self._buffers[key] = fn.map(key[1]).buffer()
         buf, run = self._buffers[key]
+        args = [np.ascontiguousarray(a) for a in args]  # no copy for C-order inputs
         for i, a in enumerate(args):
             buf.set_arg(i, memoryview(a))
         for i, o in enumerate(outs):
+            if not o.flags.c_contiguous:
+                raise ValueError(f"{fn.name()}: output {i} is not a C-contiguous array")
             buf.set_res(i, memoryview(o))
         run()
 
@@ -90,7 +93,9 @@ class Block:
         for g, rows in block.inputs:
             W = (layout.w_index(g) if isinstance(g, str) else np.vstack([layout.w_index(n) for n in g])).astype(dtype)
             cols.append(np.broadcast_to(W[0], (block.n, W.shape[1])) if rows is None else np.take(W, rows, axis=0))
-        self.w_idx = np.hstack(cols)
+        # np.hstack of rows=None inputs alone (broadcast, stride 0 along the instances) comes out in
+        # Fortran order, and the gathers w[w_idx] with it: CasADi's buffers read C order
+        self.w_idx = np.ascontiguousarray(np.hstack(cols))
         nz = block.residual.size1_in(0)
         if self.w_idx.shape[1] != nz:
             raise ValueError(f"factor block {block.name}: inputs give {self.w_idx.shape[1]} values, "
