@@ -59,6 +59,7 @@ class _Compiled:
                  ca.Function(f"{name}_rgh", args, [r, ca.densify(ca.mtimes(J.T, r)), entries(H)]),
                  ca.Function(f"{name}_gn", args, [entries(JtJ)])]
         self.res, self.jac, self.rgh, self.gn = (compile_functions(local) if jit else None) or local
+        self.symbolic = dict(zip(("res", "jac", "rgh", "gn"), local))  # for functions built on them
         self.nz, self.nd, self.m, self.n_cal = nz, nd, fn.size1_out(0), n_cal
         self._buffers: dict = {}
 
