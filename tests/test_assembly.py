@@ -207,21 +207,28 @@ def test_masked_samples_are_not_residuals(elimination):
 
 def test_projection_compiled_virtual_machine_and_chunks_agree(monkeypatch):
     """The projection's reduced objective, gradient and Hessian: compiled and on CasADi's virtual
-    machine, and with the instances split into chunks that are not a multiple of the triads."""
+    machine, with the instances split into chunks that are not a multiple of the triads, and
+    with each instance's entries scattered in numpy instead of a stage group's summed in the
+    stage functions; the information too."""
     import castimate.solve.elimination as elimination
 
     prob = dynamic_case()
     pf = prob.lsq.layout.p0()
     x0 = prob.lsq.layout.x0()
 
-    def reduced(jit):
+    def reduced(jit, stage_functions=True):
         P = Solver(prob.lsq, SolverOptions(jit=jit)).projection
-        return P.reduced(P.reset(x0, None), pf, None)
+        assert bool(P.stage_fns) == stage_functions
+        out = P.reduced(P.reset(x0, None), pf, None)
+        return out + P.marginal(x0, pf, None)[:1]
 
     a, b = reduced(True), reduced(False)
     monkeypatch.setattr(elimination, "CHUNK", 7)
+    monkeypatch.setattr(elimination, "STAGE_CHUNK", 7)
     c = reduced(False)
-    for other in (b, c):
+    monkeypatch.setattr(elimination._StageFunctions, "applies", staticmethod(lambda sb: False))  # noqa: SLF001
+    d = reduced(True, stage_functions=False)
+    for other in (b, c, d):
         assert other[0] == pytest.approx(a[0], rel=1e-13)
         for u, v in zip(a[1:], other[1:]):
             np.testing.assert_allclose(v, u, rtol=1e-11, atol=1e-11 * np.abs(u).max())

@@ -86,7 +86,7 @@ def _batch_means_variance(x: np.ndarray, segments: Sequence[tuple[int, int]],
     estimate exceeds the 99.9 % chi-square quantile relative to the median-based estimate (gross
     outliers, e.g. a tap on the table). Returns (variance per column, total degrees of freedom).
     """
-    from scipy.stats import chi2
+    from scipy.special import chdtri  # the χ² quantiles as chi2.ppf computes them, without scipy.stats's 1 s import
 
     ests, dofs = [], []
     for a, b in segments:
@@ -110,8 +110,8 @@ def _batch_means_variance(x: np.ndarray, segments: Sequence[tuple[int, int]],
         ok = np.isfinite(e)
         if len(e) >= 3:
             # median of s²·χ²_k/k is σ²·median(χ²_k)/k; undo that bias to get a robust reference
-            ref = np.median(e[ok] / (chi2.median(D[ok]) / D[ok])) if ok.any() else np.nan
-            ok &= e <= ref * chi2.ppf(0.999, D) / D
+            ref = np.median(e[ok] / (chdtri(D[ok], 0.5) / D[ok])) if ok.any() else np.nan
+            ok &= e <= ref * chdtri(D, 0.001) / D
         out[c] = np.sum(D[ok] * e[ok]) / np.sum(D[ok]) if ok.any() else np.nan
         total_dof = min(total_dof, int(D[ok].sum()))
     return out, total_dof

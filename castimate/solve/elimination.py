@@ -273,9 +273,10 @@ class _StageFunctions:
         """Every instance of a stage group sees the same stage inputs."""
         return bool((sb.rel[:, sb.is_st] == sb.rel[0, sb.is_st]).all())
 
-    def __init__(self, f, inner_fn, plan: _Plan, inner_plan: _Plan, sb, jit: bool):
+    def __init__(self, f, inner_fn, plan: _Plan, inner_plan: _Plan, sb, m: int, c: int, jit: bool):
         K, nc, nd = sb.K, f.n_cal, f.nd
         self.K, self.nc = K, nc
+        widths = {"G": m, "B": m * m, "Bgn": m * m, "Hsc": m * c}
         na, P = len(f.act), len(f.pairs)
         ns_act, P_in = inner_plan.na, inner_plan.P
         gs = [("g", M, True, ("G", d)) for d, M in plan.gs.items()]
@@ -293,7 +294,7 @@ class _StageFunctions:
         }
         self.layout, functions = {}, []
         for mode, (fn, names, width, red, tgt) in specs.items():
-            F, layout = self._build(f"{fn.name()}_{mode}_stages", fn, names, width, red, tgt, K, nc, nd)
+            F, layout = self._build(f"{fn.name()}_{mode}_stages", fn, names, width, red, tgt, K, nc, nd, widths)
             functions.append(F)
             self.layout[mode] = layout
         compiled = (compile_functions(functions) if jit else None) or functions
@@ -301,7 +302,7 @@ class _StageFunctions:
         self._buffers: dict = {}
 
     @staticmethod
-    def _build(name, fn, names, width, red, tgt, K, nc, nd):
+    def _build(name, fn, names, width, red, tgt, K, nc, nd, widths):
         zc, zs, d = ca.MX.sym("zc", K * nc), ca.MX.sym("zs", fn.size1_in(1)), ca.MX.sym("d", K * nd)
         outs = fn.map(K, "serial")(ca.reshape(zc, nc, K), ca.repmat(zs, 1, K), ca.reshape(d, nd, K))
         loc = {nm: ca.vec(o) for nm, o in zip(names, outs if isinstance(outs, (list, tuple)) else [outs])}
@@ -313,13 +314,15 @@ class _StageFunctions:
         rows: dict = {nm: ([], [], []) for nm in loc}
         segs, L = [], 0
         for src_name, M, per_k, (label, key) in tgt:
-            t = _groups(M)
+            t, dest = _groups(M), M.dest
+            if 4 * len(dest) >= widths[label]:  # dense output: numpy adds a contiguous slab, no scatter
+                t, dest = dest[t], np.arange(widths[label])
             cols = M.src if not per_k else (np.arange(K)[:, None] * width[src_name] + M.src[None, :]).ravel()
             r_, c_, v_ = rows[src_name]
             r_.append(L + (np.tile(t, K) if per_k else t)), c_.append(cols)
             v_.append(np.tile(M.val, K) if per_k else M.val)
-            segs.append((label, key, L, L + len(M.dest), M.dest))
-            L += len(M.dest)
+            segs.append((label, key, L, L + len(dest), None if len(dest) == widths[label] else dest))
+            L += len(dest)
         T = ca.MX(L, 1)
         for nm, (r_, c_, v_) in rows.items():
             if not r_:
@@ -329,8 +332,8 @@ class _StageFunctions:
             A.sum_duplicates()
             A = ca.DM(ca.Sparsity(L, K * width[nm], A.indptr.tolist(), A.indices.tolist()), A.data)
             T += ca.mtimes(A, loc[nm])
-        red_v = ca.vertcat(*red_x) if red_x else ca.MX(0, 1)
-        F = ca.Function(name, [zc, zs, d], [red_v, T])
+        red_v = ca.densify(ca.vertcat(*red_x)) if red_x else ca.MX(0, 1)
+        F = ca.Function(name, [zc, zs, d], [red_v, ca.densify(T)])  # dense: the buffers hold every entry
         return F, ("r" in loc, red_layout, segs, red_v.size1(), L)
 
     def __call__(self, mode, zc, zs, D):
@@ -374,7 +377,7 @@ class _StageFunctions:
             else:
                 d, o = key
                 tgt = (parts.B if label == "B" else parts.Bgn)[fi][o][base + d + j0: base + d + j1].reshape(nJ, -1)
-            if len(dest) == tgt.shape[1] and (dest == np.arange(len(dest))).all():
+            if dest is None:  # every target entry, in order
                 tgt += T[:, a:b]
             else:
                 tgt[:, dest] += T[:, a:b]
@@ -515,7 +518,7 @@ class Projection:
             inner_plan = _Plan(sb.K, sb.is_st, sb.rel, sb.q, act_s, pairs_s, fam.scale, fam.m, self.tpos, xs, n, c)
             if _StageFunctions.applies(sb):
                 self.inner.append(None)
-                self.stage_fns[i] = _StageFunctions(f, fn, self.plans[i], inner_plan, sb, jit)
+                self.stage_fns[i] = _StageFunctions(f, fn, self.plans[i], inner_plan, sb, fam.m, c, jit)
             else:
                 self.inner.append((((compile_functions([fn]) if jit else None) or [fn])[0], inner_plan))
         self.prior = layout.priors()

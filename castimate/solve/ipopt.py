@@ -29,6 +29,7 @@ class Solver:
     def __init__(self, problem: LeastSquaresProblem, options: SolverOptions = SolverOptions()):
         t0 = time.perf_counter()
         self.problem, self.options = problem, options
+        self.marginal_memo = None  # (point, S, G) of the last marginal information (uncertainty.py)
         lay = problem.layout
         self.n_x = n = lay.n_x
         self.blocks = [Block(b, lay) for b in problem.blocks if b.n]

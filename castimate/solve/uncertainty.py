@@ -117,9 +117,16 @@ def _eliminate_projected(solver, x, p_fixed, data, g):
 
 def marginal_information(solver, x, p_fixed=None, data=None) -> tuple[np.ndarray, np.ndarray]:
     """Fisher information of the reported parameters with the nuisance variables marginalised:
-    (S, G_theta), see :func:`eliminate`."""
-    S, G_t, _, _ = eliminate(solver, x, p_fixed, data)
-    return S, G_t
+    (S, G_theta), see :func:`eliminate`. The last point's is kept (``solver.marginal_memo``): the
+    covariance and the identifiability check of a solution ask for the same one."""
+    pf, d = solver.fixed_and_data(p_fixed, data)
+    x = np.asarray(x, float)
+    key = (x.tobytes(), pf.tobytes(), None if d is None else hash(d.tobytes()))
+    memo = solver.marginal_memo
+    if memo is None or memo[0] != key:
+        S, G_t, _, _ = eliminate(solver, x, pf, d)
+        solver.marginal_memo = memo = (key, S, G_t)
+    return memo[1].copy(), memo[2].copy()
 
 def undetermined(solver, x, p_fixed=None, data=None, top: int = 4) -> list[str]:
     """Directions of the reported parameters the data cannot determine at x, each named by its
