@@ -22,7 +22,21 @@ def static_directions(direction: str):
     return build_static(cfg, poses)
 
 
+def dynamic_time_offsets():
+    """8 IMUs with accelerometer and gyroscope time offsets: the accelerometer's rate reads the
+    neighbouring samples' motion (central differences, one-sided at the ends), so its block is
+    staged in three runs (first sample, interior, last sample) and the motion block banded."""
+    from castimate.problem.dynamic import build_dynamic
+    from test_effects import dynamic_effect_case
+    names = [f"imu{i}" for i in (1, 4, 6, 11, 13, 17, 23, 32)]
+    effects = {**{f"{nm}.accelerometer.time_offset": np.array([1e-3 * (-1) ** i]) for i, nm in enumerate(names[1:])},
+               **{f"{nm}.gyroscope.time_offset": np.array([-5e-4 * (-1) ** i]) for i, nm in enumerate(names)}}
+    cfg, data, _ = dynamic_effect_case(n=40, effects=effects)
+    return build_dynamic(cfg, data)
+
+
 CASES = {"dynamic": lambda: dynamic_case(40, True), "dynamic_no_process_model": lambda: dynamic_case(40, False),
+         "dynamic_time_offsets": dynamic_time_offsets,
          "static": static_case, "static_quaternion": lambda: static_directions("quaternion"),
          "static_pitch_roll": lambda: static_directions("pitch_roll")}
 
@@ -58,6 +72,7 @@ def test_families_found():
     block diagonal without); static: the pose directions with their unit-norm constraint."""
     fams = {k: [(f.R, f.m, f.width, len(f.unit)) for f in Solver(mk().lsq).projection.fams] for k, mk in CASES.items()}
     assert fams == {"dynamic": [(40, 9, 2, 0)], "dynamic_no_process_model": [(40, 9, 1, 0)],
+                    "dynamic_time_offsets": [(40, 9, 3, 0)],
                     "static": [(8, 3, 1, 1)], "static_quaternion": [(20, 3, 1, 1)], "static_pitch_roll": [(20, 2, 1, 0)]}
 
 
@@ -84,6 +99,14 @@ def test_reduced_derivatives_match_finite_differences(kind):
     assert relative(g_fd, g0) < 1e-7
     assert relative(S_fd, S0) < 1e-5
     assert relative(S0, S0.T) < 1e-12
+
+
+def test_rate_factors_are_staged_in_runs():
+    """The accelerometer block with time offsets is cut into its first sample, the interior and
+    its last sample (K = 8 instances per stage group); the gyroscope block stays whole."""
+    P = Solver(dynamic_time_offsets().lsq).projection
+    runs = [(u.parent, u.rows, u.st[1].J) for u in P.units]
+    assert runs == [(0, slice(0, 8), 1), (0, slice(8, 312), 38), (0, slice(312, 320), 1), (1, None, 40)]
 
 
 def test_masked_samples_and_outside_nuisance_unchanged():
@@ -120,3 +143,20 @@ def test_single_row_inputs_reach_casadi_in_c_order(elimination):
     ref = Solver(lsq, SolverOptions(tol=1e-12, elimination="none")).solve()
     assert sol.success and relative(sol.x, ref.x) < 1e-9
     assert np.isfinite(sol.covariance).all()
+
+
+def test_elimination_note_says_what_was_eliminated_and_why_not():
+    """The solver states what it eliminated (results.json's status.elimination); a nuisance group
+    with bounds or a prior stays a calibration variable, with the reason."""
+    from types import SimpleNamespace
+    from castimate.solve.elimination import Family
+    assert Solver(dynamic_case(10).lsq).elimination_note == \
+        "eliminated: 10 x 9 (motion.omega, motion.omega_dot, motion.s)"
+    assert Solver(dynamic_case(10).lsq, SolverOptions(elimination="none")).elimination_note == \
+        "full NLP (elimination: none)"
+    free, inf = np.ones((4, 3), bool), np.full((4, 3), np.inf)
+    g = SimpleNamespace(name="pose.tilt", matrix=True, nuisance=True, free=free, rows=4, scale=np.ones((4, 3)),
+                        prior_std=inf, lower=-inf, upper=inf)
+    assert Family.candidate(g) and Family.refusal(g) is None
+    assert "bounds" in Family.refusal(SimpleNamespace(**{**vars(g), "lower": np.zeros((4, 3))}))
+    assert "prior" in Family.refusal(SimpleNamespace(**{**vars(g), "prior_std": np.ones((4, 3))}))

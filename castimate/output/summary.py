@@ -42,7 +42,8 @@ def dynamic_summary(outcome) -> str:
     sol = outcome.solution
     lines = [f"{outcome.spec.path.name}: {sol.message} in {sol.iterations} iterations "
              f"({len(outcome.attempts)} attempt(s)), {sol.wall_s:.2f} s solve + {outcome.solver.build_s:.2f} s build",
-             f"  {outcome.data.n} samples, {len(outcome.config.triads)} triads, chi2/dof = {sol.chi2_per_dof:.3f}"]
+             f"  {outcome.data.n} samples, {len(outcome.config.triads)} triads, chi2/dof = {sol.chi2_per_dof:.3f}",
+             f"  solver: {outcome.solver.elimination_note}"]
     masked = {k: v for k, v in outcome.saturation.items() if v["masked"]}
     if masked:
         lines.append("  saturated samples masked (on the low rail / the high rail; axis readings): " + ", ".join(

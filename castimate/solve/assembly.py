@@ -4,6 +4,7 @@ functions (see castimate.solve for the overview).
 
 from __future__ import annotations
 
+import copy
 
 import casadi as ca
 import numpy as np
@@ -14,6 +15,7 @@ from ..problem.parameters import Layout
 from ..problem.graph import FactorBlock
 
 
+LOCAL = ("res", "jac", "rgh", "gn")  # the local functions of a factor (:class:`_Compiled`)
 CHUNK = 4096  # instances per call of a local function: bounds the work arrays, not the results
 
 
@@ -30,7 +32,8 @@ class _Compiled:
     a Schopp accelerometer factor from about 6500 to about 2400 instructions.
     """
 
-    def __init__(self, fn: ca.Function, order: np.ndarray, n_cal: int, active: np.ndarray, hessian: str, jit: bool):
+    def __init__(self, fn: ca.Function, order: np.ndarray, n_cal: int, active: np.ndarray, hessian: str, jit: bool,
+                 which: tuple[str, ...] = ("res", "jac", "rgh", "gn")):
         nz, nd = fn.size1_in(0), fn.size1_in(1)
         zc, zs, d = ca.SX.sym("zc", n_cal), ca.SX.sym("zs", nz - n_cal), ca.SX.sym("d", nd)
         z = ca.vertcat(zc, zs)  # the block's inputs in its (reordered) w_idx order
@@ -58,8 +61,11 @@ class _Compiled:
                  ca.Function(f"{name}_jac", args, [ca.densify(J)]),
                  ca.Function(f"{name}_rgh", args, [r, ca.densify(ca.mtimes(J.T, r)), entries(H)]),
                  ca.Function(f"{name}_gn", args, [entries(JtJ)])]
-        self.res, self.jac, self.rgh, self.gn = (compile_functions(local) if jit else None) or local
-        self.symbolic = dict(zip(("res", "jac", "rgh", "gn"), local))  # for functions built on them
+        self.symbolic = dict(zip(LOCAL, local))  # for functions built on them
+        names = [name for name in LOCAL if name in which]
+        chosen = [self.symbolic[name] for name in names]
+        compiled = dict(zip(names, (compile_functions(chosen) if jit and chosen else None) or chosen))
+        self.res, self.jac, self.rgh, self.gn = (compiled.get(name, self.symbolic[name]) for name in LOCAL)
         self.nz, self.nd, self.m, self.n_cal = nz, nd, fn.size1_out(0), n_cal
         self._buffers: dict = {}
 
@@ -104,15 +110,24 @@ class Block:
         self.order = np.arange(nz)
         self.n_x = layout.n_x
 
+    def segment(self, t0: int, t1: int) -> "Block":
+        """Instances t0 ... t1 - 1 as a block of their own (the same factor; its own column order
+        and compiled functions)."""
+        seg = copy.copy(self)
+        seg.w_idx, seg.order = self.w_idx[t0:t1].copy(), self.order.copy()
+        return seg
+
     def reorder(self, order: np.ndarray):
         # np.take: several times faster than fancy column indexing on a large C-order matrix
         self.w_idx, self.order = np.take(self.w_idx, order, axis=1), self.order[order]
 
-    def compile(self, cache: dict, n_cal: int, hessian: str, jit: bool):
+    def compile(self, cache: dict, n_cal: int, hessian: str, jit: bool, which: tuple[str, ...] = LOCAL):
+        """The local functions (:class:`_Compiled`); only those in ``which`` compiled to C (gcc's
+        time on a new structure), the others left on CasADi's virtual machine."""
         active = (self.w_idx < self.n_x).any(axis=0)
-        key = (id(self.block.residual), self.order.tobytes(), n_cal, active.tobytes())
+        key = (id(self.block.residual), self.order.tobytes(), n_cal, active.tobytes(), which if jit else ())
         if key not in cache:
-            cache[key] = _Compiled(self.block.residual, self.order, n_cal, active, hessian, jit)
+            cache[key] = _Compiled(self.block.residual, self.order, n_cal, active, hessian, jit, which)
         self.f = cache[key]
 
 

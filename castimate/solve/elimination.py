@@ -42,7 +42,7 @@ from scipy.linalg import blas, lapack
 
 from ..jit import compile_functions
 from ..problem.parameters import Layout
-from .assembly import CHUNK, Block, NotStaged, StagedBlock
+from .assembly import CHUNK, LOCAL, Block, NotStaged, StagedBlock
 
 
 STAGE_CHUNK = 4096  # instances per call of a stage function (whole stage groups)
@@ -77,11 +77,21 @@ class Family:
         self.width = 1  # stages coupled by one factor instance (1: independent stages)
 
     @staticmethod
-    def eligible(g) -> bool:
+    def candidate(g) -> bool:
+        """A nuisance matrix group with free rows: what the projection would eliminate."""
+        return bool(g.matrix and g.nuisance and g.free.any() and g.rows >= 2)
+
+    @staticmethod
+    def refusal(g) -> str | None:
+        """Why a candidate group cannot be eliminated (None: it can)."""
         f = g.free[0]
-        return bool(g.matrix and g.nuisance and g.free.any() and g.rows >= 2 and (g.free == f).all()
-                    and not np.isfinite(g.prior_std[g.free]).any() and (g.scale[:, f] == g.scale[0, f]).all()
-                    and np.isinf(g.lower[g.free]).all() and np.isinf(g.upper[g.free]).all())
+        if not (g.free == f).all() or not (g.scale[:, f] == g.scale[0, f]).all():
+            return f"{g.name}: rows with different free components or scales"
+        if np.isfinite(g.prior_std[g.free]).any():
+            return f"{g.name}: a prior on its rows"
+        if np.isfinite(g.lower[g.free]).any() or np.isfinite(g.upper[g.free]).any():
+            return f"{g.name}: bounds on its rows (the inner Newton steps are unconstrained)"
+        return None
 
 
 class _View:
@@ -92,13 +102,21 @@ class _View:
 
 
 def find_families(lay: Layout, blocks: list[Block]):
-    """Families and, per block, (family index, StagedBlock, instance order or None); blocks are
-    reordered (calibration inputs first). Families that some block touches without the stage
-    structure are dropped (their variables stay calibration variables)."""
+    """Families, per block touching one (family index, segments, instance order or None), and
+    the reasons why other nuisance groups are not eliminated.
+    A segment is (instance slice or None for the whole block, StagedBlock, the Block evaluated);
+    a whole block is reordered in place (calibration inputs first), a part of one is a copy
+    (:meth:`Block.segment`). Families that some block touches without the stage structure are
+    dropped (their variables stay calibration variables)."""
     by_rows: dict = {}
+    refused = []  # why candidate groups stay calibration variables
     for g in lay.groups:
-        if Family.eligible(g):
-            by_rows.setdefault(g.rows, []).append(g)
+        if Family.candidate(g):
+            why = Family.refusal(g)
+            if why is None:
+                by_rows.setdefault(g.rows, []).append(g)
+            else:
+                refused.append(why)
     cands = list(by_rows.values())
     while True:
         fams = [Family(lay, gs) for gs in cands]
@@ -106,43 +124,70 @@ def find_families(lay: Layout, blocks: list[Block]):
         for i, b in enumerate(blocks):
             for fi, fam in enumerate(fams):
                 try:
-                    sb, order = _stage(b, fam)
+                    segs, order = _stage(b, fam)
                 except LookupError:
                     continue
                 except NotStaged:
-                    bad = fi
+                    bad, why = fi, f"factor block {b.block.name} reads them without the stage structure"
                     break
                 if i in staged:  # touches two families
-                    bad = fi
+                    bad, why = fi, f"factor block {b.block.name} also reads another family"
                     break
-                staged[i] = (fi, sb, order)
+                staged[i] = (fi, segs, order)
             if bad is not None:
                 break
         if bad is None:
             break
+        refused.append(f"{', '.join(g.name for g in cands[bad])}: {why}")
         cands.pop(bad)
-    for i, (fi, sb, order) in staged.items():
-        b = blocks[i]
-        b.reorder(sb.order)
-        sb.reordered()
-        fams[fi].width = max(fams[fi].width, int(sb.rel.max()) + 1)
-    return fams, staged
+    out = {}
+    for i, (fi, segs, order) in staged.items():
+        b, parts = blocks[i], []
+        for t0, t1, sb in segs:
+            whole = len(segs) == 1
+            blk = b if whole else b.segment(t0, t1)
+            blk.reorder(sb.order)
+            sb.reordered()
+            fams[fi].width = max(fams[fi].width, int(sb.rel.max()) + 1)
+            parts.append((None if whole else slice(t0, t1), sb, blk))
+        out[i] = (fi, parts, order)
+    return fams, out, refused
+
+
+MANY_STAGES = 16  # stage groups of a block (segment) from which its functions are compiled to C
+MAX_SEGMENTS = 8  # runs of differently staged instances a block may be cut into
 
 
 def _stage(b, fam):
-    """StagedBlock of b for a family, on the instances sorted by their first stage if needed."""
+    """[(t0, t1, StagedBlock)] of b for a family and the instance order (or None): the whole
+    block, on the instances sorted by their first stage if needed; else (unsorted) the runs of
+    instances whose stage inputs have the same offsets from their first stage, each staged on
+    its own: a factor that reads its neighbours' motion, clamped at the ends of the record
+    (a rate by central differences), has one run for the first sample, one for the interior and
+    one for the last."""
     W = b.w_idx
     n = len(fam.stage_of)
-    stage_of = np.full(max(int(W.max()) + 1, n), np.iinfo(np.int32).max, np.int32)
+    none = np.iinfo(np.int32).max
+    stage_of = np.full(max(int(W.max()) + 1, n), none, np.int32)
     stage_of[:n][fam.stage_of >= 0] = fam.stage_of[fam.stage_of >= 0]
     base = np.take(stage_of, W).min(axis=1)
-    if (base == np.iinfo(np.int32).max).all():
+    if (base == none).all():
         raise LookupError
     order = None
     if (np.diff(base) < 0).any():
         order = np.argsort(base, kind="stable")
-        b = _View(W[order])
-    return StagedBlock(b, fam, max_offset=None), order
+        return [(0, len(W), StagedBlock(_View(W[order]), fam, max_offset=None))], order
+    try:
+        return [(0, len(W), StagedBlock(b, fam, max_offset=None))], None
+    except NotStaged:
+        S = np.take(stage_of, W)
+        S = np.compress((S != none).any(axis=0), S, axis=1)
+        S -= base[:, None]
+        cut = np.flatnonzero((S[1:] != S[:-1]).any(axis=1)) + 1
+        if len(cut) >= MAX_SEGMENTS:
+            raise
+        bounds = [0, *cut.tolist(), len(W)]
+        return [(t0, t1, StagedBlock(_View(W[t0:t1]), fam, max_offset=None)) for t0, t1 in zip(bounds, bounds[1:])], None
 
 
 # ------------------------------------------------------------------------------------------------
@@ -383,6 +428,17 @@ class _StageFunctions:
                 tgt[:, dest] += T[:, a:b]
 
 
+class _Unit:
+    """What :meth:`Projection.assemble` evaluates: block ``parent`` (index into the blocks) or its
+    instances ``rows`` (a slice; None: all), as Block ``b``, staged ``st`` = (family index,
+    StagedBlock) or not (None), with instance ``order`` (None: as given), the local entries'
+    ``plan``, and either its stage functions or (fn, plan) for the inner steps."""
+
+    def __init__(self, b, parent, rows, order, st, plan):
+        self.b, self.parent, self.rows, self.order, self.st, self.plan = b, parent, rows, order, st, plan
+        self.stage_fns, self.inner = None, None
+
+
 class _Parts:
     """The assembled pieces at one point: objective, calibration gradient and Hessian, and per
     family the stage gradient G (R, m), the stage Hessian blocks B[o] (R - o, m, m) and the
@@ -473,20 +529,24 @@ class Projection:
     inner_tol = 1e-12  # Newton decrement (χ²/2 units) at which the nuisance counts as converged, relative to 1 + f
 
     @classmethod
-    def build(cls, blocks: list[Block], layout: Layout, hessian: str, jit: bool) -> "Projection | None":
+    def build(cls, blocks: list[Block], layout: Layout, hessian: str, jit: bool) -> tuple["Projection | None", str]:
         """The projection of a problem, or None if it has no nuisance family to eliminate or nothing
-        else to estimate (the motion alone, for a known geometry: the full NLP is that problem)."""
-        fams, staged = find_families(layout, blocks)
+        else to estimate (the motion alone, for a known geometry: the full NLP is that problem), and
+        what was eliminated or why not (``Solver.elimination_note``, the results' status)."""
+        fams, staged, refused = find_families(layout, blocks)
+        kept = f"; not eliminated: {'; '.join(refused)}" if refused else ""
         if not fams or sum(f.X.size for f in fams) == layout.n_x:
-            for i, (_, sb, _) in staged.items():  # undo the reordering
+            for i in staged:  # undo the reordering
                 blocks[i].reorder(np.argsort(blocks[i].order))
-            return None
-        return cls(blocks, layout, fams, staged, hessian, jit)
+            why = "nothing else to estimate" if fams else "no nuisance rows to eliminate"
+            return None, f"full NLP ({why}){kept}"
+        done = ", ".join(f"{f.R} x {f.m} ({', '.join(g.name for g in f.groups)})" for f in fams)
+        return cls(blocks, layout, fams, staged, hessian, jit), f"eliminated: {done}{kept}"
 
     def __init__(self, blocks, layout, fams, staged, hessian: str, jit: bool):
         self.layout, self.blocks = layout, blocks
         n = self.n = layout.n_x
-        self.fams, self.staged = fams, staged
+        self.fams = fams
         in_fam = np.zeros(n, bool)
         for f in fams:
             in_fam[f.X.ravel()] = True
@@ -496,31 +556,42 @@ class Projection:
         self.tpos[self.cal] = np.arange(c)
         self.xscale = xs = layout.x_scale
         cache, inner_cache = {}, {}
-        self.plans, self.inner, self.stage_fns = [], [], {}
+        self.units: list[_Unit] = []  # what assemble() evaluates: blocks and parts of blocks
         for i, b in enumerate(blocks):
             st = staged.get(i)
-            n_cal = st[1].n_cal if st else b.w_idx.shape[1]
-            b.compile(cache, n_cal, hessian, jit)
-            f = b.f
+            whole = st is not None and st[1][0][0] is None
+            # a block cut into segments keeps its own compiled functions (unstaged) for local();
+            # stage functions do the assembly (compiled to C only what runs over many instances)
+            sf = whole and _StageFunctions.applies(st[1][0][1])
+            b.compile(cache, st[1][0][1].n_cal if whole else b.w_idx.shape[1], hessian, jit,
+                      ("res", "jac") if st is not None and (sf or not whole) else LOCAL)
             if st is None:
                 N, nz = b.w_idx.shape
-                self.plans.append(_Plan(N, np.zeros(nz, bool), np.zeros((N, nz), int), b.w_idx, f.act, f.pairs,
-                                        np.ones(1), 1, self.tpos, xs, n, c))
-                self.inner.append(None)
+                self.units.append(_Unit(b, i, None, None, None, _Plan(
+                    N, np.zeros(nz, bool), np.zeros((N, nz), int), b.w_idx, b.f.act, b.f.pairs, np.ones(1), 1,
+                    self.tpos, xs, n, c)))
                 continue
-            fi, sb, _ = st
+            fi, segs, order = st
             fam = fams[fi]
-            self.plans.append(_Plan(sb.K, sb.is_st, sb.rel, sb.q, f.act, f.pairs, fam.scale, fam.m, self.tpos, xs, n, c))
-            key = (id(b.block.residual), b.order.tobytes(), n_cal)
-            if key not in inner_cache:
-                inner_cache[key] = inner_function(b.block.residual, b.order, n_cal, hessian, jit)
-            fn, pairs_s, act_s = inner_cache[key]
-            inner_plan = _Plan(sb.K, sb.is_st, sb.rel, sb.q, act_s, pairs_s, fam.scale, fam.m, self.tpos, xs, n, c)
-            if _StageFunctions.applies(sb):
-                self.inner.append(None)
-                self.stage_fns[i] = _StageFunctions(f, fn, self.plans[i], inner_plan, sb, fam.m, c, jit)
-            else:
-                self.inner.append((((compile_functions([fn]) if jit else None) or [fn])[0], inner_plan))
+            for rows, sb, blk in segs:
+                applies = _StageFunctions.applies(sb)
+                many = sb.J >= MANY_STAGES  # else CasADi's virtual machine: not worth gcc's time
+                if blk is not b:
+                    blk.compile(cache, sb.n_cal, hessian, jit and many, () if applies else LOCAL)
+                f = blk.f
+                u = _Unit(blk, i, rows, order, (fi, sb),
+                          _Plan(sb.K, sb.is_st, sb.rel, sb.q, f.act, f.pairs, fam.scale, fam.m, self.tpos, xs, n, c))
+                key = (id(blk.block.residual), blk.order.tobytes(), sb.n_cal)
+                if key not in inner_cache:
+                    inner_cache[key] = inner_function(blk.block.residual, blk.order, sb.n_cal, hessian, jit)
+                fn, pairs_s, act_s = inner_cache[key]
+                inner_plan = _Plan(sb.K, sb.is_st, sb.rel, sb.q, act_s, pairs_s, fam.scale, fam.m, self.tpos, xs, n, c)
+                if applies:
+                    u.stage_fns = _StageFunctions(f, fn, u.plan, inner_plan, sb, fam.m, c, jit and many)
+                else:
+                    u.inner = (((compile_functions([fn]) if jit and many else None) or [fn])[0], inner_plan)
+                self.units.append(u)
+        self.stage_fns = [u.stage_fns for u in self.units if u.stage_fns is not None]
         self.prior = layout.priors()
         self.data = None
         self._cache, self._anchor, self._factors = None, None, None
@@ -575,21 +646,24 @@ class Projection:
             if reuse:
                 self._reused[mode] = parts
         w = np.concatenate([self.x_full(theta, Xs) * self.xscale, pf])
-        for i, b in enumerate(self.blocks):
-            f, st = b.f, self.staged.get(i)
-            D = self._data(i, data)
+        for u in self.units:
+            b, st = u.b, u.st
+            f = b.f
+            D = self._data(u.parent, data)
+            if u.rows is not None:
+                D = D[u.rows]
             W = b.w_idx
             if st is None:
-                K, J, base, fi, plan = b.block.n, 1, 0, None, self.plans[i]
+                K, J, base, fi, plan = len(W), 1, 0, None, u.plan
                 fn = {"full": f.rgh, "info": f.gn}.get(mode, f.res)
                 step = 1
             else:
-                fi, sb, order = st
-                if order is not None:
-                    W, D = W[order], D[order]
+                fi, sb = st
+                if u.order is not None:
+                    W, D = W[u.order], D[u.order]
                 K, J, base = sb.K, sb.J, sb.base
-                if i in self.stage_fns:  # a stage group at a time, summed in compiled code
-                    sf, nc = self.stage_fns[i], f.n_cal
+                if u.stage_fns is not None:  # a stage group at a time, summed in compiled code
+                    sf, nc = u.stage_fns, f.n_cal
                     Zc = np.take(w, W[:K, :nc])
                     step = max(1, STAGE_CHUNK // K)
                     for j0 in range(0, J, step):
@@ -599,15 +673,15 @@ class Projection:
                         sf.add(parts, mode, red, T, j0, j1, base, fi)
                     continue
                 if mode == "inner":
-                    fn, plan = self.inner[i]
+                    fn, plan = u.inner
                 else:
-                    fn, plan = {"res": f.res, "full": f.rgh, "info": f.gn}[mode], self.plans[i]
+                    fn, plan = {"res": f.res, "full": f.rgh, "info": f.gn}[mode], u.plan
                 step = max(1, CHUNK // K)
             nc = f.n_cal
             if st is None:  # the whole block at once: its entries go through one map
-                outs = [np.empty((b.block.n, fn.size1_out(k))) for k in range(fn.n_out())]
-                for t0 in range(0, b.block.n, CHUNK):
-                    t1 = min(b.block.n, t0 + CHUNK)
+                outs = [np.empty((len(W), fn.size1_out(k))) for k in range(fn.n_out())]
+                for t0 in range(0, len(W), CHUNK):
+                    t1 = min(len(W), t0 + CHUNK)
                     b.f(fn, _inputs(w, W[t0:t1], nc) + [D[t0:t1]], [o[t0:t1] for o in outs])
                 self._scatter(parts, fn, outs, plan, mode, 0, 1, 0, None)
                 continue

@@ -36,8 +36,9 @@ class Solver:
         if options.elimination not in ("motion", "none"):
             raise ValueError(f"unknown elimination {options.elimination!r}")
         # the nuisance rows eliminated by variable projection (compiles the blocks), or None
-        self.projection = P = Projection.build(self.blocks, lay, options.hessian, options.jit) \
-            if options.elimination == "motion" else None
+        self.projection, self.elimination_note = Projection.build(self.blocks, lay, options.hessian, options.jit) \
+            if options.elimination == "motion" else (None, "full NLP (elimination: none)")
+        P = self.projection
         self.stages, self.staged = st, staged = Stages.find(lay, self.blocks) if P is None else (None, {})
         cache: dict = {}
         off = 0
