@@ -595,7 +595,7 @@ class Projection:
         self.prior = layout.priors()
         self.data = None
         self._cache, self._anchor, self._factors = None, None, None
-        self._reused: dict = {}  # mode -> _Parts reused by reduced() and inner_solve()
+        self._reused: dict = {}  # _Parts reused by reduced() and marginal()
 
     # -- evaluation --------------------------------------------------------------------------------
     def x_full(self, theta, Xs) -> np.ndarray:
@@ -639,12 +639,13 @@ class Projection:
         """mode: "res" (objective), "inner" (stage derivatives), "full" (all derivatives), "info" (J^T J).
         ``reuse``: into the arrays of the previous reusing call (which must no longer be needed)."""
         c = self.c
-        if reuse and self._reused.get(mode) is not None:
-            parts = self._reused[mode].zero()
+        slot = "coupled" if mode in ("full", "info") else mode  # the same arrays
+        if reuse and self._reused.get(slot) is not None:
+            parts = self._reused[slot].zero()
         else:
             parts = _Parts(c, self.fams, mode in ("full", "info"), mode == "inner")
             if reuse:
-                self._reused[mode] = parts
+                self._reused[slot] = parts
         w = np.concatenate([self.x_full(theta, Xs) * self.xscale, pf])
         for u in self.units:
             b, st = u.b, u.st
@@ -851,6 +852,8 @@ class Projection:
         """Stage variables at theta to first order from the last full evaluation: the implicit
         function theorem, dm = -H_mm^-1 H_mθ dθ = -L^-T (Y dθ) with Y = L^-1 H_mθ kept."""
         th, Xs, factors = self._anchor
+        if factors is None:  # given up for their memory (marginal): the last solution as it is
+            return Xs
         d = theta - th
         out = []
         for fi, (X, (F, Y, Z)) in enumerate(zip(Xs, factors)):
@@ -920,7 +923,9 @@ class Projection:
         """Fisher information of the calibration variables with the families eliminated at x:
         (S (c, c), and for a layout-order gradient g the reduced gradient and g_m^T F_mm^-1 g_m)."""
         th, Xs = self.split(x)
-        parts = self.assemble(th, Xs, pf, data, "info")
+        if self._anchor is not None:  # its factors live in the arrays reused here
+            self._anchor = (*self._anchor[:2], None)
+        parts = self.assemble(th, Xs, pf, data, "info", reuse=True)
         if g is not None:
             parts.gc = np.asarray(g, float)[self.cal].copy()
             parts.G = [np.asarray(g, float)[f.X] for f in self.fams]
