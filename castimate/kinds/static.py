@@ -79,7 +79,7 @@ def pose_averages(spec: ProblemSpec, rec: Recording) -> tuple[PoseAverages, Dete
         raise InputError(spec.path, "data.segments",
                          f"found no static pose in {spec.data.path.name} ({rec.t[0]:.6g} s to {rec.t[-1]:.6g} s, "
                          f"{len(det.rejected)} candidate(s) rejected): the array never rests for "
-                         f"{spec.data.detection.min_duration:g} s (data.detection.min_duration) with a steady signal; "
+                         f"{det.min_duration:.3g} s (data.detection.min_duration) with a steady signal; "
                          "check data.time_range, or give the poses as data.segments: [[t0, t1], ...]")
     return declared_noise(spec, average_poses(rec, det, triads=names)), det
 

@@ -25,8 +25,9 @@ A window is *quiet* when both statistics are below their thresholds; every sampl
 window is a static candidate (the union of quiet windows, so the candidates reach the real edges of
 the rest). Candidates are the maximal runs of such samples. A quiet window may still hide the
 slow start of a motion, so each candidate's edges are then moved inward by a mean-shift
-change-point test (:func:`_refine_edges`), which is far more sensitive than the standard
-deviation. Each candidate is then accepted or rejected with a reason, in this order:
+change-point test (:func:`_refine_edges`, over at least 2 x ``REFINE_SPAN`` at each edge), which is
+far more sensitive than the standard deviation. Each candidate is then accepted or rejected with a
+reason, in this order:
 
 - *merged*: a candidate that follows the previous one after a gap of at most ``merge_gap`` seconds
   and whose mean specific-force direction differs from it by less than ``min_separation_deg`` is
@@ -37,7 +38,13 @@ deviation. Each candidate is then accepted or rejected with a reason, in this or
 - ``trim`` seconds are cut off each end (*too short* as well if fewer than 2 samples remain);
 - *drifting*: the mean specific force of the second half differs from that of the first half
   by more than ``max_drift`` m/s² and by more than ``drift_sigmas`` times its noise (median over
-  triads of the norm of the change);
+  triads of the norm of the change; its noise from the median triad's floor);
+
+Without tuning (the defaults) the window, the minimum hold and the trim follow the data: a window
+of 0.5 s, at least 10 samples, and longer for noisy data, long enough that a slow 5°/s turn raises
+the windowed standard deviation (g ω w / √12 for a ramp) by the threshold's margin over the noise
+floor; a minimum hold of two windows; a trim of 1/8 of each candidate up to 0.5 s. Holds from about 1 s (imu_tk's 100 samples at 100 Hz) to minutes are
+accepted, and the edge refinement and the drift test keep slow motion out of them.
 - *rotating* (only with ``max_gyro``): the mean angular rate, after removing each triad's median
   over all candidates (its bias), exceeds ``max_gyro`` rad/s.
 
@@ -65,7 +72,8 @@ import numpy as np
 from castimate.errors import InputError
 from castimate.io.recording import Recording
 from castimate.validation import Check
-from .options import DetectionOptions
+from .options import (AUTO_MIN_WINDOWS, AUTO_SLOW_TURN, AUTO_TRIM_FRACTION, AUTO_TRIM_MAX, AUTO_WINDOW, AUTO_WINDOW_SAMPLES,
+                      DetectionOptions)
 
 __all__ = [
     "DetectionOptions",
@@ -98,6 +106,9 @@ class Detection:
         Candidates not accepted as poses, ``(start, stop, reason)``: their sample ranges before
         trimming, in time order. A reason starting with ``"merged"`` means the samples became part
         of the previous segment (which then spans the gap between them).
+    window, min_duration
+        The window of the motion statistic and the shortest accepted hold, s, as used (given or
+        automatic; None for explicit segments).
     threshold
         Threshold of the specific-force statistic, m/s² (None for explicit segments).
     gyro_threshold
@@ -120,6 +131,8 @@ class Detection:
 
     segments: list[tuple[int, int]]
     rejected: list[tuple[int, int, str]] = field(default_factory=list)
+    window: float | None = None
+    min_duration: float | None = None
     threshold: float | None = None
     gyro_threshold: float | None = None
     threshold_method: str = ""
@@ -221,16 +234,22 @@ def _windowed_std(x: np.ndarray, w: int) -> np.ndarray:
     return std
 
 
+def _channel_floors(std: np.ndarray, q: float) -> np.ndarray:
+    """The noise floor of each channel: quantile q of its finite windowed standard deviations."""
+    floors = np.zeros(std.shape[1])
+    for c in range(std.shape[1]):
+        col = std[:, c]
+        col = col[np.isfinite(col)]
+        floors[c] = np.quantile(col, q) if len(col) else 0.0
+    return floors
+
+
 def _combine(std: np.ndarray, q: float) -> tuple[np.ndarray, float]:
     """Normalise each channel by its noise floor, combine by RMS, rescale to physical units.
 
     Returns the combined statistic per window and the RMS of the channel floors.
     """
-    floors = np.empty(std.shape[1])
-    for c in range(std.shape[1]):
-        col = std[:, c]
-        col = col[np.isfinite(col)]
-        floors[c] = np.quantile(col, q) if len(col) else 0.0
+    floors = _channel_floors(std, q)
     ok = floors > 0
     if not ok.any():
         # constant channels (e.g. quantised noise below one count): use raw RMS
@@ -252,6 +271,11 @@ def _direction_angle_deg(m1: dict[str, np.ndarray], m2: dict[str, np.ndarray]) -
         angles.append(math.degrees(math.acos(c)))
     return float(np.median(angles)) if angles else float("nan")
 
+
+#: The edges of a candidate are refined over at least 2 x this span, s, whatever the window: a short
+#: window is blind to a slow motion (a ramp's standard deviation grows with the window), the mean-shift
+#: test of the refinement is not.
+REFINE_SPAN = 1.0
 
 #: Per-sample excess (in units of the mean normalised squared deviation) that an edge sample
 #: must show, on average, to be cut off a candidate by :func:`_refine_edges`.
@@ -330,28 +354,49 @@ def detect_static(rec: Recording, options: DetectionOptions = DetectionOptions()
     t = np.asarray(rec.t, dtype=float)
     N = len(t)
     dt = sample_period(t)
-    w = max(3, int(round(options.window / dt)))
     t_range = (float(t[0]), float(t[-1])) if N else (0.0, 0.0)
-    if N < w + 1:
-        raise InputError(rec.source, "t", f"{N} samples are too few for a {options.window} s window "
-                                          f"({w} samples); expected a longer recording")
-
     acc = np.concatenate([np.asarray(rec.acc[k], dtype=float) for k in names], axis=1)
     gyro_names = [k for k in names if k in rec.gyro] if options.use_gyro else []
     q = options.floor_quantile
 
-    a_std = _windowed_std(acc, w)
-    a_stat, a_floor_ch = _combine(a_std, q)
+    def window_samples(window: float) -> int:
+        w = max(3, int(round(window / dt)))
+        if N < w + 1:
+            raise InputError(rec.source, "t", f"{N} samples are too few for a {window:g} s window "
+                                              f"({w} samples); expected a longer recording")
+        return w
+
+    method, automatic = [], []
+    if options.window is not None:
+        w = window_samples(options.window)
+        a_std = _windowed_std(acc, w)
+        a_stat, a_scale = _combine(a_std, q)
+    else:
+        w = window_samples(max(AUTO_WINDOW, AUTO_WINDOW_SAMPLES * dt))
+        a_std = _windowed_std(acc, w)
+        a_stat, a_scale = _combine(a_std, q)
+        # long enough for a slow turn to raise the windowed std (g ω w / √12 for a ramp) above the
+        # threshold's margin over the noise floor
+        slow = math.sqrt(12) * (options.threshold_factor - 1) * a_scale / (9.81 * math.radians(AUTO_SLOW_TURN))
+        if slow > w * dt:
+            w = window_samples(slow)
+            a_std = _windowed_std(acc, w)
+            a_stat, a_scale = _combine(a_std, q)
+        automatic.append(f"window: automatic, {w * dt:.3g} s ({w} samples; at least {AUTO_WINDOW:g} s, "
+                      f"{AUTO_WINDOW_SAMPLES} samples, and long enough for a {AUTO_SLOW_TURN:g}°/s turn to rise "
+                      f"{options.threshold_factor - 1:g} x the noise floor {a_scale:.3g} m/s² above it)")
+    # the per-sample noise of the drift test's statistic (a median over triads): the median triad's floor
+    sigma_triad = float(np.median([np.sqrt(np.mean(np.square(_channel_floors(a_std[:, 3 * k:3 * k + 3], q))))
+                                   for k in range(len(names))]))
     finite = np.isfinite(a_stat)
     a_floor = float(np.quantile(a_stat[finite], q)) if finite.any() else float("nan")
-    method = []
     if options.threshold is not None:
         a_thr = float(options.threshold)
         method.append(f"specific force: given ({a_thr:.4g} m/s²)")
     else:
         a_thr = options.threshold_factor * a_floor
         method.append(f"specific force: adaptive, {options.threshold_factor:g} x noise floor "
-                      f"{a_floor:.4g} m/s² (quantile {q:g} of the {options.window:g} s windowed std, "
+                      f"{a_floor:.4g} m/s² (quantile {q:g} of the {w * dt:.3g} s windowed std, "
                       f"RMS over {acc.shape[1]} channels normalised by their own floors)")
     quiet = a_stat < a_thr
 
@@ -370,6 +415,14 @@ def detect_static(rec: Recording, options: DetectionOptions = DetectionOptions()
             method.append(f"angular rate: adaptive, {options.threshold_factor:g} x noise floor "
                           f"{g_floor:.4g} rad/s")
         quiet &= g_stat < g_thr
+
+    min_duration, trim = options.min_duration, options.trim
+    if min_duration is None:  # seen at rest by more than one window: a pause at the turn of a motion is not
+        min_duration = AUTO_MIN_WINDOWS * w * dt
+        automatic.append(f"minimum hold: automatic, {AUTO_MIN_WINDOWS} windows = {min_duration:.3g} s")
+    if trim is None:
+        automatic.append(f"trim: automatic, {AUTO_TRIM_FRACTION:g} of each candidate, at most {AUTO_TRIM_MAX:g} s")
+    method += automatic
 
     # Every sample inside a quiet window is static: dilate the quiet windows [k, k+w).
     nwin = len(quiet)
@@ -417,17 +470,18 @@ def detect_static(rec: Recording, options: DetectionOptions = DetectionOptions()
         last_dir = d
 
     # 2. trim, duration, drift
-    ntrim = int(round(options.trim / dt))
     kept: list[tuple[int, int, int, int]] = []   # trimmed a, b, untrimmed (refined) a, b
     for a0, b0 in groups:
-        ra, rb = _refine_edges(channels, a0, b0, w)
-        a, b = ra + ntrim, rb - ntrim
+        ra, rb = _refine_edges(channels, a0, b0, max(w, int(round(REFINE_SPAN / dt))))
         dur = (rb - ra) * dt
-        if dur < options.min_duration - 1e-9:
-            rejected.append((ra, rb, f"too short ({dur:.1f} s < {options.min_duration:g} s)"))
+        cut = trim if trim is not None else min(AUTO_TRIM_MAX, AUTO_TRIM_FRACTION * dur)
+        ntrim = int(round(cut / dt))
+        a, b = ra + ntrim, rb - ntrim
+        if dur < min_duration - 1e-9:
+            rejected.append((ra, rb, f"too short ({dur:.2g} s < {min_duration:.3g} s)"))
             continue
         if b - a < 2:
-            rejected.append((ra, rb, f"too short after trimming {options.trim:g} s off each end "
+            rejected.append((ra, rb, f"too short after trimming {cut:.3g} s off each end "
                                      f"({max(b - a, 0)} samples left of {rb - ra})"))
             continue
         if options.max_drift is not None:
@@ -435,7 +489,7 @@ def detect_static(rec: Recording, options: DetectionOptions = DetectionOptions()
             m1, m2 = means(a, h, acc_sel), means(h, b, acc_sel)
             change = float(np.median([np.linalg.norm(m2[k] - m1[k]) for k in names]))
             n1, n2 = h - a, b - h
-            sigma_change = a_floor_ch * math.sqrt(1.0 / n1 + 1.0 / n2) * math.sqrt(3.0)
+            sigma_change = sigma_triad * math.sqrt(1.0 / n1 + 1.0 / n2) * math.sqrt(3.0)
             limit = max(options.max_drift, options.drift_sigmas * sigma_change)
             if change > limit:
                 rejected.append((ra, rb, f"drifting (mean changes by {change:.3g} m/s² between "
@@ -479,6 +533,8 @@ def detect_static(rec: Recording, options: DetectionOptions = DetectionOptions()
     return Detection(
         segments=segments,
         rejected=rejected,
+        window=w * dt,
+        min_duration=min_duration,
         threshold=a_thr,
         gyro_threshold=g_thr,
         threshold_method="; ".join(method),

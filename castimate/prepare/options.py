@@ -16,7 +16,17 @@ from castimate.validation import Check
 # --------------------------------------------------------------------------------------------
 
 #: Options that may be "auto" (or none / null): chosen from the data, or the test disabled.
-_OPTIONAL = ("threshold", "gyro_threshold", "max_drift", "max_gyro")
+_OPTIONAL = ("window", "min_duration", "trim", "threshold", "gyro_threshold", "max_drift", "max_gyro")
+#: Automatic window: this long, s, at least AUTO_WINDOW_SAMPLES samples, and long enough for a turn at
+#: AUTO_SLOW_TURN deg/s to raise the windowed std by (threshold_factor - 1) x the noise floor.
+AUTO_WINDOW = 0.5
+AUTO_WINDOW_SAMPLES = 10
+AUTO_SLOW_TURN = 5.0
+#: Automatic minimum hold: this many windows (a hold is seen still by more than one window).
+AUTO_MIN_WINDOWS = 2
+#: Automatic trim: this fraction of each candidate, at most AUTO_TRIM_MAX s.
+AUTO_TRIM_FRACTION = 0.125
+AUTO_TRIM_MAX = 0.5
 #: The physical range of every numeric option (Check.number bounds), named in the errors.
 _BOUNDS: dict[str, dict] = {
     "window": dict(positive=True, hi=600.0, unit="s"),
@@ -53,12 +63,21 @@ class DetectionOptions:
     Attributes
     ----------
     window
-        Length of the sliding window of the motion statistic, s (default 1.0).
+        Length of the sliding window of the motion statistic, s. ``None`` (default) = automatic,
+        from the rate and the noise: :data:`AUTO_WINDOW` s, at least :data:`AUTO_WINDOW_SAMPLES`
+        samples, and long enough that a turn at :data:`AUTO_SLOW_TURN` °/s raises the windowed
+        standard deviation (g ω w / √12 for a ramp) by ``threshold_factor - 1`` times the noise
+        floor σ: w ≥ √12 (threshold_factor - 1) σ / (g ω). 0.5 s on the bundled MIMU4444 and Xsens
+        sessions and on 0.01 m/s² noise; 0.8 s at 0.2 m/s².
     min_duration
         Shortest accepted static interval, s, measured *before* trimming, i.e. as long as the
-        array was seen at rest (default 3.0). With the default trim, 2 s or more are averaged.
+        array was seen at rest. ``None`` (default) = :data:`AUTO_MIN_WINDOWS` windows (a hold is
+        seen at rest by more than one window, which a pause at the turn of a motion is not): 1 s
+        with the 0.5 s window.
     trim
-        Cut off each end of a candidate, s, to drop the settling after a motion (default 0.5).
+        Cut off each end of a candidate, s, to drop the settling after a motion. ``None``
+        (default) = :data:`AUTO_TRIM_FRACTION` of the candidate, at most :data:`AUTO_TRIM_MAX` s
+        (0.5 s on holds of 4 s or more, 0.125 s on a 1 s hold).
     threshold
         Threshold of the specific-force statistic (RMS over channels of the windowed standard
         deviation), m/s². ``None`` (default) = adaptive: ``threshold_factor`` times the noise floor
@@ -93,9 +112,9 @@ class DetectionOptions:
         candidates) exceeds this, rad/s. ``None`` (default) disables the test.
     """
 
-    window: float = 1.0
-    min_duration: float = 3.0
-    trim: float = 0.5
+    window: float | None = None
+    min_duration: float | None = None
+    trim: float | None = None
     threshold: float | None = None
     gyro_threshold: float | None = None
     threshold_factor: float = 2.0

@@ -17,6 +17,7 @@ from ..io.units import STANDARD_GRAVITY
 from ..validation import Check, load_yaml, shown
 from ..problem.effects import BY_KEY
 from .effects import REALISTIC_DYNAMIC_EFFECTS, REALISTIC_EFFECTS, chip_clock, random_coefficients, random_effects
+from .stamps import logged
 from .static import StaticTruthScale, pose_directions, random_static_truth, static_pose_means, static_time_series
 
 #: Bounds of a scenario's size: the simulation must fit in memory (MAX_VALUES float64 readings,
@@ -37,7 +38,23 @@ OUTPUT_FILES = ("data.csv", "truth.json", "problem.yaml")
 
 SCENARIO_KEYS = ("kind", "seed", "gravity", "triads", "reference", "poses", "noise", "samples_per_pose",
                  "truth", "gyroscope", "time_series", "rate", "pose_duration", "transition", "effects", "temperature",
-                 "pose_interval")
+                 "pose_interval", "time_stamps")
+#: ``time_stamps``: how a logger stamps the samples (castimate.simulate.stamps.logged).
+TIME_STAMP_KEYS = ("round", "jitter", "gaps")
+
+
+def _duration(c: Check, s: dict, key: str, default: float, count: int, rng: np.random.Generator) -> np.ndarray:
+    """A duration in seconds: one number, or [shortest, longest] drawn uniformly for each of ``count``."""
+    v = s.get(key, default)
+    if isinstance(v, list):
+        if len(v) != 2:
+            c.fail(key, f"expected a duration in seconds or [shortest, longest], found {v!r}")
+        lo = c.number(v[0], f"{key}[0]", positive=True, hi=1e5, unit="s")
+        hi = c.number(v[1], f"{key}[1]", positive=True, hi=1e5, unit="s")
+        if hi < lo:
+            c.fail(key, f"expected shortest <= longest, found {v!r}")
+        return rng.uniform(lo, hi, count)
+    return np.full(count, c.number(v, key, positive=True, hi=1e5, unit="s"))
 
 
 def _flag(c: Check, s: dict, key: str) -> bool:
@@ -170,12 +187,21 @@ def _static_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDraw
             c.fail("effects" if effects else "temperature", "effects and temperature are simulated for pose means "
                                                             "(time_series: false)")
         rate = c.number(s.get("rate", 100.0), "rate", positive=True, hi=1e5, unit="Hz")
-        dur = c.number(s.get("pose_duration", 10.0), "pose_duration", positive=True, hi=1e5, unit="s")
-        trans = c.number(s.get("transition", 3.0), "transition", positive=True, hi=1e5, unit="s")
-        _check_size(c, P * (dur + trans) * rate, len(names) * (6 if gyro else 3), "poses x (pose_duration + "
+        dur = _duration(c, s, "pose_duration", 10.0, P, rng)
+        trans = _duration(c, s, "transition", 3.0, P - 1, rng)
+        _check_size(c, (dur.sum() + trans.sum()) * rate, len(names) * (6 if gyro else 3), "poses x (pose_duration + "
                     "transition) x rate")
+        stamps = c.mapping(s.get("time_stamps"), "time_stamps", TIME_STAMP_KEYS)
         rec, intervals = static_time_series(truth, U, sigma, draw.rng(seed, rng), rate=rate, pose_duration=dur,
                                             transition=trans, gyro_sigma=gsigma)
+        lost = []
+        if stamps:  # what the logger did to the stamps is part of the session, drawn with the truth
+            rec, keep = logged(rec, rng, round_to=c.number(stamps.get("round", 0.0), "time_stamps.round", lo=0.0, hi=10.0,
+                                                        unit="s"),
+                               jitter=c.number(stamps.get("jitter", 0.0), "time_stamps.jitter", lo=0.0, hi=10.0, unit="s"),
+                               gaps=c.number(stamps.get("gaps", 0), "time_stamps.gaps", lo=0, hi=1000, integer=True))
+            edges = np.diff(np.concatenate(([1], keep.astype(int), [1])))
+            lost = [[int(a), int(b - a)] for a, b in zip(np.flatnonzero(edges == -1), np.flatnonzero(edges == 1))]
         problem["data"]["segments"] = "auto"
         problem["noise"] = {"accelerometer": "auto"}
     else:
@@ -202,6 +228,8 @@ def _static_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDraw
     doc = truth.to_dict()
     doc.update({"directions": U, "static_intervals_s": intervals, "noise": {"accelerometer": sigma, "gyroscope": gsigma},
                 "samples_per_pose": n_samp})
+    if "time_stamps" in s:  # the rows a logger lost: [first sample number, count]
+        doc["lost_samples"] = lost
     write_json(out / "truth.json", doc)
     header = f"# Simulated from {path.name}; the truth is in truth.json.\n"
     write_atomic(out / "problem.yaml", header + yaml.safe_dump(problem, sort_keys=False))

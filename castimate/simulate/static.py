@@ -158,10 +158,11 @@ def _rotate(axis: np.ndarray, angle: np.ndarray, u: np.ndarray) -> np.ndarray:
 
 
 def static_time_series(truth: StaticTruth, U: np.ndarray, sigma: float, rng: np.random.Generator, *,
-                       rate: float = 100.0, pose_duration: float = 10.0, transition: float = 3.0,
-                       gyro_sigma: float | None = None, heading_swing: float = 0.0
-                       ) -> tuple[Recording, list[tuple[float, float]]]:
-    """A raw static session: each pose held for ``pose_duration`` s, joined by smooth rotations.
+                       rate: float = 100.0, pose_duration: float | np.ndarray = 10.0,
+                       transition: float | np.ndarray = 3.0, gyro_sigma: float | None = None,
+                       heading_swing: float = 0.0) -> tuple[Recording, list[tuple[float, float]]]:
+    """A raw static session: each pose held for ``pose_duration`` s, joined by smooth rotations of
+    ``transition`` s (each a number, or one per pose / per transition).
 
     During a transition of duration D the specific force turns along the great circle from one pose
     direction to the next, by the angle α about the fixed body axis a, with the raised-cosine
@@ -174,17 +175,20 @@ def static_time_series(truth: StaticTruth, U: np.ndarray, sigma: float, rng: np.
     Gyroscopes read T_g ω + b_g with the truth's T_g. Returns the recording and the true static
     intervals in seconds.
     """
-    n_hold, n_move = int(round(pose_duration * rate)), int(round(transition * rate))
-    dt, D = 1 / rate, (n_move + 1) / rate
+    P = len(U)
+    n_hold = np.round(np.broadcast_to(np.asarray(pose_duration, float), (P,)) * rate).astype(int)
+    n_move = np.round(np.broadcast_to(np.asarray(transition, float), (max(P - 1, 0),)) * rate).astype(int)
+    dt = 1 / rate
     intervals, plan, t_now = [], [], 0.0
-    for i in range(len(U)):
-        intervals.append((t_now, t_now + n_hold / rate))
-        t_now += (n_hold + (n_move if i + 1 < len(U) else 0)) / rate
-        if i + 1 < len(U):  # the transition starts at the hold's last sample
+    for i in range(P):
+        intervals.append((t_now, t_now + n_hold[i] / rate))
+        t_now += (n_hold[i] + (n_move[i] if i + 1 < P else 0)) / rate
+        if i + 1 < P:  # the transition starts at the hold's last sample
             axis = np.cross(U[i], U[i + 1])
             axis = axis / (np.linalg.norm(axis) or 1.0)
-            plan.append((intervals[-1][1] - dt, axis, np.arccos(np.clip(U[i] @ U[i + 1], -1, 1))))
-    N = len(U) * n_hold + (len(U) - 1) * n_move
+            plan.append((intervals[-1][1] - dt, (n_move[i] + 1) / rate, axis,
+                         np.arccos(np.clip(U[i] @ U[i + 1], -1, 1))))
+    N = int(n_hold.sum() + n_move.sum())
     t = np.arange(N) / rate
 
     def state(tq):
@@ -192,7 +196,7 @@ def static_time_series(truth: StaticTruth, U: np.ndarray, sigma: float, rng: np.
         u, w = np.zeros((len(tq), 3)), np.zeros((len(tq), 3))
         k = np.clip(np.searchsorted([iv[0] for iv in intervals], tq, side="right") - 1, 0, len(U) - 1)
         u[:] = U[k]
-        for i, (t0, axis, ang) in enumerate(plan):
+        for i, (t0, D, axis, ang) in enumerate(plan):
             m = (tq > t0) & (tq < t0 + D)
             x = (tq[m] - t0) / D
             s, sd = 0.5 - 0.5 * np.cos(np.pi * x), 0.5 * np.pi / D * np.sin(np.pi * x)
