@@ -34,12 +34,16 @@ def test_rounded_stamps_and_short_holds_calibrate_untuned(tmp_path, capsys):
     assert set(np.round(steps, 9)) == {0.0, 0.01} and 0.45 < np.mean(steps == 0) < 0.55  # the messy input
 
     assert main(["solve", str(tmp_path / "sim" / "problem.yaml"), "-o", str(tmp_path / "out")]) == 0
-    err = capsys.readouterr().err
-    assert "t: timestamps repaired" in err and "minimum hold: automatic" in err
+    printed = capsys.readouterr()
+    assert "t: timestamps repaired" in printed.err and "minimum hold: automatic" in printed.err
     res = json.loads((tmp_path / "out" / "results.json").read_text())
     truth = json.loads((tmp_path / "sim" / "truth.json").read_text())
     note = res["recording_notes"][0]
     assert "repeated" in note and "200 Hz (estimated from the stamps)" in note
+    tb = res["time_base"]  # the same, structured: half the stamps repeat, none lost, corrections <= 5.2 ms
+    assert tb["repaired"] and abs(tb["rate_hz"] - 200) < 0.01 and tb["missing_samples"] == 0
+    assert tb["repeated_stamps"] > 0.45 * len(stamps) and tb["max_correction_s"] < 0.0055
+    assert note in printed.out  # and in the summary printed at the end
 
     # every hold of 1-3 s found (at most one near 1 s lost), none reaching into a turn by more than 10 ms
     holds = np.array(truth["static_intervals_s"])
@@ -69,6 +73,8 @@ def test_gaps_are_reported_and_calibrate(tmp_path):
     lost = truth["lost_samples"]
     gaps = [n for n in res["recording_notes"] if "gap(s)" in n]
     assert len(lost) == 3 and len(gaps) == 1, res["recording_notes"]
+    assert [(g["row"], g["missing"]) for g in res["time_base"]["gaps"]] == \
+        [(row - sum(m for r, m in lost if r < row), m) for row, m in lost]  # rows of the file, after the losses
     # every lost run found with its exact length, even 2 samples under 10 ms rounding (a level shift of 10 ms)
     assert gaps[0].startswith(f"t: 3 gap(s) against 200 Hz, {sum(m for _, m in lost)} samples missing; "), gaps
     assert f"({max(m for _, m in lost)} samples)" in gaps[0], (gaps, lost)

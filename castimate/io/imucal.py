@@ -62,7 +62,7 @@ def read_imucal(path: str | os.PathLike, rate: float, acc_units: UnitSpec | None
     return Recording(t=times.t, acc={name: acc.to_si(data[:, 4:7])}, gyro={name: gyro.to_si(data[:, 1:4])},
                      source=source, notes=(f"imucal table: {len(n)} samples at the declared {rate:g} Hz",)
                      + times.notes[1:],  # [0] restates the rate
-                     rails=declared_rails(acc, gyro, [name], [name]))
+                     rails=declared_rails(acc, gyro, [name], [name]), time_base=times)
 
 
 def read_sections(path: str | os.PathLike) -> dict[str, tuple[int, int]]:

@@ -185,4 +185,4 @@ def read_imutk(
         gyro[name] = gyro_conv.to_si(gyro_raw, gyro_path, name)
     acc = {name: acc_conv.to_si(acc_raw, acc_path, name)}
     return Recording(t=t.copy(), acc=acc, gyro=gyro, source=source, notes=tuple(notes),
-                     rails=declared_rails(acc_conv, gyro_conv if gyro else None, acc, gyro))
+                     rails=declared_rails(acc_conv, gyro_conv if gyro else None, acc, gyro), time_base=acc_time)

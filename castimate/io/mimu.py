@@ -292,7 +292,7 @@ def read_mimu_with_stats(
     notes = (stats.summary(), stats.details()) + times.notes
     # The packets carry int16 counts whatever the declared conversion: the converter clips there.
     rails = declared_rails(replace(acc_conv, rails=INT16_RAILS), replace(gyro_conv, rails=INT16_RAILS), acc, gyro)
-    return Recording(t=t, acc=acc, gyro=gyro, source=source, notes=notes, rails=rails), stats
+    return Recording(t=t, acc=acc, gyro=gyro, source=source, notes=notes, rails=rails, time_base=times), stats
 
 
 def read_mimu(

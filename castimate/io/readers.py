@@ -231,7 +231,7 @@ def read_csv(
         if "temp" in chans:
             temp[triad] = temp_conv.to_si(data[:, chans["temp"]], source, f"{triad}.temp")
     return Recording(t=times.t, acc=acc, gyro=gyro, temp=temp, source=source, notes=times.notes,
-                     rails=declared_rails(acc_conv, gyro_conv, acc, gyro))
+                     rails=declared_rails(acc_conv, gyro_conv, acc, gyro), time_base=times)
 
 
 SI_COMMENT = "SI units: t [s], a* [m/s^2], g* [rad/s], temp [K]"
@@ -380,7 +380,7 @@ def read_npz(
     if not acc:
         raise InputError(source, "", "expected at least one '<triad>.acc' array, found only 't'")
     return Recording(t=times.t, acc=acc, gyro=gyro, temp=temp, source=source, notes=times.notes,
-                     rails=declared_rails(acc_conv, gyro_conv, acc, gyro))
+                     rails=declared_rails(acc_conv, gyro_conv, acc, gyro), time_base=times)
 
 
 def write_npz(path: str | os.PathLike, recording: Recording) -> None:

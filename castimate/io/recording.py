@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from castimate.io.timestamps import TimeBase
 
 
 @dataclass(frozen=True)
@@ -26,11 +30,14 @@ class Recording:
     source
         The file(s) it was read from, for error messages.
     notes
-        Human-readable remarks from the reader (dropped packets, resynchronisations).
+        Human-readable remarks from the reader (dropped packets, resynchronisations, the time base).
     rails
         Sensor (``accelerometer``, ``gyroscope``) -> triad name -> (2, 3) the low and high rail per axis
         (SI units): the converter's extreme counts after the reader's unit conversion, where the reader
         knows them (MIMU int16 packets; counts declared with ``rails``). Absent: not known.
+    time_base
+        How the reader obtained ``t`` from the file's stamps: rate, repairs, gaps
+        (:class:`castimate.io.timestamps.TimeBase`); None where no reader made it.
     """
 
     t: np.ndarray
@@ -40,6 +47,7 @@ class Recording:
     source: str = ""
     notes: tuple[str, ...] = ()
     rails: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+    time_base: TimeBase | None = None
 
     @property
     def triads(self) -> list[str]:
@@ -62,4 +70,5 @@ class Recording:
             source=self.source,
             notes=self.notes,
             rails=self.rails,
+            time_base=self.time_base,
         )

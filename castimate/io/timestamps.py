@@ -110,6 +110,19 @@ class TimeBase:
     def missing(self) -> int:
         return sum(g.missing for g in self.gaps)
 
+    @property
+    def alerts(self) -> tuple[str, ...]:
+        """The notes a user must see: the stamps were repaired, or samples are missing."""
+        return self.notes if self.repaired or self.gaps else ()
+
+    def as_dict(self) -> dict:
+        """For results.json: the rate and where it came from, the repair, every gap."""
+        return {"rate_hz": self.rate, "rate_from": self.rate_from, "repaired": self.repaired,
+                "repeated_stamps": self.repeated, "backward_stamps": self.backwards,
+                "max_correction_s": self.max_correction, "missing_samples": self.missing,
+                "gaps": [{"row": g.row, "t_before_s": g.t, "missing": g.missing,
+                          "duration_s": g.duration(self.period)} for g in self.gaps]}
+
 
 def _first_bad_step(t: np.ndarray) -> int | None:
     bad = np.flatnonzero(~(np.diff(t) > 0))

@@ -214,6 +214,8 @@ def load_dynamic(spec: ProblemSpec, log: Log = quiet) -> DynamicInput:
     """Read the recording, estimate the noise from its static segments and mask saturated samples."""
     log(f"reading {spec.data.path.name} ({spec.data.format})")
     full = read_full(spec)
+    for note in full.notes:
+        log(f"  {note}")
     rec = load_recording(spec)
     check_plausible(spec, rec, "dynamic", log)
     acc_sigma, gyro_sigma = noise_from_static(spec, full, log)

@@ -95,6 +95,8 @@ def static_results(outcome) -> dict:
         }
     doc.update(_effects(outcome.problem.config))
     doc["recording_notes"] = list(outcome.recording.notes)
+    if outcome.recording.time_base is not None:
+        doc["time_base"] = outcome.recording.time_base.as_dict()
     if outcome.consistency is not None:
         c = outcome.consistency
         doc["consistency"] = {"before": float(c.before.mean()), "after": float(c.after.mean()),

@@ -31,6 +31,8 @@ def static_summary(outcome) -> str:
     before = np.sqrt(np.mean([np.mean(b ** 2) for b, _ in ge.values()]))
     after = np.sqrt(np.mean([np.mean(a ** 2) for _, a in ge.values()]))
     lines.append(f"  gravity-norm error RMS: {before * 1e3:.1f} mm/s^2 raw -> {after * 1e3:.2f} mm/s^2 calibrated")
+    time_base = outcome.recording.time_base
+    lines += [f"  {note}" for note in (time_base.alerts if time_base is not None else ())]
     if outcome.consistency is not None:
         c = outcome.consistency
         lines.append(f"  array consistency (Nilsson sec. IV): {np.sqrt(c.before.mean()) * 1e3:.1f} -> "

@@ -72,8 +72,8 @@ import numpy as np
 from castimate.errors import InputError
 from castimate.io.recording import Recording
 from castimate.validation import Check
-from .options import (AUTO_MIN_WINDOWS, AUTO_SLOW_TURN, AUTO_TRIM_FRACTION, AUTO_TRIM_MAX, AUTO_WINDOW, AUTO_WINDOW_SAMPLES,
-                      DetectionOptions)
+from .options import (AUTO_MIN_WINDOWS, AUTO_SLOW_TURN, AUTO_TRIM_FRACTION, AUTO_TRIM_MAX, AUTO_WINDOW,
+                      AUTO_WINDOW_MAX, AUTO_WINDOW_SAMPLES, DetectionOptions)
 
 __all__ = [
     "DetectionOptions",
@@ -378,12 +378,14 @@ def detect_static(rec: Recording, options: DetectionOptions = DetectionOptions()
         # long enough for a slow turn to raise the windowed std (g ω w / √12 for a ramp) above the
         # threshold's margin over the noise floor
         slow = math.sqrt(12) * (options.threshold_factor - 1) * a_scale / (9.81 * math.radians(AUTO_SLOW_TURN))
+        slow = min(slow, AUTO_WINDOW_MAX, N * dt / 4)  # a floor raised by motion everywhere must not run away
         if slow > w * dt:
             w = window_samples(slow)
             a_std = _windowed_std(acc, w)
             a_stat, a_scale = _combine(a_std, q)
         automatic.append(f"window: automatic, {w * dt:.3g} s ({w} samples; at least {AUTO_WINDOW:g} s, "
-                      f"{AUTO_WINDOW_SAMPLES} samples, and long enough for a {AUTO_SLOW_TURN:g}°/s turn to rise "
+                      f"{AUTO_WINDOW_SAMPLES} samples, and up to {AUTO_WINDOW_MAX:g} s long enough for a "
+                      f"{AUTO_SLOW_TURN:g}°/s turn to rise "
                       f"{options.threshold_factor - 1:g} x the noise floor {a_scale:.3g} m/s² above it)")
     # the per-sample noise of the drift test's statistic (a median over triads): the median triad's floor
     sigma_triad = float(np.median([np.sqrt(np.mean(np.square(_channel_floors(a_std[:, 3 * k:3 * k + 3], q))))

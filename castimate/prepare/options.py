@@ -22,6 +22,8 @@ _OPTIONAL = ("window", "min_duration", "trim", "threshold", "gyro_threshold", "m
 AUTO_WINDOW = 0.5
 AUTO_WINDOW_SAMPLES = 10
 AUTO_SLOW_TURN = 5.0
+#: ... but never longer than this, s, nor a quarter of the recording.
+AUTO_WINDOW_MAX = 2.0
 #: Automatic minimum hold: this many windows (a hold is seen still by more than one window).
 AUTO_MIN_WINDOWS = 2
 #: Automatic trim: this fraction of each candidate, at most AUTO_TRIM_MAX s.
@@ -67,8 +69,9 @@ class DetectionOptions:
         from the rate and the noise: :data:`AUTO_WINDOW` s, at least :data:`AUTO_WINDOW_SAMPLES`
         samples, and long enough that a turn at :data:`AUTO_SLOW_TURN` °/s raises the windowed
         standard deviation (g ω w / √12 for a ramp) by ``threshold_factor - 1`` times the noise
-        floor σ: w ≥ √12 (threshold_factor - 1) σ / (g ω). 0.5 s on the bundled MIMU4444 and Xsens
-        sessions and on 0.01 m/s² noise; 0.8 s at 0.2 m/s².
+        floor σ: w ≥ √12 (threshold_factor - 1) σ / (g ω), up to :data:`AUTO_WINDOW_MAX` s and a
+        quarter of the recording. 0.5 s on the bundled MIMU4444 and Xsens sessions and on
+        0.01 m/s² noise; 0.7 s at 0.2 m/s².
     min_duration
         Shortest accepted static interval, s, measured *before* trimming, i.e. as long as the
         array was seen at rest. ``None`` (default) = :data:`AUTO_MIN_WINDOWS` windows (a hold is

@@ -4,6 +4,8 @@ castimate.io.timestamps must recover it from what this writes."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from ..io.recording import Recording
@@ -35,5 +37,5 @@ def logged(rec: Recording, rng: np.random.Generator, *, round_to: float = 0.0, j
     t = rec.t + rng.uniform(0.0, jitter, N) if jitter > 0 else rec.t.copy()
     if round_to > 0:
         t = np.round(t / round_to) * round_to
-    out = Recording(t=t, acc=rec.acc, gyro=rec.gyro, temp=rec.temp, source=rec.source).select(keep)
+    out = replace(rec, t=t).select(keep)
     return out, keep
