@@ -55,6 +55,14 @@ def test_rounded_stamps_and_short_holds_calibrate_untuned(tmp_path, capsys):
     assert np.abs(z).max() < 4 and 0.4 < np.sqrt(np.mean(z ** 2)) < 2, np.round(z, 2)
     assert 0.5 < res["residuals"]["chi2_per_dof"] < 2
 
+    # a declared rate the stamps contradict is refused, naming the data file and its column
+    wrong = tmp_path / "sim" / "wrong_rate.yaml"
+    wrong.write_text(problem.replace("format: csv", "format: csv\n  rate: 100"))
+    assert main(["solve", str(wrong), "-o", str(tmp_path / "out_rate"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "data.csv: t: the stamps advance at 200 Hz; the declared rate (data.rate) is 100 Hz" in err, err
+    assert not (tmp_path / "out_rate").exists()
+
     # the old fixed 3 s minimum, given explicitly, still applies and finds no pose in this log
     tuned = tmp_path / "sim" / "tuned.yaml"
     tuned.write_text(problem.replace("segments: auto", "segments: auto\n  detection: {min_duration: 3}"))
