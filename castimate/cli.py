@@ -254,8 +254,10 @@ def cmd_plan(args) -> int:
         write_atomic(stage / names[1], csv_text(rows))
         write_atomic(stage / names[2], render_plan(str(args.plan), cases, names[3]))
         plan_figure(cases).savefig(stage / names[3], dpi=110)
-    und = sorted({u for c in cases for u in c.undetermined})
-    print(f"{len(labels)} parameters, {len(und)} undetermined direction(s){': ' + '; '.join(und) if und else ''}")
+    first = next((c for c in cases if c.undetermined), None)
+    print(f"{len(labels)} parameters; " + (f"undetermined directions per duration: "
+          f"{', '.join(f'{c.duration:g} s: {len(c.undetermined)}' for c in cases)}; at {first.duration:g} s: "
+          f"{'; '.join(first.undetermined)}" if first else "every parameter is determined"))
     if len(plan.durations) > 1:
         print(f"the bound falls as duration^a from {plan.durations[0]:g} to {plan.durations[-1]:g} s: a = "
               f"{np.nanmedian(a):.3f} (median over the parameters; -1/2 for white noise averaged longer)")

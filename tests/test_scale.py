@@ -335,3 +335,58 @@ def test_a_bad_scenario_key_is_one_line_from_the_workers(client, tmp_path, capsy
     (err,) = [line for line in capsys.readouterr().err.splitlines() if "error" in line or "FAILED" in line]
     assert "poses" in err and err.count(str(plan)) == 1, err
     assert not (tmp_path / "o").exists()
+
+
+def test_a_pose_set_in_one_plane_leaves_the_normal_undetermined():
+    """Eight gravity directions all in the x-y plane: nothing along z is sensed at any other level,
+    so the plan names z gains and biases as undetermined (the pipeline itself would refuse the
+    data); tilting the set out of the plane determines everything."""
+    ring = [[float(np.cos(a)), float(np.sin(a)), 0.0] for a in np.arange(8) * np.pi / 4]
+    flat = solve_noise_free({**STATIC, "poses": ring})
+    named = " ".join(flat.undetermined)
+    assert flat.undetermined and ("gain[z]" in named or "bias[z]" in named), named
+    assert np.isinf(flat.estimates["imu1.accelerometer.gain[z]"].std)
+    tilted = solve_noise_free({**STATIC, "poses": ring + [[0, 0, 1], [0, 0, -1], [0.5, 0, 0.8], [0, -0.5, -0.8]]})
+    assert not tilted.undetermined and all(np.isfinite(e.std) for e in tilted.estimates.values())
+
+
+@pytest.mark.parametrize("poses, where, message", [
+    ([], "poses", "expected 1 to"),
+    ([[1, 0]], "poses[0]", "a list of 3"),
+    ([[1, 0, 0], 3], "poses[1]", "expected a direction"),
+    ([[1, 0, 0], [0, 0, 0]], "poses[1]", "zero vector"),
+])
+def test_pose_set_errors(tmp_path, poses, where, message):
+    with pytest.raises(InputError, match=message) as e:
+        simulate_scenario(write(tmp_path / "s.yaml", {**STATIC, "poses": poses}), tmp_path / "o")
+    assert e.value.where == where
+
+
+def test_six_faces_leave_the_common_nonorthogonality_undetermined():
+    """Six cube faces with the directions unknown: the non-orthogonality common to every triad can
+    be traded for the pose directions, so those are named and unbounded while the gains and biases
+    keep finite bounds."""
+    six = [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]]
+    b = solve_noise_free({**STATIC, "poses": six})
+    assert len(b.undetermined) == 3 and all("nonorthogonality" in d for d in b.undetermined)
+    for lab, e in b.estimates.items():
+        assert np.isinf(e.std) == (".nonorthogonality[" in lab), lab
+        assert e.std > 0, lab
+
+
+def test_partial_bound_is_the_covariance_when_everything_is_determined():
+    from castimate.kinds import kind_of
+    from castimate.solve.ipopt import Solver
+    from castimate.solve.uncertainty import partial_bound
+
+    with __import__("tempfile").TemporaryDirectory() as tmp:
+        files = simulate_scenario(write(Path(tmp) / "s.yaml", STATIC), Path(tmp) / "o")
+        spec = __import__("castimate.spec", fromlist=["load_problem"]).load_problem(files["problem"])
+        kind = kind_of(spec)
+        data = kind.load(spec)
+        problem = kind.build(kind.configure(spec, data), data)
+        solver = Solver(problem.lsq, spec.solver)
+        sol = solver.solve()
+        std, undetermined = partial_bound(solver, sol.x)
+    assert not undetermined.any()
+    assert np.allclose(std, np.sqrt(np.diag(solver.covariance(sol.x))), rtol=1e-8)

@@ -196,10 +196,12 @@ def render_plan(title: str, cases: list[PlanCase], figure_file: str) -> str:
     d = [c.duration for c in cases]
     a = duration_exponent(d, crb)
     out = _head(title, "plan")
-    und = sorted({u for c in cases for u in c.undetermined})
-    cls = "warn" if und else "ok"
+    first = next((c for c in cases if c.undetermined), None)
+    cls = "warn" if first else "ok"
     out.append(f'<p class="headline {cls}">{len(labels)} parameters; '
-               + (f"{len(und)} undetermined direction(s) (∞ below): {escape('; '.join(und))}" if und else
+               + (f"undetermined directions per duration: {', '.join(f'{c.duration:g} s: {len(c.undetermined)}' for c in cases)}"
+                  f" (their parameters ∞ below; the other bounds hold with those directions fixed, e.g. by a prior). At "
+                  f"{first.duration:g} s: {escape('; '.join(first.undetermined))}" if first else
                   "every parameter is determined") + ".</p>")
     out.append(f'<figure><img alt="CRB against duration" src="{escape(figure_file)}"><figcaption>The bound falls '
                "with the duration as duration^a; a = −1/2 for white noise averaged longer.</figcaption></figure>")

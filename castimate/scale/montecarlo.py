@@ -9,7 +9,6 @@ the same truth and the Cramér-Rao bound is one: the σ's of the noise-free sess
 from __future__ import annotations
 
 import json
-import re
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,6 +22,7 @@ from ..output import OUTPUTS
 from ..simulate.montecarlo import MonteCarloResult
 from ..simulate.scenarios import simulate_scenario
 from ..solve.ipopt import Solver
+from ..solve.uncertainty import partial_bound
 from ..spec import load_problem
 from ..validation import Check, load_yaml
 from .engine import TaskResult
@@ -93,16 +93,15 @@ def solve_noise_free(scenario: dict, source: str = "") -> Simulated:
             res = OUTPUTS[spec.kind].results(outcome)
             return Simulated(truth_values(truth), estimates(res), float(res["residuals"]["chi2_per_dof"]))
         # undetermined: solve anyway (the noise-free data are fitted exactly on a manifold of
-        # solutions) and take the bound of what is determined from the pseudo-inverse
+        # solutions) and bound what is determined, on the subspace orthogonal to the null directions
         sol = solver.solve()
         labels = problem.lsq.layout.x_labels
-        involved = {m for d in bad for m in re.findall(r"\*(\S+)", d)}
-        std = np.sqrt(np.clip(np.diag(solver.covariance(sol.x)), 0, None)) if sol.success else \
-            np.full(len(solver.theta), np.nan)
-        est = {}
-        for i, s in zip(solver.theta, std):
-            lab = labels[i]
-            est[lab] = Estimate(float("nan"), float("inf") if lab in involved else float(s), "")
+        if sol.success:
+            std, free = partial_bound(solver, sol.x)
+        else:
+            std, free = np.full(len(solver.theta), np.nan), np.zeros(len(solver.theta), bool)
+        est = {labels[i]: Estimate(float("nan"), float("inf") if f else float(s), "")
+               for i, s, f in zip(solver.theta, std, free)}
         return Simulated(truth_values(truth), est, 0.0, tuple(bad))
 
 

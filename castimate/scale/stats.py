@@ -1,6 +1,7 @@
 """The arithmetic of batches, Monte Carlo studies and plans, on plain documents: no IO, no Dask.
 
-Parameters are compared by label, ``<triad>.<sensor>.<group>[<component>]`` (``imu2.accelerometer.gain[x]``, as the solver's layout labels them)
+Parameters are compared by label, ``<triad>.<sensor>.<group>[<component>]`` (``imu2.accelerometer.gain[x]``, ``imu2.accelerometer.nonorthogonality[yx]``: as the solver's layout
+labels them)
 or ``<triad>.position[<component>]``, the same for an estimate (a results.json document) and a truth
 (a truth.json document of ``castimate simulate``). Only free components are labelled.
 """
@@ -11,6 +12,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..problem.effects import BY_KEY
+from ..problem.triads import SENSOR_GROUPS
 from ..simulate.montecarlo import MonteCarloResult
 
 
@@ -25,9 +28,14 @@ def _components(x) -> list:
     return list(np.ravel(np.asarray(x, float)))
 
 
-def component(i: int, n: int) -> str:
-    """The name of component i of n, as the solver's layout labels them: x, y, z of a 3-vector, else i."""
-    return "xyz"[i] if n == 3 else str(i)
+def components(group: str, n: int) -> tuple[str, ...]:
+    """The names of the n components of a group (``accelerometer.nonorthogonality``: yx, zx, zy),
+    as the solver's layout labels them; x, y, z or indices for a group the registry does not know."""
+    sensor, _, name = group.partition(".")
+    gd = SENSOR_GROUPS.get(sensor, {}).get(name) or (BY_KEY[group].group if group in BY_KEY else None)
+    if gd is not None and len(gd.components) == n:
+        return tuple(gd.components)
+    return tuple("xyz") if n == 3 else tuple(str(i) for i in range(n))
 
 
 #: Parameter groups of a triad that belong to no sensor (results.json names the others' accelerometer
@@ -44,9 +52,10 @@ def estimates(results: dict) -> dict[str, Estimate]:
             group = key if key.startswith(("accelerometer.", "gyroscope.")) or key in GEOMETRY else f"accelerometer.{key}"
             values = _components(p["value"])
             free = _components(p.get("free", [True] * len(values)))
-            for i, (v, s, f) in enumerate(zip(values, _components(p["std"]), free)):
+            names = p.get("components") or components(group, len(values))
+            for c, v, s, f in zip(names, values, _components(p["std"]), free):
                 if f:
-                    out[f"{triad}.{group}[{component(i, len(values))}]"] = Estimate(v, s, str(p.get("unit", "")))
+                    out[f"{triad}.{group}[{c}]"] = Estimate(v, s, str(p.get("unit", "")))
     return out
 
 
@@ -56,11 +65,11 @@ def truth_values(truth: dict) -> dict[str, float]:
     for triad, t in truth.get("triads", {}).items():
         for key, v in t.get("parameters", {}).items():
             values = _components(v)
-            for i, x in enumerate(values):
-                out[f"{triad}.{key}[{component(i, len(values))}]"] = x
+            for c, x in zip(components(key, len(values)), values):
+                out[f"{triad}.{key}[{c}]"] = x
         if "position" in t and "parameters" not in t:  # dynamic scenarios: positions from the reference
-            for i, x in enumerate(_components(t["position"])):
-                out[f"{triad}.position[{component(i, 3)}]"] = x
+            for c, x in zip("xyz", _components(t["position"])):
+                out[f"{triad}.position[{c}]"] = x
     return out
 
 

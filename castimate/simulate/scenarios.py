@@ -137,6 +137,18 @@ def _effects(c: Check, s: dict, gyro: bool, realistic: dict[str, float] = REALIS
     return out
 
 
+def _pose_set(c: Check, poses: list) -> np.ndarray:
+    """``poses`` as a list of specific-force directions in the body frame (normalised), (P, 3)."""
+    if not 1 <= len(poses) <= MAX_POSES:
+        c.fail("poses", f"expected 1 to {MAX_POSES} pose directions, found {len(poses)}")
+    U = np.array([c.vector(u, f"poses[{i}]", 3, lo=-1e3, hi=1e3) if isinstance(u, list) else
+                  c.fail(f"poses[{i}]", f"expected a direction [x, y, z], found {shown(u)}") for i, u in enumerate(poses)])
+    norm = np.linalg.norm(U, axis=1)
+    if (norm < 1e-9).any():
+        c.fail(f"poses[{int(np.argmax(norm < 1e-9))}]", "expected a direction, found the zero vector")
+    return U / norm[:, None]
+
+
 def _static_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDraw) -> dict[str, Path]:
     s = c.mapping(raw, "", SCENARIO_KEYS, required=("kind",))
     seed, rng = _seed(c, s)
@@ -157,7 +169,9 @@ def _static_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDraw
     ref = s.get("reference", names[0])
     if ref not in names:
         c.fail("reference", f"unknown triad {ref!r}; triads are {', '.join(names)}")
-    P = c.number(s.get("poses", 20), "poses", positive=True, integer=True, hi=MAX_POSES)
+    U_given = _pose_set(c, s["poses"]) if isinstance(s.get("poses"), list) else None
+    P = len(U_given) if U_given is not None else c.number(s.get("poses", 20), "poses", positive=True, integer=True,
+                                                          hi=MAX_POSES)
     noise = c.mapping(s.get("noise"), "noise", ("accelerometer", "gyroscope"))
     sigma = c.number(noise.get("accelerometer", 0.01), "noise.accelerometer", positive=True, hi=100.0, unit="m/s^2")
     gyro = _flag(c, s, "gyroscope")
@@ -170,7 +184,7 @@ def _static_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDraw
     n_samp = c.number(s.get("samples_per_pose", 1000), "samples_per_pose", positive=True, integer=True, hi=10 ** 9)
 
     truth = random_static_truth(names, ref, rng, g, scale, gyroscope=gyro)
-    U = pose_directions(P, rng)
+    U = pose_directions(P, rng) if U_given is None else U_given
     effects = _effects(c, s, gyro)
     random_effects(truth.values, truth.names, effects, rng)
     tsec = c.mapping(s.get("temperature"), "temperature", ("mean", "amplitude"))

@@ -167,6 +167,25 @@ def covariance(solver, x, p_fixed=None, data=None) -> np.ndarray:
     s = solver.problem.layout.x_scale[solver.theta]
     return C * np.outer(s, s)
 
+def partial_bound(solver, x, p_fixed=None, data=None, share: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+    """The Cramér-Rao bound of the reported parameters when some directions are undetermined: σ's
+    (physical units) of the inverse of the marginal information on the determined subspace (the
+    tangent space of the constraints less the undetermined directions of :func:`undetermined`, same
+    tolerance), i.e. the bound with those directions held fixed (as a prior would), and a mask of
+    the parameters that carry an undetermined direction: a component above ``share`` of that
+    direction's largest (their bound is infinite; the σ given for them is not a bound)."""
+    S, G = marginal_information(solver, x, p_fixed, data)
+    c = G.shape[0]
+    U = np.linalg.qr(G.T, mode="complete")[0][:, c:] if c else np.eye(len(solver.theta))
+    w, V = np.linalg.eigh(U.T @ S @ U)
+    null = w <= solver.options.identifiability_tol * max(w.max(), 1e-300)
+    D = U @ V[:, ~null]
+    C = (D / w[~null]) @ D.T
+    N = np.abs(U @ V[:, null])
+    undetermined_mask = (N > share * N.max(axis=0, initial=0.0)).any(axis=1)
+    return np.sqrt(np.clip(np.diag(C), 0, None)) * solver.problem.layout.x_scale[solver.theta], undetermined_mask
+
+
 def newton_decrement(solver, x, lam_g, p_fixed=None, data=None) -> float:
     """g^T H^-1 g of the Lagrangian gradient with the Gauss-Newton Hessian on the constraints'
     tangent space: twice the χ² decrease a full Newton step would still achieve. The nuisance
