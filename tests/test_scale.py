@@ -371,7 +371,7 @@ def test_six_faces_leave_the_common_nonorthogonality_undetermined():
     assert len(b.undetermined) == 3 and all("nonorthogonality" in d for d in b.undetermined)
     for lab, e in b.estimates.items():
         assert np.isinf(e.std) == (".nonorthogonality[" in lab), lab
-        assert e.std > 0, lab
+        assert e.std > 0 and e.unit == ("-" if ".gain[" in lab else "m/s^2" if ".bias[" in lab else "rad"), lab
 
 
 def test_partial_bound_is_the_covariance_when_everything_is_determined():

@@ -100,7 +100,8 @@ def solve_noise_free(scenario: dict, source: str = "") -> Simulated:
             std, free = partial_bound(solver, sol.x)
         else:
             std, free = np.full(len(solver.theta), np.nan), np.zeros(len(solver.theta), bool)
-        est = {labels[i]: Estimate(float("nan"), float("inf") if f else float(s), "")
+        lay = problem.lsq.layout
+        est = {labels[i]: Estimate(float("nan"), float("inf") if f else float(s), lay.group(labels[i].split("[")[0]).unit)
                for i, s, f in zip(solver.theta, std, free)}
         return Simulated(truth_values(truth), est, 0.0, tuple(bad))
 
