@@ -194,9 +194,10 @@ def cmd_montecarlo(args) -> int:
     from .io.atomic import StagedOutput, write_atomic
     from .io.results import write_json
     from .output.tables import csv_text
-    from .report.scale import montecarlo_figure, montecarlo_rows, render_montecarlo
+    from .report.scale import montecarlo_figure, render_montecarlo
     from .scale.engine import check_workers, dask_client
     from .scale.montecarlo import check_runs, load_scenario, run_montecarlo
+    from .scale.stats import montecarlo_table
 
     out = Path(args.output)
     check_runs(args.runs)
@@ -206,7 +207,7 @@ def cmd_montecarlo(args) -> int:
     with StagedOutput(out, names=names, inputs=(args.scenario,)) as stage:
         with dask_client(args.scheduler, args.workers) as client:
             study = run_montecarlo(client, args.scenario, args.runs, _log)
-        rows = montecarlo_rows(study)
+        rows = montecarlo_table(study.score, study.bound.truth)
         runs = [{"run": r.name, "status": "ok" if r.ok else "failed", "chi2_per_dof": r.value.chi2_per_dof if r.ok
                  else None, "wall_s": r.wall_s, "message": r.error} for r in study.results]
         sc = study.score
@@ -233,7 +234,7 @@ def cmd_plan(args) -> int:
     from .report.scale import plan_figure, render_plan
     from .scale.engine import check_workers, dask_client
     from .scale.plan import load_plan, run_plan
-    from .scale.stats import crb_table, duration_exponent
+    from .scale.stats import plan_table
 
     out = Path(args.output)
     check_workers(args.workers)
@@ -242,12 +243,7 @@ def cmd_plan(args) -> int:
     with StagedOutput(out, names=names, inputs=(args.plan,)) as stage:
         with dask_client(args.scheduler, args.workers) as client:
             plan, cases = run_plan(client, args.plan, _log)
-        labels, crb = crb_table(cases)
-        a = duration_exponent(plan.durations, crb)
-        units = cases[0].units
-        rows = [{"parameter": lab, "unit": units.get(lab, ""), **{f"crb_{d:g}s": crb[i, j] for i, d in
-                                                                  enumerate(plan.durations)}, "exponent": a[j]}
-                for j, lab in enumerate(labels)]
+        rows = plan_table(cases)
         write_json(stage / names[0], {"format": "castimate.plan/1", "plan": str(args.plan), "durations_s": plan.durations,
                                       "undetermined": {f"{c.duration:g} s": list(c.undetermined) for c in cases},
                                       "parameters": rows})
@@ -255,10 +251,11 @@ def cmd_plan(args) -> int:
         write_atomic(stage / names[2], render_plan(str(args.plan), cases, names[3]))
         plan_figure(cases).savefig(stage / names[3], dpi=110)
     first = next((c for c in cases if c.undetermined), None)
-    print(f"{len(labels)} parameters; " + (f"undetermined directions per duration: "
+    print(f"{len(rows)} parameters; " + (f"undetermined directions per duration: "
           f"{', '.join(f'{c.duration:g} s: {len(c.undetermined)}' for c in cases)}; at {first.duration:g} s: "
           f"{'; '.join(first.undetermined)}" if first else "every parameter is determined"))
     if len(plan.durations) > 1:
+        a = np.array([r["exponent"] for r in rows])
         print(f"the bound falls as duration^a from {plan.durations[0]:g} to {plan.durations[-1]:g} s: a = "
               f"{np.nanmedian(a):.3f} (median over the parameters; -1/2 for white noise averaged longer)")
     for name in names:

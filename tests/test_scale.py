@@ -390,3 +390,15 @@ def test_partial_bound_is_the_covariance_when_everything_is_determined():
         std, undetermined = partial_bound(solver, sol.x)
     assert not undetermined.any()
     assert np.allclose(std, np.sqrt(np.diag(solver.covariance(sol.x))), rtol=1e-8)
+
+
+def test_montecarlo_and_plan_tables_by_hand():
+    from castimate.scale.stats import PlanCase, montecarlo_table, plan_table
+
+    sc = score_runs({"a": 1.0}, {"a": 0.5}, [{"a": Estimate(1.5, 0.5, "")}, {"a": Estimate(0.0, 1.0, "")}], 0)
+    (row,) = montecarlo_table(sc, {"a": 1.0})
+    assert row["rmse"] == pytest.approx(np.sqrt((0.25 + 1.0) / 2)) and row["rmse_over_crb"] == pytest.approx(row["rmse"] / 0.5)
+    assert row["mean_z"] == pytest.approx(0.0) and row["std_z"] == pytest.approx(np.std([1.0, -1.0], ddof=1))
+    rows = plan_table([PlanCase(1.0, {"a": 2.0, "b": np.inf}, {"a": "m"}), PlanCase(4.0, {"a": 1.0, "b": np.inf})])
+    assert rows[0] == {"parameter": "a", "unit": "m", "crb_1s": 2.0, "crb_4s": 1.0, "exponent": pytest.approx(-0.5)}
+    assert np.isinf(rows[1]["crb_4s"]) and np.isnan(rows[1]["exponent"])

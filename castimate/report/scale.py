@@ -11,7 +11,7 @@ from matplotlib.figure import Figure
 
 from ..scale.batch import BatchSummary
 from ..scale.montecarlo import MonteCarloStudy
-from ..scale.stats import PlanCase, crb_table, duration_exponent, group_of, sampling_band
+from ..scale.stats import PlanCase, crb_table, group_of, montecarlo_table, plan_table, sampling_band
 from .page import CSS, fig_html, kv
 
 
@@ -127,16 +127,6 @@ def montecarlo_figure(study: MonteCarloStudy) -> Figure:
     return fig
 
 
-def montecarlo_rows(study: MonteCarloStudy) -> list[dict]:
-    sc = study.score
-    mean_z = sc.z.mean(axis=0) if len(sc.z) else np.full(len(sc.labels), np.nan)
-    return [{"parameter": lab, "truth": study.bound.truth[lab], "crb": sc.crb[j],
-             "rmse": float(np.sqrt(np.mean(sc.errors[:, j] ** 2))) if len(sc.errors) else float("nan"),
-             "rmse_over_crb": sc.rmse_over_crb[j] if len(sc.errors) else float("nan"),
-             "mean_z": mean_z[j], "std_z": sc.z_std[j] if len(sc.z) > 1 else float("nan")}
-            for j, lab in enumerate(sc.labels)]
-
-
 def render_montecarlo(study: MonteCarloStudy, figure_file: str) -> str:
     sc, n = study.score, len(study.score.errors)
     band = sampling_band(n)
@@ -155,7 +145,7 @@ def render_montecarlo(study: MonteCarloStudy, figure_file: str) -> str:
     out.append(f'<figure><img alt="Monte Carlo scores" src="{escape(figure_file)}"><figcaption>RMSE over the CRB '
                "and the std of error/σ per parameter (1 for an efficient estimator with honest σ's), and the "
                "pooled error/σ.</figcaption></figure>")
-    rows = montecarlo_rows(study)
+    rows = montecarlo_table(study.score, study.bound.truth)
     out.append(_table(["parameter", "truth", "CRB", "RMSE", "RMSE / CRB", "mean error/σ", "std error/σ"],
                       [[escape(r["parameter"]), _g(r["truth"], 6), _g(r["crb"], 3), _g(r["rmse"], 3),
                         _g(r["rmse_over_crb"], 3), _g(r["mean_z"], 2), _g(r["std_z"], 3)] for r in rows]))
@@ -173,6 +163,7 @@ def render_montecarlo(study: MonteCarloStudy, figure_file: str) -> str:
 def plan_figure(cases: list[PlanCase]) -> Figure:
     """The median CRB of every parameter group (over its triads and components) against the duration."""
     labels, crb = crb_table(cases)
+    units = {r["parameter"]: r["unit"] for r in plan_table(cases)}
     d = [c.duration for c in cases]
     groups = list(dict.fromkeys(group_of(lab) for lab in labels))
     fig = Figure(figsize=(7.5, 4.2), layout="constrained")
@@ -182,7 +173,7 @@ def plan_figure(cases: list[PlanCase]) -> Figure:
         with np.errstate(invalid="ignore"):
             y = np.array([np.median(row[cols][np.isfinite(row[cols])]) if np.isfinite(row[cols]).any() else np.nan
                           for row in crb])
-        unit = cases[0].units.get(labels[cols[0]], "")
+        unit = units.get(labels[cols[0]], "")
         ax.loglog(d, y, "o-", ms=4, label=f"{g} [{unit or '–'}]")
     ax.set_xlabel("duration [s]")
     ax.set_ylabel("Cramér–Rao bound σ (median over the group)")
@@ -192,22 +183,19 @@ def plan_figure(cases: list[PlanCase]) -> Figure:
 
 
 def render_plan(title: str, cases: list[PlanCase], figure_file: str) -> str:
-    labels, crb = crb_table(cases)
-    d = [c.duration for c in cases]
-    a = duration_exponent(d, crb)
+    rows = plan_table(cases)
     out = _head(title, "plan")
     first = next((c for c in cases if c.undetermined), None)
     cls = "warn" if first else "ok"
-    out.append(f'<p class="headline {cls}">{len(labels)} parameters; '
+    out.append(f'<p class="headline {cls}">{len(rows)} parameters; '
                + (f"undetermined directions per duration: {', '.join(f'{c.duration:g} s: {len(c.undetermined)}' for c in cases)}"
                   f" (their parameters ∞ below; the other bounds hold with those directions fixed, e.g. by a prior). At "
                   f"{first.duration:g} s: {escape('; '.join(first.undetermined))}" if first else
                   "every parameter is determined") + ".</p>")
     out.append(f'<figure><img alt="CRB against duration" src="{escape(figure_file)}"><figcaption>The bound falls '
                "with the duration as duration^a; a = −1/2 for white noise averaged longer.</figcaption></figure>")
-    units = cases[0].units
-    out.append(_table(["parameter", "unit"] + [f"{x:g} s" for x in d] + ["exponent a"],
-                      [[escape(lab), escape(units.get(lab, ""))] + [_g(v, 3) for v in crb[:, j]] + [_g(a[j], 3)]
-                       for j, lab in enumerate(labels)], names=2))
+    out.append(_table(["parameter", "unit"] + [f"{c.duration:g} s" for c in cases] + ["exponent a"],
+                      [[escape(r["parameter"]), escape(r["unit"])] + [_g(r[f"crb_{c.duration:g}s"], 3) for c in cases]
+                       + [_g(r["exponent"], 3)] for r in rows], names=2))
     out.append("</body></html>")
     return "\n".join(out)

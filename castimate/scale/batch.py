@@ -23,7 +23,7 @@ from ..output import write_outputs
 from ..output.tables import csv_text
 from ..spec import ProblemSpec, parse_problem
 from ..validation import Check, input_file, load_yaml
-from .engine import TaskResult
+from .engine import TaskResult, run_tasks
 from .stats import Estimate, ParameterSpread, batch_spread, estimates
 
 #: |x - median| / σ above which a recording's parameter is flagged (the default of --outlier-threshold)
@@ -174,8 +174,6 @@ def run_batch(client, template_path: str | Path, patterns: list[str], log, thres
               diagnose: bool = False) -> BatchSummary:
     """Check the template and recordings here, then calibrate every recording on the cluster
     (``diagnose``: through ``castimate diagnose``, adding the effects each recording demands)."""
-    from .engine import run_tasks
-
     if not threshold > 0:
         raise InputError("--outlier-threshold", "", f"expected a positive number of σ's, found {threshold!r}")
     template = load_template(template_path)

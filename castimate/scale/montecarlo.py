@@ -25,7 +25,7 @@ from ..solve.ipopt import Solver
 from ..solve.uncertainty import partial_bound
 from ..spec import load_problem
 from ..validation import Check, load_yaml
-from .engine import TaskResult
+from .engine import TaskResult, run_tasks
 from .stats import Estimate, estimates, score_runs, truth_values
 
 MAX_RUNS = 10 ** 6
@@ -134,8 +134,6 @@ def score_study(scenario: str, bound: Simulated, results: list[TaskResult]) -> M
 
 def run_montecarlo(client, scenario_path: str | Path, runs: int, log) -> MonteCarloStudy:
     """The bound (noise-free solve), then ``runs`` noise realisations, all on the cluster."""
-    from .engine import run_tasks
-
     check_runs(runs)
     scenario = load_scenario(scenario_path)
     src = str(scenario_path)

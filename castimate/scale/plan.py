@@ -19,8 +19,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..errors import InputError
 from ..validation import Check
-from .montecarlo import Simulated, load_scenario
+from .engine import run_tasks
+from .montecarlo import Simulated, load_scenario, solve_noise_free
 from .stats import PlanCase
 
 MAX_CASES = 50
@@ -75,10 +77,6 @@ def plan_case(duration: float, s: Simulated) -> PlanCase:
 
 def run_plan(client, plan_path: str | Path, log) -> tuple[Plan, list[PlanCase]]:
     """The bound of every duration of the plan, one noise-free solve per duration on the cluster."""
-    from ..errors import InputError
-    from .engine import run_tasks
-    from .montecarlo import solve_noise_free
-
     plan = load_plan(plan_path)
     results = run_tasks(client, solve_noise_free, [(f"{d:g} s", (plan.case(d), str(plan_path))) for d in plan.durations],
                         log, lambda s: f"{len(s.undetermined)} undetermined" if s.undetermined else "", log_failures=False)

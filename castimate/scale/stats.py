@@ -144,6 +144,18 @@ def score_runs(truth: dict[str, float], crb: dict[str, float], runs: list[dict[s
     return MonteCarloResult(labels, errors, z, np.array([crb[lab] for lab in labels]), failures)
 
 
+def montecarlo_table(sc: MonteCarloResult, truth: dict[str, float]) -> list[dict]:
+    """One row per parameter: truth, CRB, RMSE, RMSE/CRB, mean and std of error/σ (NaN where the
+    runs are too few)."""
+    n = len(sc.errors)
+    mean_z = sc.z.mean(axis=0) if n else np.full(len(sc.labels), np.nan)
+    return [{"parameter": lab, "truth": truth[lab], "crb": float(sc.crb[j]),
+             "rmse": float(np.sqrt(np.mean(sc.errors[:, j] ** 2))) if n else float("nan"),
+             "rmse_over_crb": float(sc.rmse_over_crb[j]) if n else float("nan"),
+             "mean_z": float(mean_z[j]), "std_z": float(sc.z_std[j]) if n > 1 else float("nan")}
+            for j, lab in enumerate(sc.labels)]
+
+
 # ---------------------------------------------------------------------------------------------
 # Plans: the Cramér-Rao bound against the duration of the protocol
 # ---------------------------------------------------------------------------------------------
@@ -174,3 +186,14 @@ def duration_exponent(durations, crb: np.ndarray) -> np.ndarray:
         if ok.sum() >= 2 and np.ptp(d[ok]) > 0:
             out[j] = np.polyfit(d[ok], np.log(crb[ok, j]), 1)[0]
     return out
+
+
+def plan_table(cases: list[PlanCase]) -> list[dict]:
+    """One row per parameter: unit, the CRB of every case (``crb_<duration>s``, inf: undetermined)
+    and the exponent of its fall with duration."""
+    labels, crb = crb_table(cases)
+    a = duration_exponent([c.duration for c in cases], crb)
+    units = {lab: u for c in cases for lab, u in c.units.items() if u}
+    return [{"parameter": lab, "unit": units.get(lab, ""),
+             **{f"crb_{c.duration:g}s": float(crb[i, j]) for i, c in enumerate(cases)}, "exponent": float(a[j])}
+            for j, lab in enumerate(labels)]
