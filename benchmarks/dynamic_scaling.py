@@ -145,7 +145,8 @@ def load(path: str) -> dict:
 
 def motion_sigmas(kind: str):
     from castimate.problem.dynamic import MotionSigmas
-    return MotionSigmas(s=SCHOPP["sigma_s"], omega_dot=SCHOPP["sigma_omega_dot"]) if kind == "schopp" else MotionSigmas()
+    return MotionSigmas("euler", s=SCHOPP["sigma_s"], omega_dot=SCHOPP["sigma_omega_dot"]) if kind == "schopp" \
+        else MotionSigmas("euler")
 
 
 def make_config(d: dict):

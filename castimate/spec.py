@@ -135,11 +135,22 @@ class ModelSpec:
 
 @dataclass(frozen=True)
 class MotionSpec:
-    """Process model of the dynamic kind (Schopp 2016, eq. 8); σ's in SI units."""
+    """Process model of the dynamic kind (``problem.dynamic.MotionSigmas``); levels in SI units.
 
-    sigma_s: float = 1e3 ** 0.5
-    sigma_omega_dot: float = 1e3 ** 0.5
-    sigma_integration: float = 1e-7 ** 0.5
+    ``integration``: wiener3 (default; ω̈ a Wiener process), wiener2 (ω̇ a Wiener process), with the
+    levels ``density_s`` [m/s^2.5] and ``density_omega`` [rad/s^3.5 or rad/s^2.5]; trapezoid or
+    euler (Schopp 2016, eq. 7) with ``sigma_s`` [m/s²], ``sigma_omega_dot`` [rad/s²] and
+    ``sigma_integration`` [rad/s] (Schopp's eq. 8 by default). ``process_noise``: auto (estimate
+    the levels from the data, starting from the given ones) or fixed. None: the integration's
+    default."""
+
+    integration: str = "wiener3"
+    process_noise: str = "auto"
+    sigma_s: float | None = None
+    sigma_omega_dot: float | None = None
+    sigma_integration: float | None = None
+    density_s: float | None = None
+    density_omega: float | None = None
     process_model: bool = True
 
 
@@ -433,10 +444,22 @@ def _model(c: Check, m, array: ArraySpec, kind: str = "static_array", base: Path
     return ModelSpec(gravity, direction, mis, settings, intrinsics, keys, reuse)
 
 
+#: The levels of each integration (motion section of a problem file).
+MOTION_LEVELS = {"wiener3": ("density_s", "density_omega"), "wiener2": ("density_s", "density_omega"),
+                 "trapezoid": ("sigma_s", "sigma_omega_dot", "sigma_integration"),
+                 "euler": ("sigma_s", "sigma_omega_dot", "sigma_integration")}
+
+
 def _motion(c: Check, m) -> MotionSpec:
-    m = c.mapping(m, "motion", ("sigma_s", "sigma_omega_dot", "sigma_integration", "process_model"))
-    kw = {k: c.number(v, f"motion.{k}", positive=True, hi=MOTION_SIGMA_MAX) for k, v in m.items()
-          if k != "process_model"}
+    levels = ("sigma_s", "sigma_omega_dot", "sigma_integration", "density_s", "density_omega")
+    m = c.mapping(m, "motion", ("integration", "process_noise", "process_model") + levels)
+    kw = {k: c.number(v, f"motion.{k}", positive=True, hi=MOTION_SIGMA_MAX) for k, v in m.items() if k in levels}
+    kw["integration"] = c.choice(m.get("integration", "wiener3"), "motion.integration", tuple(MOTION_LEVELS))
+    kw["process_noise"] = c.choice(m.get("process_noise", "auto"), "motion.process_noise", ("auto", "fixed"))
+    for k in kw:
+        if k in levels and k not in MOTION_LEVELS[kw["integration"]]:
+            c.fail(f"motion.{k}", f"is a level of integration {' or '.join(i for i, v in MOTION_LEVELS.items() if k in v)}; "
+                                  f"with integration: {kw['integration']} give {', '.join(MOTION_LEVELS[kw['integration']])}")
     if "process_model" in m:
         if not isinstance(m["process_model"], bool):
             c.fail("motion.process_model", f"expected true or false, found {m['process_model']!r}")

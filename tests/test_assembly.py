@@ -14,7 +14,7 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from castimate.problem.dynamic import DynamicConfig, DynamicData, build_dynamic
+from castimate.problem.dynamic import DynamicConfig, DynamicData, MotionSigmas, build_dynamic
 from castimate.problem.triads import GroupSetting, TriadConfig
 from castimate.problem.static import build_static
 from castimate.simulate.dynamic import dynamic_measurements, euler_consistent, smooth_random_motion
@@ -26,7 +26,7 @@ from test_static import make_case
 FREE3, FIXED3 = GroupSetting(free=(True,) * 3), GroupSetting(free=(False,) * 3)
 
 
-def dynamic_case(n=40, process_model=True):
+def dynamic_case(n=40, process_model=True, model: MotionSigmas | None = None):
     """4 triads (3 with gyroscopes), quaternion misalignments, a position prior, a free gain,
     masked accelerometer and gyroscope samples."""
     rng = np.random.default_rng(3)
@@ -48,7 +48,7 @@ def dynamic_case(n=40, process_model=True):
     gyro_valid = {"a": np.arange(n) % 5 != 1}
     data = DynamicData(motion.t, acc, {nm: np.full(3, 0.02) for nm in names}, {nm: gy[nm] for nm in names[:3]},
                        {nm: np.full(3, 1e-3) for nm in names[:3]}, acc_valid, gyro_valid)
-    cfg = DynamicConfig(tuple(triads), "a", "rotation", process_model=process_model)
+    cfg = DynamicConfig(tuple(triads), "a", "rotation", model or MotionSigmas(), process_model=process_model)
     return build_dynamic(cfg, data)
 
 
@@ -199,7 +199,7 @@ def test_masked_samples_are_not_residuals(elimination):
     solver = Solver(prob.lsq, SolverOptions(jit=False, elimination=elimination))
     n = prob.n_samples
     masked = int((np.arange(n) % 7 == 3).sum() + (np.arange(n) % 5 == 1).sum())
-    full = 3 * n * 4 + 3 * n * 3 + 9 * (n - 1)
+    full = 3 * n * 4 + 3 * n * 3 + 12 * (n - 1)  # wiener3: 12 process rows
     assert solver.n_data_residuals == full - 3 * masked
     J, _ = solver.jacobians(prob.lsq.layout.x0())
     assert J.shape[0] == solver.n_residuals == solver.residuals(prob.lsq.layout.x0()).size

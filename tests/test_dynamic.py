@@ -30,15 +30,6 @@ def test_specific_force_at_by_hand():
     assert np.allclose(np.asarray(f).ravel(), [0.1 - w * w * d, 0.2 + a * d, 9.81])
 
 
-def test_process_residual_by_hand():
-    dt, ss, si, sw = 0.01, 2.0, 0.5, 4.0
-    r = ca.evalf(mot.process_residual(ca.DM([1, 0, 0]), ca.DM([10, 0, 0]), ca.DM([0, 0, 9]),
-                                      ca.DM([1.2, 0, 0]), ca.DM([10, 1, 0]), ca.DM([0, 0, 9.5]), dt, ss, si, sw))
-    r = np.asarray(r).ravel()
-    # s: (9.5 - 9)/(2*0.01); ω: (1.2 - 1 - 10*0.01)/(0.5*0.01); ω̇: (1 - 0)/(4*0.01)
-    assert np.allclose(r, [0, 0, 25.0, 20.0, 0, 0, 0, 25.0, 0])
-
-
 def small_carlsson(seed=0, n=300, k_keep=8, process_model=False):
     rng = np.random.default_rng(seed)
     names, nominal, true, R = carlsson_geometry(rng, 1e-3, reference="imu1")

@@ -60,7 +60,7 @@ def simulate(geometry: str, seed: int):
                                {"gain": fixed, "bias": fixed, "misalignment": fixed} if gyro else None, nominal[i])
                    for i, n in enumerate(names))
     config = DynamicConfig(triads, names[0], "rotation" if schopp else "small_angle",
-                           MotionSigmas(s=1e4, omega_dot=1e4) if schopp else MotionSigmas(), process_model=schopp)
+                           MotionSigmas("euler", s=1e4, omega_dot=1e4), process_model=schopp)
     K = len(names)
 
     def data(rng):

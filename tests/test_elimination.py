@@ -8,6 +8,7 @@ exact reduced Hessian against finite differences of the reduced objective.
 import numpy as np
 import pytest
 
+from castimate.problem.dynamic import MotionSigmas
 from castimate.problem.static import build_static
 from castimate.solve import Solver, SolverOptions
 
@@ -37,6 +38,8 @@ def dynamic_time_offsets():
 
 CASES = {"dynamic": lambda: dynamic_case(40, True), "dynamic_no_process_model": lambda: dynamic_case(40, False),
          "dynamic_time_offsets": dynamic_time_offsets,
+         "dynamic_wiener2": lambda: dynamic_case(40, True, MotionSigmas("wiener2")),
+         "dynamic_euler": lambda: dynamic_case(40, True, MotionSigmas("euler")),
          "static": static_case, "static_quaternion": lambda: static_directions("quaternion"),
          "static_pitch_roll": lambda: static_directions("pitch_roll")}
 
@@ -68,11 +71,11 @@ def test_same_optimum_and_sigmas_as_the_full_nlp(kind, hessian):
 
 
 def test_families_found():
-    """Dynamic: one family of 9 motion states per sample (block tridiagonal with the process model,
-    block diagonal without); static: the pose directions with their unit-norm constraint."""
+    """Dynamic: one family of motion states per sample (12 and block tridiagonal with the wiener3
+    process model, 9 and block diagonal without); static: the pose directions with their unit-norm constraint."""
     fams = {k: [(f.R, f.m, f.width, len(f.unit)) for f in Solver(mk().lsq).projection.fams] for k, mk in CASES.items()}
-    assert fams == {"dynamic": [(40, 9, 2, 0)], "dynamic_no_process_model": [(40, 9, 1, 0)],
-                    "dynamic_time_offsets": [(40, 9, 3, 0)],
+    assert fams == {"dynamic": [(40, 12, 2, 0)], "dynamic_wiener2": [(40, 9, 2, 0)], "dynamic_euler": [(40, 9, 2, 0)],
+                    "dynamic_no_process_model": [(40, 9, 1, 0)], "dynamic_time_offsets": [(40, 9, 3, 0)],
                     "static": [(8, 3, 1, 1)], "static_quaternion": [(20, 3, 1, 1)], "static_pitch_roll": [(20, 2, 1, 0)]}
 
 
@@ -116,7 +119,7 @@ def test_masked_samples_and_outside_nuisance_unchanged():
     assert sol.values["motion.omega"].shape == (40, 3)
     assert np.isfinite(sol.x).all()
     n_masked = (np.arange(40) % 7 == 3).sum() + (np.arange(40) % 5 == 1).sum()
-    assert sol.residual.size == 3 * (4 * 40 + 3 * 40 - n_masked) + 9 * 39
+    assert sol.residual.size == 3 * (4 * 40 + 3 * 40 - n_masked) + 12 * 39  # wiener3: 12 process rows
 
 
 def test_unknown_elimination_is_refused():

@@ -90,6 +90,11 @@ class Kind(Protocol):
         """The same structure with every calibration and geometry group fixed at its start value:
         the estimator of the nuisance variables (pose directions, motion) alone."""
 
+    def settled(self, config: Any, outcome: Any) -> Any:
+        """The configuration with the settings an outcome estimated besides its parameters (the
+        dynamic kind's process-noise levels), so that a problem built from it has the outcome's
+        solution as its optimum (diagnose's score tests)."""
+
     def window(self, spec: ProblemSpec, data: Any, start: int, n: int) -> tuple[Any, str]:
         """The data restricted to n consecutive samples or poses from ``start``, and a note of which."""
 

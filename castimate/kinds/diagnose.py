@@ -109,7 +109,7 @@ class Session:
         if CLOCK_BEAT in effects:
             self.find_clocks(model)
         s = with_effects(self.spec, effects)
-        problem = self.kind.build(self.kind.configure(s, self.data), self.data)
+        problem = self.kind.build(self.kind.settled(self.kind.configure(s, self.data), model.outcome), self.data)
         return Solver(problem.lsq, replace(s.solver, hessian="gauss_newton"))
 
     def has_temperature(self) -> bool:

@@ -31,6 +31,8 @@ from ..prepare.poses import average_poses
 from ..prepare.detect import detect_static
 from ..problem.graph import Solution
 from ..solve.ipopt import Solver
+from ..solve.variance import block_rows, estimate_levels
+from ..problem.graph import SolverOptions
 from ..prepare.masks import saturation_mask
 from ..prepare.plausibility import check_dynamic_information
 
@@ -103,10 +105,18 @@ def dynamic_config(spec: ProblemSpec, full: Recording, log: Log) -> DynamicConfi
                                   {**{g: setting("gyroscope", g) for g in GYRO_GROUPS},
                                    **spec.model.effect_settings(t.name, "gyroscope")} if has_gyro else None,
                                   t.position, s[t.name, "position", "position"]))
-    m = spec.motion
-    return DynamicConfig(tuple(triads), spec.array.reference, mis,
-                         MotionSigmas(m.sigma_s, m.sigma_omega_dot, m.sigma_integration), m.process_model,
+    return DynamicConfig(tuple(triads), spec.array.reference, mis, motion_sigmas(spec), spec.motion.process_model,
                          spec.model.effects)
+
+
+def motion_sigmas(spec: ProblemSpec) -> MotionSigmas:
+    """The process model of a problem file's motion section (its levels start the estimate under
+    ``process_noise: auto``)."""
+    m = spec.motion
+    wiener = m.integration.startswith("wiener")
+    return MotionSigmas(m.integration, m.density_s if wiener else m.sigma_s,
+                        m.density_omega if wiener else m.sigma_omega_dot, None if wiener else m.sigma_integration,
+                        m.process_noise == "auto")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -182,6 +192,7 @@ class DynamicOutcome:
     residual_acc: dict  # name -> (N, 3) m/s^2, NaN where masked
     residual_gyro: dict
     nominal: dict  # name -> nominal position in the body frame
+    variance: object = None  # solve.variance.VarianceComponents of the process noise, if estimated
 
     @property
     def positions(self) -> dict:
@@ -306,6 +317,23 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = quiet, max_restarts: int = 2
         res_acc, res_gyro = measurement_residuals(problem, data, sol)
         return DynamicOutcome(spec, data, config, problem, solver, sol, attempts, sat, cal, gcal, res_acc, res_gyro,
                               nominal)
+    problem, solver, sol, attempts, variance = solve_dynamic(config, data, nominal, spec.solver, spec.path,
+                                                             static_problem, log, max_restarts)
+    cal, gcal = problem.calibration(sol.values), problem.gyro_calibration(sol.values)
+    res_acc, res_gyro = measurement_residuals(problem, data, sol)
+    return DynamicOutcome(spec, data, problem.config, problem, solver, sol, attempts, sat, cal, gcal, res_acc,
+                          res_gyro, nominal, variance)
+
+
+def solve_dynamic(config: DynamicConfig, data: DynamicData, nominal: dict, options: SolverOptions | None = None,
+                  path="problem", static_problem=None, log: Log = quiet, max_restarts: int = 2):
+    """The default solve path of a dynamic problem: attempts from the nominal poses (Gauss-Newton
+    first without gyroscopes, then the exact Hessian), restarts out of Schopp's local minima, then
+    the process-noise levels re-estimated from the data (:func:`estimate_process_noise`, when
+    ``config.motion.estimate``). Returns (problem, solver, solution, attempts, variance components
+    or None). Raises InputError (undetermined directions) or NotConvergedError; ``path`` names the
+    problem in those messages."""
+    options = options or SolverOptions()
     attempts, best = [], None
     start_values: dict = {}
     diverged = False
@@ -320,8 +348,8 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = quiet, max_restarts: int = 2
         lam, first = None, None
         # Gauss-Newton steps first: robust from zero motion (the exact Hessian is indefinite there).
         # After a diverged attempt the other path is tried: the exact Hessian from the start.
-        gauss_newton_first = not has_gyro and spec.solver.hessian == "exact" and not diverged
-        gn = Solver(problem.lsq, replace(spec.solver, hessian="gauss_newton")) \
+        gauss_newton_first = not has_gyro and options.hessian == "exact" and not diverged
+        gn = Solver(problem.lsq, replace(options, hessian="gauss_newton")) \
             if attempt == 0 or gauss_newton_first else None
         if gauss_newton_first:
             first = gn.solve(x0)
@@ -332,9 +360,9 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = quiet, max_restarts: int = 2
             # angular motion nothing about the geometry is observable)
             bad = gn.undetermined(lay.x0() if x0 is None else x0)
             if bad:
-                raise InputError(spec.path, "model", f"the data cannot determine {len(bad)} direction(s): "
+                raise InputError(path, "model", f"the data cannot determine {len(bad)} direction(s): "
                                  f"{'; '.join(bad[:3])}; fix these parameters, give them priors, or enable the process model")
-        solver = Solver(problem.lsq, spec.solver)
+        solver = Solver(problem.lsq, options)
         sol = solver.solve(x0, lam_g0=lam)
         if not sol.success and first is not None and first.success and \
                 solver.newton_decrement(first.x, first.lam_g) < 1e-6:
@@ -358,15 +386,63 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = quiet, max_restarts: int = 2
         if diverged:
             start_values = {}
     if best is None:
-        raise NotConvergedError(f"{spec.path}: IPOPT did not converge in {len(attempts)} attempts: "
+        raise NotConvergedError(f"{path}: IPOPT did not converge in {len(attempts)} attempts: "
                                 f"{attempts[-1]['message']}")
     problem, solver, sol = best
     if minimum_checks(config, sol.values, nominal, data.t, sign_determined(config, data, problem.gyro_triads)):
-        raise NotConvergedError(f"{spec.path}: every attempt ended in a local minimum: "
+        raise NotConvergedError(f"{path}: every attempt ended in a local minimum: "
                                 + "; ".join(", ".join(a["issues"]) for a in attempts))
-    cal, gcal = problem.calibration(sol.values), problem.gyro_calibration(sol.values)
-    res_acc, res_gyro = measurement_residuals(problem, data, sol)
-    return DynamicOutcome(spec, data, config, problem, solver, sol, attempts, sat, cal, gcal, res_acc, res_gyro, nominal)
+    variance = None
+    if config.process_model and config.motion.estimate and data.n > 2:
+        problem, solver, sol, variance = estimate_process_noise(problem, data, solver, sol, options, static_problem,
+                                                                nominal, log)
+        if minimum_checks(problem.config, sol.values, nominal, data.t,
+                          sign_determined(problem.config, data, problem.gyro_triads)):
+            raise NotConvergedError(f"{path}: the solve with the estimated process noise ended in a local minimum")
+    return problem, solver, sol, attempts, variance
+
+
+def estimate_process_noise(problem, data: DynamicData, solver: Solver, sol: Solution, options: SolverOptions,
+                           static_problem, nominal: dict, log: Log = quiet):
+    """Process-noise levels of the motion model from the data: variance components of the process
+    rows (``solve.variance.estimate_levels``, Helmert/Förstner), each iteration re-solved from the
+    previous solution with the exact Hessian. Returns (problem, solver, solution, VarianceComponents)
+    at the estimated levels."""
+    config = problem.config
+    comps = config.motion.components
+    lay = problem.lsq.layout
+    stages = np.hstack([lay.w_index(g.name)[:, g.free[0]] for g in lay.groups
+                        if g.nuisance and g.matrix and g.rows == data.n and g.name.startswith("motion.")])
+
+    def rows(slv):
+        idx = block_rows(slv, "process_model")
+        return {k: idx[:, list(r)] for k, r in comps.items()}
+
+    def solve(levels, previous):
+        p = replace(problem, config=replace(config, motion=config.motion.with_levels(levels)))
+        d = p.data_vector(data)
+        out = solver.solve(x0=previous.x, data=d)
+        if not out.success:
+            gn = Solver(problem.lsq, replace(options, hessian="gauss_newton")).solve(previous.x, data=d)
+            out = solver.solve(x0=gn.x, data=d, lam_g0=gn.lam_g) if gn.success else gn
+        if not out.success:
+            raise NotConvergedError(f"the solve with the process-noise levels {levels} did not converge: {out.message}")
+        return solver, out, d
+
+    log("process noise: variance components of the process model (Helmert/Förstner)")
+    comp, (_, last, _) = estimate_levels(solve, rows, stages, config.motion.levels(),
+                                         first=(solver, sol, problem.data_vector(data)), log=log)
+    # the final problem carries the estimated levels in its own data (for residuals and reports)
+    config = replace(config, motion=config.motion.with_levels(comp.levels))
+    final = build_joint(static_problem, config, data) if static_problem else build_dynamic(config, data)
+    final_solver = Solver(final.lsq, options)
+    out = final_solver.solve(last.x, lam_g0=last.lam_g)
+    if not out.success:
+        raise NotConvergedError(f"the solve at the estimated process-noise levels did not converge: {out.message}")
+    units = config.motion.units
+    log("  estimated: " + ", ".join(f"{k} {v:.4g} {units[k]}" for k, v in comp.levels.items())
+        + f" ({comp.iterations} iterations{'' if comp.converged else ', not converged'})")
+    return final, final_solver, out, comp
 
 
 def _static_phase(spec: ProblemSpec, full: Recording, config: DynamicConfig, log: Log):
@@ -527,6 +603,10 @@ class DynamicKind:
         """Intrinsics and positions fixed at their start values: the array's per-sample ML motion
         estimator (Carlsson 2017)."""
         return replace(config, config=geometry_fixed(config.config))
+
+    def settled(self, config: DynamicInputs, outcome: DynamicOutcome) -> DynamicInputs:
+        """The process model at the outcome's (estimated) noise levels."""
+        return replace(config, config=replace(config.config, motion=outcome.config.motion))
 
     def window(self, spec: ProblemSpec, data: DynamicInput, start: int, n: int) -> tuple[DynamicInput, str]:
         N = data.data.n

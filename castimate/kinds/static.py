@@ -423,6 +423,10 @@ class StaticKind:
         """Intrinsics fixed at their start values: only the pose directions are estimated."""
         return geometry_fixed(config)
 
+    def settled(self, config: StaticConfig, outcome: StaticOutcome) -> StaticConfig:
+        """Nothing beyond the parameters is estimated."""
+        return config
+
     def window(self, spec: ProblemSpec, data: StaticData, start: int, n: int) -> tuple[StaticData, str]:
         P = data.averages.n_poses
         if not (1 <= n and 0 <= start and start + n <= P):

@@ -6,7 +6,10 @@ the specific force s [m/s²] at the body origin (gravity included).
 
 from __future__ import annotations
 
+import math
+
 import casadi as ca
+import numpy as np
 
 
 def specific_force_at(s, omega, omega_dot, r):
@@ -21,14 +24,66 @@ def specific_force_rate(s_dot, omega, omega_dot, omega_ddot, r):
     return s_dot + ca.cross(omega_ddot, r) + ca.cross(omega_dot, ca.cross(omega, r)) + ca.cross(omega, ca.cross(omega_dot, r))
 
 
-def process_residual(omega, omega_dot, s, omega_next, omega_dot_next, s_next, dt, sigma_s, sigma_int, sigma_omega_dot):
-    """Whitened process-model residual between samples n and n+1 (Schopp 2016, eqs. 7, 8, 14).
+#: The process models' integration rules (``motion.integration`` of a problem file).
+INTEGRATIONS = ("wiener3", "wiener2", "trapezoid", "euler")
 
-    ω_{n+1} = ω_n + ω̇_n Δt, with ω̇ and s random walks. The covariance is Δt² diag(σ_s², σ_int², σ_ω̇²),
-    so each residual is divided by its σ times Δt.
+
+def wiener_whitening(order: int) -> np.ndarray:
+    """W with W Wᵀ = M⁻¹ for the covariance q D M D of the exact step of an integrated Wiener
+    process of ``order`` states (x, x', ..., x^(order-1), the last one a Wiener process driven by
+    white noise of density q): M_ij = 1 / ((p_i + p_j + 1) i'! j'!) with p_i = order - 1 - i, and
+    D = diag(Δt^(p_i + 1/2)). The whitened residual of e = x_n+1 − exp(A Δt) x_n is
+    Wᵀ D⁻¹ e / √q (Wᵀ = L⁻¹ for the Cholesky factor L of M)."""
+    p = np.arange(order)[::-1]
+    fact = np.array([math.factorial(k) for k in p], float)
+    M = 1.0 / ((p[:, None] + p[None, :] + 1) * fact[:, None] * fact[None, :])
+    return np.linalg.inv(np.linalg.cholesky(M)).T
+
+
+def process_residual(omega, omega_dot, s, omega_next, omega_dot_next, s_next, dt, sigma_s, sigma_int, sigma_omega_dot,
+                     integration: str = "wiener2"):
+    """Whitened process-model residual between samples n and n+1: rows s (3), ω (3), ω̇ (3).
+
+    ``euler`` (Schopp 2016, eqs. 7, 8, 14): ω_{n+1} = ω_n + ω̇_n Δt, with ω̇ and s random walks. The
+    covariance is Δt² diag(σ_s², σ_int², σ_ω̇²), so each residual is divided by its σ times Δt
+    (σ_s [m/s²], σ_int [rad/s], σ_ω̇ [rad/s²]). Its local error ½ ω̈ Δt² biases smooth motion.
+
+    ``trapezoid``: ω_{n+1} = ω_n + ½ (ω̇_n + ω̇_{n+1}) Δt (local error ω⃛ Δt³ / 12), with Euler's
+    σ's and whitening.
+
+    ``wiener2``: the exact discretisation of a continuous-time model, ω̇ a Wiener process (white
+    angular jerk of density q_ω) and ω its integral; s a random walk of density q_s. The (ω, ω̇)
+    step has covariance q_ω [[Δt³/3, Δt²/2], [Δt²/2, Δt]]; whitened by its Cholesky factor (ω̇
+    first) it splits into the ω̇ increment over sqrt(q_ω Δt) and the trapezoid rule over
+    sqrt(q_ω Δt³ / 12), the conditional σ of ω_{n+1} given both ω̇'s. Here ``sigma_s`` = √q_s
+    [m/s^2.5] and ``sigma_int`` = ``sigma_omega_dot`` = √q_ω [rad/s^2.5].
     """
+    if integration not in INTEGRATIONS[1:]:
+        raise ValueError(f"unknown integration {integration!r}; expected one of {INTEGRATIONS[1:]} "
+                         "(wiener3: process_residual_snap)")
+    step = omega_dot * dt if integration == "euler" else 0.5 * (omega_dot + omega_dot_next) * dt
+    if integration == "wiener2":
+        return ca.vertcat((s_next - s) / (sigma_s * ca.sqrt(dt)),
+                          (omega_next - omega - step) / (sigma_int * ca.sqrt(dt ** 3 / 12)),
+                          (omega_dot_next - omega_dot) / (sigma_omega_dot * ca.sqrt(dt)))
     return ca.vertcat(
         (s_next - s) / (sigma_s * dt),
-        (omega_next - omega - omega_dot * dt) / (sigma_int * dt),
+        (omega_next - omega - step) / (sigma_int * dt),
         (omega_dot_next - omega_dot) / (sigma_omega_dot * dt),
     )
+
+
+def process_residual_snap(omega, omega_dot, omega_ddot, s, omega_next, omega_dot_next, omega_ddot_next, s_next, dt,
+                          sigma_s, sigma_snap):
+    """Whitened process residual of ``wiener3``: ω̈ a Wiener process (white angular snap of density
+    q_ω = ``sigma_snap``² [rad²/s⁷]), ω̇ and ω its integrals, s a random walk (√q_s = ``sigma_s``
+    [m/s^2.5]). Exact discretisation: e = (ω, ω̇, ω̈)_n+1 − F (ω, ω̇, ω̈)_n with F the Taylor step
+    to second order, covariance q_ω D M D (``wiener_whitening``), per axis. Rows: s (3), then
+    the three whitened rows of each axis' chain (9)."""
+    W = wiener_whitening(3)
+    e = [omega_next - omega - omega_dot * dt - omega_ddot * dt ** 2 / 2,
+         omega_dot_next - omega_dot - omega_ddot * dt,
+         omega_ddot_next - omega_ddot]
+    scaled = [e[i] / dt ** (2.5 - i) for i in range(3)]  # D⁻¹ e
+    rows = [sum(float(W[i, j]) * scaled[i] for i in range(3)) / sigma_snap for j in range(3)]  # Wᵀ D⁻¹ e / √q
+    return ca.vertcat((s_next - s) / (sigma_s * ca.sqrt(dt)), *rows)

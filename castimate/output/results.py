@@ -127,7 +127,6 @@ def dynamic_results(outcome) -> dict:
         entry["parameters"] = _parameters(lay, sol, t.name)
         triads[t.name] = entry
     rms = lambda r: np.sqrt(np.nanmean(r ** 2, axis=0))  # noqa: E731
-    m = spec.motion
     return {
         "format": FORMAT,
         "kind": spec.kind,
@@ -141,8 +140,7 @@ def dynamic_results(outcome) -> dict:
         "samples": outcome.data.n,
         "saturated_samples_masked": {k: v["masked"] for k, v in outcome.saturation.items()},
         "saturation": _saturation(spec, outcome.saturation),
-        "motion_model": {"process_model": m.process_model, "sigma_s": m.sigma_s, "sigma_omega_dot": m.sigma_omega_dot,
-                         "sigma_integration": m.sigma_integration},
+        "motion_model": _motion_model(cfg, outcome.variance),
         "noise": {"accelerometer": outcome.data.acc_sigma, "gyroscope": outcome.data.gyro_sigma},
         "triads": triads,
         "residuals": {"chi2": sol.chi2, "dof": sol.dof, "chi2_per_dof": sol.chi2_per_dof,
@@ -150,6 +148,20 @@ def dynamic_results(outcome) -> dict:
                       "gyro_rms": {n: rms(r) for n, r in outcome.residual_gyro.items()}},
         **_effects(outcome.problem.config),
     }
+
+
+def _motion_model(config, variance) -> dict:
+    """The process model: integration, its levels (estimated or given) with their units, and the
+    variance-component estimate's redundancies."""
+    m = config.motion
+    out = {"process_model": config.process_model, "integration": m.integration,
+           "process_noise": "auto" if m.estimate else "fixed", "levels": m.levels(), "units": m.units}
+    if variance is not None:
+        out["estimate"] = {"iterations": variance.iterations, "converged": variance.converged,
+                           "rows": variance.rows, "redundancy": variance.redundancy,
+                           "not_estimable_kept": list(variance.kept),
+                           "start": variance.history[0]["levels"] if variance.history else None}
+    return out
 
 
 def _effects(config) -> dict:

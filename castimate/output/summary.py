@@ -46,6 +46,13 @@ def dynamic_summary(outcome) -> str:
              f"({len(outcome.attempts)} attempt(s)), {sol.wall_s:.2f} s solve + {outcome.solver.build_s:.2f} s build",
              f"  {outcome.data.n} samples, {len(outcome.config.triads)} triads, chi2/dof = {sol.chi2_per_dof:.3f}",
              f"  solver: {outcome.solver.elimination_note}"]
+    m = outcome.config.motion
+    if outcome.config.process_model:
+        lines.append(f"  process model: {m.integration}, levels "
+                     + ", ".join(f"{k} {v:.4g} {m.units[k]}" for k, v in m.levels().items())
+                     + (f" (estimated, {outcome.variance.iterations} iterations"
+                        + (f"; not estimable, kept as given: {', '.join(outcome.variance.kept)}" if outcome.variance.kept
+                           else "") + ")" if outcome.variance is not None else " (given)"))
     masked = {k: v for k, v in outcome.saturation.items() if v["masked"]}
     if masked:
         lines.append("  saturated samples masked (on the low rail / the high rail; axis readings): " + ", ".join(

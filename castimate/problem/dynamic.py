@@ -5,7 +5,8 @@ accelerometers only), composed from the same blocks as the static problem::
 
     accelerometer triad k, sample n:  y = K L M Rbar (s_n + ω_n×(ω_n×r_k) + ω̇_n×r_k) + b + v
     gyroscope triad g, sample n:      y = K_g M_g Rbar ω_n + b_g + v
-    process model n -> n+1:           ω_{n+1} = ω_n + ω̇_n Δt,  ω̇ and s random walks (Schopp eq. 8)
+    process model n -> n+1:           ω̇ a Wiener process and ω its integral, s a random walk (exact
+                                      discretisation); or Schopp's Euler step (eq. 7, 8) or the trapezoid rule
 
 The reference triad is fixed at the origin with no misalignment: it defines the body frame.
 Motion states are matrix groups (one row per sample), marginalised in the covariance.
@@ -29,16 +30,69 @@ from .triads import (ACC_FACTOR_GROUPS, GYRO_FACTOR_GROUPS, N_SAMPLE_REGRESSORS,
                      accelerometer_matrix, effect_context, effect_params, group_name, gyroscope_matrix, triad_groups)
 
 OMEGA, OMEGA_DOT, S = "motion.omega", "motion.omega_dot", "motion.s"
+OMEGA_DDOT = "motion.omega_ddot"  # a state of the wiener3 process model only
+
+
+#: Schopp 2016, eq. 8: σ_a² = 1e3 (m/s²)², σ_ω̇² = 1e3 (rad/s²)², σ_int² = 1e-7 (rad/s)².
+SCHOPP_SIGMAS = {"s": 1e3 ** 0.5, "omega_dot": 1e3 ** 0.5, "omega": 1e-7 ** 0.5}
+#: Start levels of the Wiener models (√q_s [m/s^2.5], √q_ω [rad/s^2.5 (wiener2) or rad/s^3.5 (wiener3)]),
+#: re-estimated from the data by default (hand-held motion: √q_ω of a few hundred to a few thousand).
+WIENER_START = {"wiener2": {"s": 5.0, "omega_dot": 30.0, "omega": 30.0},
+                "wiener3": {"s": 5.0, "omega_dot": 300.0, "omega": 300.0}}
 
 
 @dataclass(frozen=True)
 class MotionSigmas:
-    """Process-model σ's (Schopp 2016, eq. 8; defaults are the values used there:
-    σ_a² = 1e3 (m/s²)², σ_ω̇² = 1e3 (rad/s²)², σ_int² = 1e-7 (rad/s)²)."""
+    """The process model between consecutive samples (``models.motion``).
 
-    s: float = 1e3 ** 0.5  # m/s^2, random walk of the specific force
-    omega_dot: float = 1e3 ** 0.5  # rad/s^2, random walk of the angular acceleration
-    integration: float = 1e-7 ** 0.5  # rad/s, error of ω_{n+1} = ω_n + ω̇_n Δt
+    ``integration``: ``wiener3`` (default; ω̈ a Wiener process, i.e. white angular snap, with ω̇
+    and ω its exact integrals: ``process_residual_snap``), ``wiener2`` (ω̇ a Wiener process: white
+    angular jerk), ``trapezoid`` or ``euler`` (Schopp 2016, eq. 7, with Schopp's σ's, eq. 8); s is
+    a random walk in all. ``s``, ``omega`` and ``omega_dot`` are the levels of the s, ω and ω̇ rows
+    (Wiener: √q_s, and ``omega`` = ``omega_dot`` = √q_ω of the ω chain); None takes the
+    integration's defaults. ``estimate``: re-estimate the levels from the data (variance
+    components, ``solve.variance``), starting from these.
+    """
+
+    integration: str = "wiener3"
+    s: float | None = None  # m/s^2 (euler, trapezoid) or m/s^2.5 (Wiener)
+    omega_dot: float | None = None  # rad/s^2 (euler, trapezoid), rad/s^2.5 (wiener2) or rad/s^3.5 (wiener3)
+    omega: float | None = None  # rad/s, σ_int (euler, trapezoid); = omega_dot (Wiener)
+    estimate: bool = True
+
+    def __post_init__(self):
+        if self.integration not in mot.INTEGRATIONS:
+            raise ValueError(f"unknown integration {self.integration!r}; expected one of {mot.INTEGRATIONS}")
+        dflt = WIENER_START[self.integration] if self.wiener else SCHOPP_SIGMAS
+        for k in ("s", "omega_dot", "omega"):
+            if getattr(self, k) is None:
+                object.__setattr__(self, k, dflt[k])
+        if self.wiener and self.omega != self.omega_dot:
+            object.__setattr__(self, "omega", self.omega_dot)
+
+    @property
+    def wiener(self) -> bool:
+        return self.integration.startswith("wiener")
+
+    @property
+    def components(self) -> dict[str, tuple[int, ...]]:
+        """Variance components: name -> rows of the process residual (s, then the ω rows) they scale."""
+        if self.wiener:
+            return {"s": (0, 1, 2), "omega_dot": tuple(range(3, 12 if self.integration == "wiener3" else 9))}
+        return {"s": (0, 1, 2), "omega": (3, 4, 5), "omega_dot": (6, 7, 8)}
+
+    @property
+    def units(self) -> dict[str, str]:
+        if self.wiener:
+            return {"s": "m/s^2.5", "omega_dot": "rad/s^3.5" if self.integration == "wiener3" else "rad/s^2.5"}
+        return {"s": "m/s^2", "omega": "rad/s", "omega_dot": "rad/s^2"}
+
+    def levels(self) -> dict[str, float]:
+        return {k: getattr(self, k) for k in self.components}
+
+    def with_levels(self, levels: dict[str, float]) -> MotionSigmas:
+        out = replace(self, **levels)
+        return replace(out, omega=out.omega_dot) if self.wiener else out
 
 
 @dataclass(frozen=True)
@@ -177,12 +231,18 @@ def gyroscope_sample_factor(config: DynamicConfig) -> ca.Function:
     return ca.Function("gyroscope_sample", [ca.vertcat(*z), ca.vertcat(y, sigma, R, reg, inv_span)], [res])
 
 
-def process_factor() -> ca.Function:
-    """Whitened process-model residual between consecutive samples (Schopp 2016, eq. 14).
-    z = [ω_n, ω̇_n, s_n, ω_n+1, ω̇_n+1, s_n+1], d = [Δt, σ_s, σ_int, σ_ω̇]."""
+def process_factor(integration: str = "wiener3") -> ca.Function:
+    """Whitened process-model residual between consecutive samples (``models.motion.process_residual``;
+    Schopp 2016, eq. 14, for ``euler``). z = [ω_n, ω̇_n, s_n, ω_n+1, ω̇_n+1, s_n+1 (, ω̈_n, ω̈_n+1 for
+    wiener3)], d = [Δt, σ_s, σ_ω, σ_ω̇] (the levels of ``MotionSigmas``)."""
     z = [ca.SX.sym(n, 3) for n in ("omega", "omega_dot", "s", "omega_next", "omega_dot_next", "s_next")]
     d = ca.SX.sym("d", 4)
-    res = mot.process_residual(*z, d[0], d[1], d[2], d[3])
+    if integration == "wiener3":
+        wdd = [ca.SX.sym(n, 3) for n in ("omega_ddot", "omega_ddot_next")]
+        res = mot.process_residual_snap(z[0], z[1], wdd[0], z[2], z[3], z[4], wdd[1], z[5], d[0], d[1], d[3])
+        z += wdd
+    else:
+        res = mot.process_residual(*z, d[0], d[1], d[2], d[3], integration)
     return ca.Function("process_model", [ca.vertcat(*z), d], [res])
 
 
@@ -262,7 +322,7 @@ class DynamicProblem:
         if self.config.process_model:
             m = self.config.motion
             dt = np.diff(data.t)
-            out.append(np.column_stack([dt, np.full_like(dt, m.s), np.full_like(dt, m.integration),
+            out.append(np.column_stack([dt, np.full_like(dt, m.s), np.full_like(dt, m.omega),
                                         np.full_like(dt, m.omega_dot)]))
         return out
 
@@ -358,6 +418,10 @@ def build_dynamic(config: DynamicConfig, data: DynamicData, start: dict | None =
     groups += [Group.make(OMEGA, XYZ, start[OMEGA], rows=N, unit="rad/s", nuisance=True),
                Group.make(OMEGA_DOT, XYZ, start[OMEGA_DOT], rows=N, scale=10.0, unit="rad/s^2", nuisance=True),
                Group.make(S, XYZ, start[S], rows=N, unit="m/s^2", nuisance=True)]
+    snap = config.process_model and config.motion.integration == "wiener3"
+    if snap:
+        wdd = start.get(OMEGA_DDOT, np.gradient(start[OMEGA_DOT], data.t, axis=0) if N > 1 else np.zeros((N, 3)))
+        groups.append(Group.make(OMEGA_DDOT, XYZ, wdd, rows=N, scale=100.0, unit="rad/s^3", nuisance=True))
     rows = {"acc": {n: np.flatnonzero(data.valid("acc", n)) for n in config.names},
             "gyro": {n: np.flatnonzero(data.valid("gyro", n)) for n in gyro_triads}}
     axes = {"acc": {n: data.axis_valid("acc", n) for n in config.names},
@@ -396,8 +460,9 @@ def build_dynamic(config: DynamicConfig, data: DynamicData, start: dict | None =
                                   np.zeros((len(k), 0)), valid=ok))
     if config.process_model and N > 1:
         a, b = np.arange(N - 1), np.arange(1, N)
-        blocks.append(FactorBlock("process_model", process_factor(),
-                                  [(OMEGA, a), (OMEGA_DOT, a), (S, a), (OMEGA, b), (OMEGA_DOT, b), (S, b)],
+        blocks.append(FactorBlock("process_model", process_factor(config.motion.integration),
+                                  [(OMEGA, a), (OMEGA_DOT, a), (S, a), (OMEGA, b), (OMEGA_DOT, b), (S, b)]
+                                  + ([(OMEGA_DDOT, a), (OMEGA_DDOT, b)] if snap else []),
                                   np.zeros((N - 1, 0))))
     problem = DynamicProblem(config, LeastSquaresProblem(Layout(groups), blocks), N, gyro_triads, rows, axes)
     for blk, d in zip(blocks, problem.block_data(data)):

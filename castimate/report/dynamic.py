@@ -228,11 +228,12 @@ def render_dynamic_report(results: dict, details: dict[str, np.ndarray]) -> str:
                  + ", ".join(f"{escape(k)} {v}" for k, v in masked.items())))
     m = results.get("motion_model", {}) or {}
     if m:
-        def sig(key, unit, scale=1.0):
-            return f"{m[key] * scale:.3g} {unit}" if finite(m.get(key)) else "?"
-        rows.append(("motion model", f"process model (Schopp 2016): σ_s {sig('sigma_s', 'm/s³')}, "
-                                     f"σ_ω̇ {sig('sigma_omega_dot', 'deg/s³', DEG)}, "
-                                     f"σ_integration {sig('sigma_integration', 'deg/s²', DEG)}"
+        levels, units = m.get("levels") or {}, m.get("units") or {}
+        text = ", ".join(f"{escape(k)} {v:.4g} {escape(units.get(k, ''))}" for k, v in levels.items() if finite(v))
+        est = m.get("estimate")
+        rows.append(("motion model", f"process model, {escape(str(m.get('integration', '?')))} integration: {text}"
+                                     + (f" (estimated from the data: variance components, {est['iterations']} "
+                                        "iterations)" if est else " (given)")
                      if m.get("process_model") else "no process model: the motion of each sample is free"))
     ra = np.asarray(details["residual_acc"], float)
     rows.append(("accelerometer residual RMS",

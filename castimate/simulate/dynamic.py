@@ -155,7 +155,9 @@ class Motion:
     quaternions of the body→world rotation (Hamilton, scalar first); accel_world (N, 3) [m/s²],
     the acceleration of the origin in the world frame; binding says which bound set the scale of
     a random motion ("omega" or "omega_dot"); ``at`` (optional) evaluates the motion exactly at any
-    times, (M,) -> (ω, ω̇, s) (M, 3) each, where it is known in closed form (else None: only the samples).
+    times, (M,) -> (ω, ω̇, s) (M, 3) each, where it is known in closed form (else None: only the samples);
+    omega_ddot (N, 3) [rad/s³] and s_dot (N, 3) [m/s³], the exact derivatives, where the motion gives
+    them in closed form (else None).
     """
 
     t: np.ndarray
@@ -167,6 +169,8 @@ class Motion:
     gravity: float = GRAVITY
     binding: str = ""
     at: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
+    omega_ddot: np.ndarray | None = None  # (N, 3) rad/s³, where known in closed form
+    s_dot: np.ndarray | None = None  # (N, 3) m/s³, where known in closed form
 
     def __len__(self) -> int:
         return len(self.t)
@@ -351,6 +355,54 @@ def smooth_random_motion(n_samples: int, rate: float, max_omega: float, max_omeg
     if q0 is None:
         q0 = rotation_to_quaternion(random_rotation(rng))
     return rigid_body_motion(t, omega_fn, omega_dot_fn, accel_fn, q0, gravity, binding)
+
+
+class _Sinusoids:
+    """x(t) = Σ_j a_j sin(2π f_j t + φ_j) per axis, (n, 3) amplitudes, with its derivatives in closed form."""
+
+    def __init__(self, rng: np.random.Generator, n_terms: int, f_lo: float, f_hi: float):
+        self.a = rng.standard_normal((n_terms, 3))
+        self.w = 2 * np.pi * rng.uniform(f_lo, f_hi, (n_terms, 3))
+        self.phi = rng.uniform(0, 2 * np.pi, (n_terms, 3))
+
+    def __call__(self, t, order: int = 0) -> np.ndarray:
+        """The ``order``-th derivative at the times t (M,) -> (M, 3): d^k sin(x)/dx^k = sin(x + kπ/2)."""
+        arg = np.asarray(t, dtype=float)[:, None, None] * self.w + self.phi + order * np.pi / 2
+        return np.sum(self.a * self.w ** order * np.sin(arg), axis=1)
+
+
+def sinusoid_motion(n_samples: int, rate: float, max_omega: float, max_omega_dot: float, rng: np.random.Generator,
+                    linear_accel: float = 2.0, *, f_lo: float = 0.3, f_hi: float = 3.0, n_terms: int = 3,
+                    q0=None, gravity: float = GRAVITY) -> Motion:
+    """Smooth motion that no process model was made to agree with: every axis of ω (body frame) and
+    of the origin's acceleration a (world frame) is a sum of ``n_terms`` sinusoids with random
+    amplitudes, phases and frequencies in [f_lo, f_hi] Hz (a hand twisting and shaking an array).
+
+    ω, ω̇ and ω̈ are exact at every sample; the attitude is integrated from ω(t) on a fine sub-grid
+    (``integrate_attitude``, not with any estimator's step); s = Rᵀ (a + (0, 0, g)) and its exact
+    derivative ṡ = −ω×s + Rᵀ ȧ. One factor c scales ω so that max‖ω‖ ≤ ``max_omega`` and
+    max‖ω̇‖ ≤ ``max_omega_dot`` over the samples, one of them with equality (``Motion.binding``).
+    The initial attitude is uniformly random unless q0 is given.
+    """
+    t = np.arange(n_samples) / rate
+    w, acc = _Sinusoids(rng, n_terms, f_lo, f_hi), _Sinusoids(rng, n_terms, f_lo, f_hi)
+    peak_w, peak_wd = (np.max(np.linalg.norm(w(t, k), axis=1)) if n_samples else 0.0 for k in (0, 1))
+    by_w = max_omega / peak_w if peak_w > 0 else 0.0
+    by_wd = max_omega_dot / peak_wd if peak_wd > 0 else 0.0
+    c, binding = (by_w, "omega") if by_w <= by_wd else (by_wd, "omega_dot")
+    peak_a = np.max(np.linalg.norm(acc(t), axis=1)) if n_samples else 0.0
+    ca_ = linear_accel / peak_a if peak_a > 0 else 0.0
+    if q0 is None:
+        q0 = rotation_to_quaternion(random_rotation(rng))
+    m = rigid_body_motion(t, lambda tt: c * w(tt), lambda tt: c * w(tt, 1), lambda tt: ca_ * acc(tt), q0, gravity,
+                          binding)
+    R = m.rotation_matrices()
+    s_dot = -np.cross(m.omega, m.s) + np.einsum("nji,nj->ni", R, ca_ * acc(t, 1))
+    return replace(m, omega_ddot=c * w(t, 2), s_dot=s_dot)
+
+
+#: Trajectories of the simulator (scenario key ``trajectory``).
+TRAJECTORIES = ("sinusoids", "wandering", "euler_consistent")
 
 
 # ---------------------------------------------------------------------------------------------

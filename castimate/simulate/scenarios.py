@@ -251,7 +251,7 @@ def _static_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDraw
 
 
 DYNAMIC_KEYS = ("kind", "seed", "geometry", "samples", "rate", "max_omega", "max_omega_dot", "noise", "gyroscope",
-                "saturation", "position_error", "orientation_error", "motion", "euler_consistent", "linear_accel",
+                "saturation", "position_error", "orientation_error", "motion", "trajectory", "euler_consistent", "linear_accel",
                 "imus", "effects", "adc", "delay", "gyroscope_matrix")
 #: ``adc`` of a dynamic scenario: the converter's resolution and full-scale ranges (g, deg/s).
 ADC_KEYS = ("bits", "accelerometer_range", "gyroscope_range")
@@ -284,7 +284,8 @@ def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDra
     Angles in the scenario file are in degrees (max_omega in deg/s, max_omega_dot in deg/s^2,
     orientation_error and saturation in deg and deg/s); lengths in metres.
     """
-    from .dynamic import carlsson_geometry, dynamic_measurements, euler_consistent, schopp_geometry, smooth_random_motion
+    from .dynamic import (carlsson_geometry, dynamic_measurements, euler_consistent, schopp_geometry, sinusoid_motion,
+                          smooth_random_motion)
 
     s = c.mapping(raw, "", DYNAMIC_KEYS, required=("kind", "geometry"))
     seed, rng = _seed(c, s)
@@ -320,9 +321,19 @@ def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDra
             rng, pos_err, orientation_error_deg=c.number(s.get("orientation_error", 0.0), "orientation_error", lo=0.0, hi=180.0, unit="deg"),
             reference="acc1")
         gyro = _flag(c, s, "gyroscope") if "gyroscope" in s else False
-    motion = smooth_random_motion(N, rate, w_max, wd_max, rng, linear_accel=c.number(s.get("linear_accel", 2.0), "linear_accel", lo=0.0, hi=1e3, unit="m/s^2"))
-    if _flag(c, s, "euler_consistent") if "euler_consistent" in s else True:
-        motion = euler_consistent(motion)
+    # wandering (default): the wandering-axis twist, re-integrated with the Euler step unless
+    # euler_consistent: false; sinusoids: exact smooth motion no process model agrees with
+    trajectory = c.choice(s.get("trajectory", "wandering"), "trajectory", ("wandering", "sinusoids"))
+    lin = c.number(s.get("linear_accel", 2.0), "linear_accel", lo=0.0, hi=1e3, unit="m/s^2")
+    euler = _flag(c, s, "euler_consistent") if "euler_consistent" in s else trajectory == "wandering"
+    if euler and trajectory != "wandering":
+        c.fail("euler_consistent", f"re-integrates the wandering trajectory; found trajectory: {trajectory}")
+    if trajectory == "sinusoids":
+        motion = sinusoid_motion(N, rate, w_max, wd_max, rng, linear_accel=lin)
+    else:
+        motion = smooth_random_motion(N, rate, w_max, wd_max, rng, linear_accel=lin)
+        if euler:
+            motion = euler_consistent(motion)
     K = len(names)
     _check_size(c, N, K * (6 if gyro else 3), "samples")
     sat = s.get("saturation")
@@ -355,7 +366,8 @@ def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDra
         rec = Recording(t=motion.t, acc={n: np.round(v / lsb["accelerometer"]) for n, v in acc.items()},
                         gyro={n: np.round(v / lsb["gyroscope"]) for n, v in gy.items()}, source="simulation")
         rails = [-2 ** (adc["bits"] - 1), 2 ** (adc["bits"] - 1) - 1]
-    msec = c.mapping(s.get("motion"), "motion", ("sigma_s", "sigma_omega_dot", "sigma_integration", "process_model"))
+    msec = c.mapping(s.get("motion"), "motion", ("integration", "process_noise", "sigma_s", "sigma_omega_dot",
+                                                 "sigma_integration", "density_s", "density_omega", "process_model"))
     problem: dict[str, Any] = {
         "kind": "dynamic_array",
         "data": {"path": "data.csv", "format": "csv"},

@@ -1,0 +1,234 @@
+"""The motion's process models and their noise levels estimated from the data.
+
+Hand-computed residuals of every integration, the Wiener models' whitening against their
+covariance written out, derivatives against finite differences, the variance components'
+redundancies against the dense hat matrix, recovery of known process-noise levels from a motion
+that is a sample of the model, and the problem file's motion keys.
+"""
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from castimate.errors import InputError
+from castimate.kinds.dynamic import solve_dynamic
+from castimate.models import motion as mot
+from castimate.problem.dynamic import OMEGA_DDOT, DynamicConfig, DynamicData, MotionSigmas
+from castimate.problem.graph import SolverOptions
+from castimate.problem.triads import GroupSetting, TriadConfig
+from castimate.simulate.dynamic import Motion, dynamic_measurements, sinusoid_motion
+from castimate.solve.ipopt import Solver
+from castimate.solve.variance import block_rows, redundancies, selected_inverse
+
+from test_assembly import dynamic_case
+
+W, WD, S = ca.DM([1, 0, 0]), ca.DM([10, 0, 0]), ca.DM([0, 0, 9])
+W1, WD1, S1 = ca.DM([1.2, 0, 0]), ca.DM([10, 1, 0]), ca.DM([0, 0, 9.5])
+
+
+def residual(integration, dt=0.01, ss=2.0, si=0.5, sw=4.0):
+    return np.asarray(ca.evalf(mot.process_residual(W, WD, S, W1, WD1, S1, dt, ss, si, sw, integration))).ravel()
+
+
+def test_euler_and_trapezoid_by_hand():
+    # Euler (Schopp eq. 7): s (9.5 - 9)/(2·0.01); ω (1.2 - 1 - 10·0.01)/(0.5·0.01); ω̇ (1 - 0)/(4·0.01)
+    assert np.allclose(residual("euler"), [0, 0, 25, 20, 0, 0, 0, 25, 0])
+    # trapezoid: ω_x (1.2 - 1 - ½(10 + 10)·0.01)/0.005 = 20, ω_y (0 - ½(0 + 1)·0.01)/0.005 = -1
+    assert np.allclose(residual("trapezoid"), [0, 0, 25, 20, -1, 0, 0, 25, 0])
+
+
+def test_wiener2_by_hand():
+    # √q_s = 2, √q_ω = 4, Δt = 0.01: s 0.5/(2·0.1); ω̇_y 1/(4·0.1); ω the trapezoid misfit over
+    # 4·sqrt(Δt³/12) = 1.1547e-3: x 0.1/1.1547e-3, y -0.005/1.1547e-3
+    r = residual("wiener2", si=4.0)
+    d = 4 * np.sqrt(1e-6 / 12)
+    assert np.allclose(r, [0, 0, 2.5, 0.1 / d, -0.005 / d, 0, 0, 2.5, 0])
+
+
+def test_wiener_whitening_against_the_covariance():
+    """|r|² of the exact steps equals eᵀ Q⁻¹ e with Q written out: wiener2 q[[Δt³/3, Δt²/2], [Δt²/2, Δt]]
+    and wiener3 q[[Δt⁵/20, Δt⁴/8, Δt³/6], [Δt⁴/8, Δt³/3, Δt²/2], [Δt³/6, Δt²/2, Δt]]."""
+    dt, q = 0.008, 7.0 ** 2
+    Q2 = q * np.array([[dt ** 3 / 3, dt ** 2 / 2], [dt ** 2 / 2, dt]])
+    Q3 = q * np.array([[dt ** 5 / 20, dt ** 4 / 8, dt ** 3 / 6], [dt ** 4 / 8, dt ** 3 / 3, dt ** 2 / 2],
+                       [dt ** 3 / 6, dt ** 2 / 2, dt]])
+    rng = np.random.default_rng(0)
+    x0, x1 = rng.standard_normal((2, 3, 3))  # (ω, ω̇, ω̈) rows, xyz columns
+    s0 = s1 = np.zeros(3)
+    r2 = np.asarray(ca.evalf(mot.process_residual(*x0[:2], s0, *x1[:2], s1, dt, 1.0, 7.0, 7.0, "wiener2"))).ravel()
+    e2 = np.stack([x1[0] - x0[0] - x0[1] * dt, x1[1] - x0[1]])  # (2, 3)
+    assert np.isclose(r2 @ r2, np.einsum("ia,ij,ja->", e2, np.linalg.inv(Q2), e2), rtol=1e-9)
+    r3 = np.asarray(ca.evalf(mot.process_residual_snap(x0[0], x0[1], x0[2], s0, x1[0], x1[1], x1[2], s1, dt, 1.0,
+                                                       7.0))).ravel()
+    e3 = np.stack([x1[0] - x0[0] - x0[1] * dt - x0[2] * dt ** 2 / 2, x1[1] - x0[1] - x0[2] * dt, x1[2] - x0[2]])
+    assert np.isclose(r3 @ r3, np.einsum("ia,ij,ja->", e3, np.linalg.inv(Q3), e3), rtol=1e-8)
+
+
+@pytest.mark.parametrize("integration", mot.INTEGRATIONS)
+def test_process_factor_derivatives_match_finite_differences(integration):
+    from castimate.problem.dynamic import process_factor
+
+    f = process_factor(integration)
+    z, d = ca.SX.sym("z", f.size1_in(0)), ca.SX.sym("d", 4)
+    J = ca.Function("J", [z, d], [ca.jacobian(f(z, d), z)])
+    rng = np.random.default_rng(1)
+    z0, d0 = rng.standard_normal(f.size1_in(0)), np.array([0.01, 2.0, 0.5, 3.0])
+    if integration.startswith("wiener"):
+        d0[2] = d0[3]
+    h = 1e-6
+    fd = np.column_stack([(np.asarray(f(z0 + h * e, d0)) - np.asarray(f(z0 - h * e, d0))).ravel() / (2 * h)
+                          for e in np.eye(len(z0))])
+    assert np.allclose(np.asarray(J(z0, d0)), fd, rtol=1e-6, atol=1e-6 * np.abs(fd).max())
+
+
+def test_selected_inverse_matches_the_dense_inverse():
+    rng = np.random.default_rng(2)
+    N, m = 6, 3
+    G = rng.standard_normal((3 * N * m, N * m)) * (np.abs(np.subtract.outer(np.arange(3 * N * m) // (3 * m),
+                                                                             np.arange(N * m) // m)) <= 0)
+    H = G.T @ G + np.diag(np.ones(N * m))
+    for n in range(N - 1):  # couple neighbours
+        c = 0.3 * rng.standard_normal((m, m))
+        H[n * m:(n + 1) * m, (n + 1) * m:(n + 2) * m] += c
+        H[(n + 1) * m:(n + 2) * m, n * m:(n + 1) * m] += c.T
+    H += 3 * np.eye(N * m)
+    A = np.stack([H[n * m:(n + 1) * m, n * m:(n + 1) * m] for n in range(N)])
+    C = np.stack([H[n * m:(n + 1) * m, (n + 1) * m:(n + 2) * m] for n in range(N - 1)])
+    Sd, So = selected_inverse(A, C)
+    Hi = np.linalg.inv(H)
+    assert np.allclose(Sd, np.stack([Hi[n * m:(n + 1) * m, n * m:(n + 1) * m] for n in range(N)]), atol=1e-12)
+    assert np.allclose(So, np.stack([Hi[n * m:(n + 1) * m, (n + 1) * m:(n + 2) * m] for n in range(N - 1)]),
+                       atol=1e-12)
+
+
+@pytest.mark.parametrize("integration", ["wiener3", "euler"])
+def test_redundancies_match_the_dense_hat_matrix(integration):
+    """ρ_k = n_k − Σ diag(J P Jᵀ) over the component's rows, P the constrained Gauss-Newton
+    covariance of every variable (quaternion misalignments, a prior, masked samples)."""
+    prob = dynamic_case(30, model=MotionSigmas(integration))
+    solver = Solver(prob.lsq, SolverOptions(elimination="none"))
+    sol = solver.solve()
+    J, G = solver.jacobians(sol.x)
+    J, G = J.toarray(), G.toarray()
+    n, c = J.shape[1], G.shape[0]
+    K = np.block([[J.T @ J, G.T], [G, np.zeros((c, c))]])
+    P = np.linalg.inv(K)[:n, :n]
+    h = np.einsum("ri,ij,rj->r", J, P, J)
+    assert np.isclose(h.sum(), n - c, rtol=1e-8)
+    lay = prob.lsq.layout
+    stages = np.hstack([lay.w_index(g.name)[:, g.free[0]] for g in lay.groups if g.name.startswith("motion.")])
+    idx = block_rows(solver, "process_model")
+    comps = {k: idx[:, list(r)] for k, r in prob.config.motion.components.items()}
+    red = redundancies(J, G, stages, comps)
+    for k, rows in comps.items():
+        assert red[k] == pytest.approx(rows.size - h[rows.ravel()].sum(), rel=1e-8, abs=1e-8)
+
+
+def test_known_process_noise_recovered():
+    """A motion that is a sample of the wiener3 model (ω̈ a Wiener process of density q_ω, s a
+    random walk of density q_s), read by four triads with gyroscopes: the estimated levels
+    (started 10x off) within 4 standard errors, SE(√q̂)/√q ≈ 1/sqrt(2ρ) for the redundancy ρ."""
+    rng = np.random.default_rng(5)
+    N, dt, sq_w, sq_s = 300, 0.01, 10.0, 3.0  # |ω| up to ~30 rad/s
+    t = np.arange(N) * dt
+    p = np.arange(3)[::-1]
+    M = 1.0 / ((p[:, None] + p[None, :] + 1) * np.array([2, 1, 1.0])[:, None] * np.array([2, 1, 1.0])[None, :])
+    D = np.diag(dt ** (p + 0.5))
+    L = sq_w * np.linalg.cholesky(D @ M @ D)
+    F = np.array([[1, dt, dt ** 2 / 2], [0, 1, dt], [0, 0, 1]])
+    x = np.zeros((N, 3, 3))  # (sample, (ω, ω̇, ω̈), axis)
+    x[0] = np.array([[5.0, -3.0, 2.0], [0, 0, 0], [0, 0, 0]])
+    for n in range(N - 1):
+        x[n + 1] = F @ x[n] + L @ rng.standard_normal((3, 3))
+    s = np.array([0, 0, 9.81]) + np.cumsum(sq_s * np.sqrt(dt) * rng.standard_normal((N, 3)), axis=0)
+    motion = Motion(t, x[:, 0], x[:, 1], s, np.tile([1.0, 0, 0, 0], (N, 1)))
+    names = ["a", "b", "c", "d"]
+    pos = np.array([[0, 0, 0], [0.03, 0, 0], [0, 0.04, 0.01], [0.02, -0.03, 0]])
+    Rs = np.stack([np.eye(3)] * 4)
+    gyro = {"T_g": Rs, "b_g": np.zeros((4, 3)), "sigma": 2e-3, "saturation": None}
+    acc, gy, _ = dynamic_measurements(motion, pos, Rs, np.zeros((4, 3)), rng, 0.02, gyro=gyro, names=names)
+    fixed = GroupSetting(free=(False,) * 3)
+    triads = tuple(TriadConfig(nm, np.eye(3), {g: fixed for g in ("gain", "bias", "nonorthogonality", "misalignment")},
+                               {g: fixed for g in ("gain", "bias", "misalignment")}, pos[i]) for i, nm in enumerate(names))
+    cfg = DynamicConfig(triads, "a", motion=MotionSigmas("wiener3", s=0.1 * sq_s, omega_dot=10 * sq_w))
+    data = DynamicData(t, acc, {nm: np.full(3, 0.02) for nm in names}, gy, {nm: np.full(3, 2e-3) for nm in names})
+    problem, _, sol, _, var = solve_dynamic(cfg, data, {nm: pos[i] for i, nm in enumerate(names)})
+    assert sol.success and var.converged
+    assert OMEGA_DDOT in sol.values
+    for k, truth in (("s", sq_s), ("omega_dot", sq_w)):
+        se = 1 / np.sqrt(2 * var.redundancy[k])
+        assert abs(var.levels[k] / truth - 1) < 4 * se, (k, var.levels[k], truth, se)
+    assert problem.config.motion.levels() == pytest.approx(var.levels)
+
+
+def test_integration_level_without_gyroscopes_is_kept():
+    """Without gyroscopes the trapezoid's integration rows are fitted exactly by the motion (no
+    redundancy): that level is kept as given, the other two are estimated."""
+    from castimate.simulate.dynamic import schopp_geometry
+
+    rng = np.random.default_rng(4)
+    names, nominal, true, R, _ = schopp_geometry(rng, 1e-3, reference="acc1")
+    motion = sinusoid_motion(250, 125.0, 10.0, 150.0, rng)
+    Rs = np.stack([R[n] for n in names])
+    acc, _, _ = dynamic_measurements(motion, true - true[0], Rs, np.zeros((5, 3)), rng, 0.02, names=names)
+    fixed = GroupSetting(free=(False,) * 3)
+    triads = tuple(TriadConfig(n, R[n], {g: fixed for g in ("gain", "bias", "nonorthogonality", "misalignment")}, None,
+                               nominal[i] - nominal[0]) for i, n in enumerate(names))
+    cfg = DynamicConfig(triads, "acc1", motion=MotionSigmas("trapezoid"))
+    data = DynamicData(motion.t, acc, {n: np.full(3, 0.02) for n in names})
+    problem, _, sol, _, var = solve_dynamic(cfg, data, {n: nominal[i] - nominal[0] for i, n in enumerate(names)})
+    assert var.kept == ("omega",) and var.converged
+    assert var.levels["omega"] == MotionSigmas("trapezoid").omega
+    assert var.redundancy["omega"] < 0.01 * var.rows["omega"] < var.redundancy["s"]
+
+
+def test_sinusoid_motion_exact_and_not_euler_consistent():
+    """ω̇, ω̈ and ṡ are the derivatives of ω, ω̇ and s (central differences at 2 kHz); the motion
+    is smooth but violates Euler's step by ½ ω̈ Δt² at 100 Hz; both bounds are respected."""
+    rate = 2000.0
+    m = sinusoid_motion(4000, rate, 20.0, 300.0, np.random.default_rng(3))
+    for v, dv in ((m.omega, m.omega_dot), (m.omega_dot, m.omega_ddot), (m.s, m.s_dot)):
+        fd = (v[2:] - v[:-2]) * rate / 2
+        assert np.abs(fd - dv[1:-1]).max() < 1e-3 * np.abs(dv).max()
+    assert np.linalg.norm(m.omega, axis=1).max() <= 20.0 + 1e-9
+    assert np.linalg.norm(m.omega_dot, axis=1).max() <= 300.0 + 1e-9
+    c = sinusoid_motion(500, 100.0, 20.0, 300.0, np.random.default_rng(3))
+    euler = c.omega[1:] - c.omega[:-1] - c.omega_dot[:-1] * 0.01
+    assert np.abs(euler).max() > 0.2 * 0.5 * np.abs(c.omega_ddot).max() * 0.01 ** 2
+
+
+# -- problem file keys -------------------------------------------------------------------------------
+
+def _spec(tmp_path, motion):
+    import yaml
+    from castimate.spec import load_problem
+
+    (tmp_path / "d.csv").write_text("t,imu1.ax,imu1.ay,imu1.az\n0,0,0,9.8\n")
+    p = tmp_path / "p.yaml"
+    p.write_text(yaml.safe_dump({"kind": "dynamic_array", "data": {"path": "d.csv", "format": "csv"},
+                                 "array": {"reference": "imu1", "triads": [{"name": "imu1"}]}, "motion": motion}))
+    return lambda: load_problem(p)
+
+
+@pytest.mark.parametrize("motion, where, found", [
+    ({"integration": "rk4"}, "motion.integration", "expected one of wiener3, wiener2, trapezoid, euler, found 'rk4'"),
+    ({"process_noise": "tuned"}, "motion.process_noise", "expected one of auto, fixed, found 'tuned'"),
+    ({"sigma_s": 1.0}, "motion.sigma_s", "is a level of integration trapezoid or euler; with integration: wiener3 "
+                                          "give density_s, density_omega"),
+    ({"integration": "euler", "density_omega": 3.0}, "motion.density_omega",
+     "is a level of integration wiener3 or wiener2; with integration: euler give sigma_s"),
+    ({"density_s": -1.0}, "motion.density_s", "expected a positive finite number, found -1.0"),
+], ids=["integration", "process_noise", "sigma_with_wiener", "density_with_euler", "negative_level"])
+def test_motion_key_errors(tmp_path, motion, where, found):
+    with pytest.raises(InputError, match=f"{where}: {found}".replace("(", r"\(").replace(")", r"\)")) as e:
+        _spec(tmp_path, motion)()
+    assert "\n" not in str(e.value) and e.value.where == where
+
+
+def test_motion_keys_reach_the_config(tmp_path):
+    from castimate.kinds.dynamic import motion_sigmas
+
+    m = motion_sigmas(_spec(tmp_path, {"integration": "euler", "process_noise": "fixed", "sigma_s": 7.0})())
+    assert (m.integration, m.estimate, m.s, m.omega_dot) == ("euler", False, 7.0, 1e3 ** 0.5)
+    m = motion_sigmas(_spec(tmp_path, {})())
+    assert (m.integration, m.estimate) == ("wiener3", True)
