@@ -33,15 +33,17 @@ import scipy.sparse as sp
 
 def block_rows(solver, name: str) -> np.ndarray:
     """(instances, rows) indices of a factor block's whitened residuals in ``Solver.residuals``
-    (and in the rows of ``Solver.jacobians``): instances that are not valid are skipped there."""
+    (and in the rows of ``Solver.jacobians``); -1 where a row is not valid (left out there)."""
     off = 0
     for b in solver.blocks:
-        valid = np.ones(b.block.n, bool) if b.block.valid is None else np.asarray(b.block.valid, bool)
+        n, m = b.block.n, b.f.m
+        keep = np.ones((n, m), bool) if b.block.valid is None else \
+            np.broadcast_to(np.asarray(b.block.valid, bool).reshape(n, -1), (n, m))
         if b.block.name == name:
-            idx = np.full((b.block.n, b.f.m), -1)
-            idx[valid] = off + np.arange(int(valid.sum()) * b.f.m).reshape(-1, b.f.m)
+            idx = np.full((n, m), -1)
+            idx[keep] = off + np.arange(int(keep.sum()))
             return idx
-        off += int(valid.sum()) * b.f.m
+        off += int(keep.sum())
     raise KeyError(f"no factor block {name!r}")
 
 
