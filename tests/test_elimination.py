@@ -154,7 +154,7 @@ def test_elimination_note_says_what_was_eliminated_and_why_not():
     from types import SimpleNamespace
     from castimate.solve.elimination import Family
     assert Solver(dynamic_case(10).lsq).elimination_note == \
-        "eliminated: 10 x 9 (motion.omega, motion.omega_dot, motion.s)"
+        "eliminated: 10 x 12 (motion.omega, motion.omega_dot, motion.s, motion.omega_ddot)"  # wiener3
     assert Solver(dynamic_case(10).lsq, SolverOptions(elimination="none")).elimination_note == \
         "full NLP (elimination: none)"
     free, inf = np.ones((4, 3), bool), np.full((4, 3), np.inf)
