@@ -25,8 +25,8 @@ A window is *quiet* when both statistics are below their thresholds; every sampl
 window is a static candidate (the union of quiet windows, so the candidates reach the real edges of
 the rest). Candidates are the maximal runs of such samples. A quiet window may still hide the
 slow start of a motion, so each candidate's edges are then moved inward by a mean-shift
-change-point test (:func:`_refine_edges`, over at least 2 x ``REFINE_SPAN`` at each edge), which is
-far more sensitive than the standard deviation. Each candidate is then accepted or rejected with a
+change-point test (:func:`_refine_edges`, over at least 2 x ``REFINE_SPAN`` at each edge, repeated on
+what it leaves until the edges stop moving), which is far more sensitive than the standard deviation. Each candidate is then accepted or rejected with a
 reason, in this order:
 
 - *merged*: a candidate that follows the previous one after a gap of at most ``merge_gap`` seconds
@@ -276,6 +276,8 @@ def _direction_angle_deg(m1: dict[str, np.ndarray], m2: dict[str, np.ndarray]) -
 #: window is blind to a slow motion (a ramp's standard deviation grows with the window), the mean-shift
 #: test of the refinement is not.
 REFINE_SPAN = 1.0
+#: Refinements of a candidate's edges, each on what the previous one left, until they stop moving.
+REFINE_PASSES = 4
 
 #: Per-sample excess (in units of the mean normalised squared deviation) that an edge sample
 #: must show, on average, to be cut off a candidate by :func:`_refine_edges`.
@@ -474,7 +476,12 @@ def detect_static(rec: Recording, options: DetectionOptions = DetectionOptions()
     # 2. trim, duration, drift
     kept: list[tuple[int, int, int, int]] = []   # trimmed a, b, untrimmed (refined) a, b
     for a0, b0 in groups:
-        ra, rb = _refine_edges(channels, a0, b0, max(w, int(round(REFINE_SPAN / dt))))
+        ra, rb = a0, b0
+        for _ in range(REFINE_PASSES):  # again on what is left: its middle, the reference, is then cleaner
+            na, nb = _refine_edges(channels, ra, rb, max(w, int(round(REFINE_SPAN / dt))))
+            if (na, nb) == (ra, rb):
+                break
+            ra, rb = na, nb
         dur = (rb - ra) * dt
         cut = trim if trim is not None else min(AUTO_TRIM_MAX, AUTO_TRIM_FRACTION * dur)
         ntrim = int(round(cut / dt))
