@@ -23,13 +23,19 @@ curvature added). The covariance uses the same elimination with the Fisher infor
 
 A *family* is a set of nuisance matrix groups with the same rows (:class:`Family`); the factor
 blocks that touch it must come in runs of instances per row (:class:`assembly.StagedBlock`, the
-instances sorted by row if needed). Local derivatives come from the same compiled local functions
-as the reference assembly (:mod:`castimate.solve.assembly`), plus one of the nuisance components
-alone for the inner steps, and land on the eliminated system's arrays through small constant maps
-(:class:`_Plan`).
+instances sorted by row if needed), or be cut into a few runs that are each staged (a factor that
+reads the neighbouring samples, clamped at the ends of the record: first sample, interior, last
+sample); groups with priors or bounds on their rows, or read by a block without that structure,
+stay calibration variables, and the reason is reported (``Solver.elimination_note``). A staged
+block is evaluated a stage group at a time by compiled functions that also sum its instances'
+entries onto the stage's arrays (:class:`_StageFunctions`); otherwise local derivatives from the
+same local functions as the reference assembly (:mod:`castimate.solve.assembly`), plus one of the
+nuisance components alone for the inner steps, land on the eliminated system's arrays through
+small constant maps in numpy (:class:`_Plan`).
 
 Measured against the reference path (the full NLP, KKT factorised by MUMPS), same start, same
-optimum to 1e-13 relative: see ``benchmarks/dynamic_scaling.py``.
+optimum to 1e-13 relative, in ``benchmarks/dynamic_scaling.py``: at 32 IMUs x 20 000 samples 6.5 s
+CPU and 742 MB against 15.7 s and 2.7 GB.
 """
 
 from __future__ import annotations
