@@ -402,3 +402,12 @@ def test_montecarlo_and_plan_tables_by_hand():
     rows = plan_table([PlanCase(1.0, {"a": 2.0, "b": np.inf}, {"a": "m"}), PlanCase(4.0, {"a": 1.0, "b": np.inf})])
     assert rows[0] == {"parameter": "a", "unit": "m", "crb_1s": 2.0, "crb_4s": 1.0, "exponent": pytest.approx(-0.5)}
     assert np.isinf(rows[1]["crb_4s"]) and np.isnan(rows[1]["exponent"])
+
+
+def test_without_dask_the_verbs_say_what_to_install(monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "distributed", None)  # import distributed -> ImportError
+    with pytest.raises(InputError, match=r"pip install 'castimate\[scale\]'"):
+        with dask_client(workers=1):
+            pass

@@ -59,8 +59,11 @@ def dask_client(scheduler: str | None = None, workers: int | None = None, proces
     """A distributed Client: on ``scheduler`` (an address such as tcp://host:8786) if given, else on
     a LocalCluster of ``workers`` processes (default: one per core) with one thread each (IPOPT and
     its linear solvers are not reentrant; parallelism is across processes)."""
-    from distributed import Client, LocalCluster
-
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise InputError("dask", "", "castimate batch, montecarlo and plan need Dask distributed, which is not "
+                                     "installed: pip install 'castimate[scale]' (or 'dask[distributed]')") from None
     check_workers(workers)
     if scheduler:
         if not isinstance(scheduler, str) or "://" not in scheduler and ":" not in scheduler:
