@@ -219,3 +219,18 @@ def test_mimu_dropped_packets_reported_as_gaps(tmp_path):
     np.testing.assert_allclose(rec.t, 0.016 * np.array(list(range(20)) + list(range(25, 40))), atol=1e-12)
     assert any(n.startswith("timestamp: 1 gap(s) against 62.5 Hz, 5 samples missing; longest 0.08 s (5 samples) "
                             "after packet 20") for n in rec.notes)
+
+
+def test_mimu_counter_that_stops_is_refused(tmp_path):
+    """A packet that repeats its predecessor's counter with a new stamp: the counter, which numbers the samples,
+    does not advance; refused naming the file, the timestamp column and the packets."""
+    from test_io import ACK, TICKS, mimu_packet
+
+    stream = bytearray(ACK)
+    for i, c in enumerate([0, 1, 2, 3, 3, 4, 5, 6, 7, 8]):
+        stream += mimu_packet(c, 1000 + i * TICKS, np.zeros((1, 6), dtype=int))
+    p = tmp_path / "data.bin"
+    p.write_bytes(bytes(stream))
+    with pytest.raises(InputError, match=rx(p, "timestamp", "expected strictly increasing packet counter, found 3 at "
+                                                            "packet 5 after 3 at packet 4")):
+        read_mimu(p)

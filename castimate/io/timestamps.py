@@ -231,11 +231,11 @@ def regular_times(stamps: np.ndarray, source: object, column: str, row_label: Ca
     else:
         period = 1.0 / rate if declared else _period_from_lags(t)
         if not period > 0:
-            raise InputError(src, column, f"expected increasing time, found stamps that do not advance "
-                                          f"({float(t[0])!r} to {float(t[-1])!r} over {N} rows)")
-        n, period = _sample_numbers(t, period, declared, src, column, row_label)
-        if not declared:  # all rows in one least-squares fit, now that the gaps are known
-            period = float(np.polyfit(n, t, 1)[0])
+            period = 0.0  # refused below
+        else:
+            n, period = _sample_numbers(t, period, declared, src, column, row_label)
+            if not declared:  # all rows in one least-squares fit, now that the gaps are known
+                period = float(np.polyfit(n, t, 1)[0])
         rate_from = "declared" if declared else "the stamps"
     if not period > 0:
         raise InputError(src, column, f"expected increasing time, found stamps that do not advance "
