@@ -12,7 +12,8 @@ Layout of a problem file (DESIGN.md)::
              accelerometer: {gain, bias, nonorthogonality, misalignment},
              gyroscope: {gain, bias, misalignment},
              triads: {<name>: {accelerometer: {...}, gyroscope: {...}}}}
-    noise:  {accelerometer: auto | sigma | {<triad>: sigma}, gyroscope: ...}
+    noise:  {accelerometer: auto | sigma | {<triad>: sigma}, gyroscope: ...,
+             motion_dependent: auto | free | none | {accelerometer: auto | free | none | tau, gyroscope: ...}}
     solver: {max_iter, tol, linear_solver, print_level}
 
 A parameter group is ``free``, ``fixed``, or a mapping with ``free`` (bool or one bool per
@@ -23,7 +24,7 @@ one value per component, in the group's physical unit.
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -154,12 +155,38 @@ class MotionSpec:
     process_model: bool = True
 
 
+#: noise.motion_dependent (castimate.solve.motion_noise): per sensor and component (floor, jitter, rate),
+#: auto (estimated, kept where the likelihood-ratio test finds it), free (estimated), none (zero), or a
+#: number: the component's parameter fixed (σ_d, τ, κ in the units of solve.motion_noise.COMPONENTS).
+MOTION_NOISE = ("auto", "free", "none")
+NOISE_COMPONENTS = ("floor", "jitter", "rate")
+NOISE_COMPONENT_MAX = {"floor": {"accelerometer": 100.0, "gyroscope": 10.0}, "jitter": {"accelerometer": 0.1, "gyroscope": 0.1},
+                       "rate": {"accelerometer": 10.0, "gyroscope": 1.0}}
+NOISE_COMPONENT_UNIT = {"floor": SI, "jitter": {"accelerometer": "s", "gyroscope": "s"},
+                        "rate": {"accelerometer": "m/s^2 per rad/s", "gyroscope": "rad/s per rad/s"}}
+
+
 @dataclass(frozen=True)
 class NoiseSpec:
-    """Per-sample white-noise σ per triad (m/s^2, rad/s); None means estimate it from the data."""
+    """Per-sample white-noise σ per triad (m/s^2, rad/s); None means estimate it from the data.
+
+    ``motion_dependent``: sensor -> component -> setting of σ² = σ₀² + σ_d² + (τ u̇)² + (κ |ω|)²
+    (:data:`MOTION_NOISE` or a fixed value); dynamic problems only."""
 
     accelerometer: dict[str, float] | None = None
     gyroscope: dict[str, float] | None = None
+    motion_dependent: dict[str, dict[str, str | float]] = field(
+        default_factory=lambda: motion_noise_setting("none"))
+
+    @property
+    def motion_noise(self) -> bool:
+        """Whether any component of the motion-dependent noise model is estimated or set."""
+        return any(v != "none" for c in self.motion_dependent.values() for v in c.values())
+
+
+def motion_noise_setting(value: str) -> dict[str, dict[str, str]]:
+    """Every component of both sensors set to ``value`` (:data:`MOTION_NOISE`)."""
+    return {s: {k: value for k in NOISE_COMPONENTS} for s in ("accelerometer", "gyroscope")}
 
 
 @dataclass(frozen=True)
@@ -205,7 +232,7 @@ def parse_problem(raw: Any, path: Path, sha256: str = "") -> ProblemSpec:
     if kind == "ferraris" and len(array.triads) > 1:
         c.fail("array.triads", f"the Ferraris protocol calibrates one IMU; found {len(array.triads)} triads")
     model = _model(c, top.get("model"), array, kind, path.parent, joint=data.static_range is not None)
-    noise = _noise(c, top.get("noise"), array)
+    noise = _noise(c, top.get("noise"), array, kind)
     solver = _solver(c, top.get("solver"))
     motion = _motion(c, top.get("motion")) if kind == "dynamic_array" else None
     if data.segments == "rows" and noise.accelerometer is None:
@@ -467,9 +494,45 @@ def _motion(c: Check, m) -> MotionSpec:
     return MotionSpec(**kw)
 
 
-def _noise(c: Check, n, array: ArraySpec) -> NoiseSpec:
-    n = c.mapping(n, "noise", ("accelerometer", "gyroscope"))
+def _motion_noise(c: Check, v, kind: str) -> dict[str, dict[str, str | float]]:
+    """noise.motion_dependent: one setting for everything, or per sensor, or per sensor and component."""
+    w = "noise.motion_dependent"
+    if v is None:
+        return motion_noise_setting("auto" if kind == "dynamic_array" else "none")
+    if kind != "dynamic_array":
+        c.fail(w, f"the motion-dependent noise model is for kind dynamic_array, not {kind}")
+
+    def setting(x, where, sensor, comp):
+        if x is False:  # YAML's bare `off` / `no`
+            return "none"
+        if isinstance(x, str):
+            if x not in MOTION_NOISE:
+                c.fail(where, f"expected one of {', '.join(MOTION_NOISE)} or a fixed value, found {x!r}")
+            return x
+        return c.number(x, where, lo=0.0, hi=NOISE_COMPONENT_MAX[comp][sensor], unit=NOISE_COMPONENT_UNIT[comp][sensor])
+
+    if not isinstance(v, dict):
+        if not isinstance(v, str) and v is not False:
+            c.fail(w, f"expected one of {', '.join(MOTION_NOISE)} or a mapping per sensor, found {v!r}")
+        v = {s: v for s in SI}
+    v = c.mapping(v, w, tuple(SI))
     out = {}
+    for s in SI:
+        x = v.get(s, "auto")
+        if isinstance(x, dict):
+            x = c.mapping(x, f"{w}.{s}", NOISE_COMPONENTS)
+            out[s] = {k: setting(x.get(k, "auto"), f"{w}.{s}.{k}", s, k) for k in NOISE_COMPONENTS}
+        else:
+            if not isinstance(x, str) and x is not False:
+                c.fail(f"{w}.{s}", f"expected one of {', '.join(MOTION_NOISE)} or a mapping of floor, jitter, rate, "
+                                   f"found {x!r}")
+            out[s] = {k: setting(x, f"{w}.{s}", s, k) for k in NOISE_COMPONENTS}
+    return out
+
+
+def _noise(c: Check, n, array: ArraySpec, kind: str = "static_array") -> NoiseSpec:
+    n = c.mapping(n, "noise", ("accelerometer", "gyroscope", "motion_dependent"))
+    out = {"motion_dependent": _motion_noise(c, n.get("motion_dependent"), kind)}
     for sensor in ("accelerometer", "gyroscope"):
         v = n.get(sensor, "auto")
         w = f"noise.{sensor}"

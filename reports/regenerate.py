@@ -15,6 +15,9 @@ implied sample ages) into reports/mimu4444_exp<i>_dynamic_clocks/, and writes re
 the beats per chip and session, χ²/dof and the in-plane distance ratio before and after.
 ``python reports/regenerate.py diagnose-dynamic`` runs diagnose on each real dynamic session, all
 rounds (slow until the dynamic solve eliminates the motion).
+``python reports/regenerate.py sessions`` solves the real dynamic sessions effect by effect (white
+noise, chip clocks, the motion-dependent noise model; the gyroscope coupling on exp_1) through the
+command line: ``benchmarks/mimu4444_sessions.py``, its table in benchmarks/results/mimu4444_sessions.md.
 """
 
 from __future__ import annotations
@@ -205,9 +208,17 @@ def diagnose_dynamic() -> None:
             str(REPORTS / f"mimu4444_exp{i}_dynamic_diagnose"), "-q")
 
 
+def sessions() -> None:
+    import subprocess
+
+    subprocess.run([sys.executable, str(ROOT / "benchmarks" / "mimu4444_sessions.py")], cwd=ROOT, check=True)
+
+
 if __name__ == "__main__":
     if sys.argv[1:] == ["timing"]:
         timing_all()
+    elif sys.argv[1:] == ["sessions"]:
+        sessions()
     elif sys.argv[1:] == ["diagnose-dynamic"]:
         diagnose_dynamic()
     else:

@@ -38,7 +38,7 @@ from .dynamic import CLOCK_BEAT, estimate_clocks, implied_ages
 from ..problem.clocks import Beat, estimate_beats, periodogram
 from ..errors import CastimateError, InputError
 from ..problem.effects import BY_KEY, EFFECTS, TEMPERATURE, Effect
-from ..spec import ProblemSpec
+from ..spec import ProblemSpec, motion_noise_setting
 from ..problem.triads import GroupSetting, group_name
 from ..solve.ipopt import Solver
 
@@ -96,7 +96,11 @@ class Session:
     def __init__(self, spec: ProblemSpec, log: Log = quiet):
         if spec.data.static_range is not None:
             raise InputError(spec.path, "data.static", "diagnose runs on a static or a dynamic problem, not a joint one")
-        self.spec, self.kind = spec, kind_of(spec)
+        # The search compares models by their χ² and held-out error under the same σ's: the effects are
+        # searched with the white noise of the static segments, and the motion-dependent noise model
+        # the problem declares is fitted once, to the refined model (Diagnosis.final).
+        self.declared, self.kind = spec, kind_of(spec)
+        self.spec = replace(spec, noise=replace(spec.noise, motion_dependent=motion_noise_setting("none")))
         self.data = self.kind.load(spec, log)
         self.clocks: dict[str, Beat] = {}  # the chip clocks found by find_clocks (dynamic sessions)
 
@@ -338,6 +342,7 @@ class Diagnosis:
     residuals_after: ResidualAnalysis
     timing_before: list[TimingTrace] = field(default_factory=list)  # dynamic sessions
     timing_after: list[TimingTrace] = field(default_factory=list)
+    final: Model | None = None  # ``after`` refitted with the declared motion-dependent noise model, if any
 
     @property
     def spec(self) -> ProblemSpec:
@@ -382,4 +387,11 @@ def diagnose(spec: ProblemSpec, log: Log = quiet, alpha: float = ALPHA, session:
         before.cv = before.cv or session.cross_validate(before.effects)
     analyse = lambda m: analyse_residuals(*session.residuals(m.outcome), m.dof)  # noqa: E731
     timing = (lambda m: timing_traces(m.outcome)) if session.kind.sampled else (lambda m: [])  # noqa: E731
-    return Diagnosis(session, before, model, rounds, analyse(before), analyse(model), timing(before), timing(model))
+    final = model
+    if session.declared.noise.motion_noise:
+        log("fitting the refined model with the declared motion-dependent noise model")
+        final = Model(model.effects, session.kind.calibrate(with_effects(session.declared, model.effects), session.data,
+                                                             log, quick=True))
+        log(f"  χ²/dof = {final.s2:.3g}")
+    return Diagnosis(session, before, model, rounds, analyse(before), analyse(model), timing(before), timing(model),
+                     final)

@@ -22,9 +22,9 @@ from ..problem.compensation import linear_inverse
 from ..problem.triads import Regressors
 from ..problem.clocks import Beat, estimate_beats, implied_age
 from ..models.rotation import rotation_to_quaternion
-from ..problem.dynamic import (OMEGA, OMEGA_DOT, DynamicConfig, DynamicData, MotionSigmas, build_dynamic,
+from ..problem.dynamic import (OMEGA, OMEGA_DOT, S, DynamicConfig, DynamicData, MotionSigmas, build_dynamic,
                                build_dynamic_sigma_masked, build_joint, geometry_fixed)
-from ..spec import ProblemSpec
+from ..spec import ProblemSpec, motion_noise_setting
 from ..problem.triads import TriadConfig, fixed_config
 from ..problem.static import recover_nominal_rotation
 from ..prepare.poses import average_poses
@@ -35,6 +35,7 @@ from ..solve.variance import block_rows, estimate_levels
 from ..problem.graph import SolverOptions
 from ..prepare.masks import saturation_mask
 from ..prepare.plausibility import check_dynamic_information
+from ..solve.motion_noise import COMPONENTS, fit_noise, noise_sigma, stage_leverages
 
 #: A sensor with more than this fraction of its samples masked as saturated is refused.
 MAX_MASKED = 0.5
@@ -193,6 +194,7 @@ class DynamicOutcome:
     residual_gyro: dict
     nominal: dict  # name -> nominal position in the body frame
     variance: object = None  # solve.variance.VarianceComponents of the process noise, if estimated
+    motion_noise: dict = None  # sensor -> the fitted τ of noise.motion_dependent (:func:`fit_motion_noise`)
 
     @property
     def positions(self) -> dict:
@@ -302,7 +304,9 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = quiet, max_restarts: int = 2
         if any(n not in loaded.regressors.beats for n in spec.array.names):
             log("chip clocks: fitting without the sawtooth age to find the beats")
             pre = calibrate_dynamic(replace(spec, model=replace(spec.model, effects=tuple(
-                k for k in spec.model.effects if k != CLOCK_BEAT))), log, max_restarts, loaded)
+                k for k in spec.model.effects if k != CLOCK_BEAT)), noise=replace(
+                spec.noise, motion_dependent=motion_noise_setting("none"))),
+                log, max_restarts, loaded)
             beats = estimate_clocks(pre)
             log("  " + ", ".join(f"{n} {b.nu:+.4f} Hz" for n, b in beats.items()))
             loaded = replace(loaded, regressors=loaded.regressors.with_beats(
@@ -319,10 +323,11 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = quiet, max_restarts: int = 2
                               nominal)
     problem, solver, sol, attempts, variance = solve_dynamic(config, data, nominal, spec.solver, spec.path,
                                                              static_problem, log, max_restarts)
+    data, sol, noise = fit_motion_noise(spec, problem, solver, sol, data, log)
     cal, gcal = problem.calibration(sol.values), problem.gyro_calibration(sol.values)
     res_acc, res_gyro = measurement_residuals(problem, data, sol)
     return DynamicOutcome(spec, data, problem.config, problem, solver, sol, attempts, sat, cal, gcal, res_acc,
-                          res_gyro, nominal, variance)
+                          res_gyro, nominal, variance, noise)
 
 
 def solve_dynamic(config: DynamicConfig, data: DynamicData, nominal: dict, options: SolverOptions | None = None,
@@ -373,7 +378,8 @@ def solve_dynamic(config: DynamicConfig, data: DynamicData, nominal: dict, optio
         attempts.append({"attempt": attempt + 1, "success": sol.success, "message": sol.message,
                          "iterations": sol.iterations, "cost": sol.cost, "issues": issues,
                          "start": "previous poses" if start_values else "nominal poses"})
-        log(f"  {sol.message} in {sol.iterations} iterations, {sol.wall_s:.2f} s, cost {sol.cost:.6g}"
+        log(f"  {sol.message} in {sol.iterations} iterations, {sol.wall_s:.2f} s, cost {sol.cost:.6g}, "
+            f"χ²/dof {sol.chi2_per_dof:.6g}"
             + (f"; found: {'; '.join(issues)}" if issues else ""))
         if sol.success and (best is None or sol.cost < best[2].cost):
             best = (problem, solver, sol)
@@ -442,6 +448,96 @@ def estimate_process_noise(problem, data: DynamicData, solver: Solver, sol: Solu
     log("  estimated: " + ", ".join(f"{k} {v:.4g} {units[k]}" for k, v in comp.levels.items())
         + f" ({comp.iterations} iterations{'' if comp.converged else ', not converged'})")
     return final, final_solver, out, comp
+
+
+#: noise.motion_dependent: auto keeps a component where the likelihood-ratio test rejects zero at
+#: MOTION_NOISE_ALPHA; the outer iteration stops when no reading's σ changes by more than
+#: MOTION_NOISE_TOL (relative; a small component may still move more, it hardly weighs), after at
+#: most MOTION_NOISE_ROUNDS weighted refits.
+MOTION_NOISE_ALPHA, MOTION_NOISE_TOL, MOTION_NOISE_ROUNDS = 0.01, 0.01, 6
+SENSORS = (("accelerometer", "acc"), ("gyroscope", "gyro"))
+
+
+def noise_regressors(problem, values: dict, data: DynamicData) -> tuple[dict, dict]:
+    """The regressors g (N, 3) of the motion-dependent noise components (``solve.motion_noise.COMPONENTS``)
+    at the fitted ``values``, per sensor type and triad: 1, the reading's rate u̇² and |ω|²."""
+    rates = problem.reading_rates(values, data)
+    w2 = np.repeat(np.sum(values[OMEGA] ** 2, axis=1)[:, None], 3, axis=1)
+    return tuple({n: {"floor": np.ones_like(u), "jitter": u ** 2, "rate": w2} for n, u in r.items()} for r in rates)
+
+
+def with_motion_noise(data: DynamicData, params: dict[str, dict[str, float]], regressors: tuple[dict, dict]
+                      ) -> DynamicData:
+    """``data`` with the per-sample σ of σ² = σ₀² + Σ θ g (:func:`castimate.solve.motion_noise.noise_sigma`)
+    for the sensors with a non-zero component; ``params`` sensor -> component -> √θ."""
+    sample = {}
+    for (sensor, kind), reg in zip(SENSORS, regressors):
+        if any(params.get(sensor, {}).values()):
+            base = data.acc_sigma if kind == "acc" else data.gyro_sigma
+            sample[kind] = {n: noise_sigma(base[n], params[sensor], g) for n, g in reg.items()}
+    return replace(data, sigma_sample=sample)
+
+
+def fit_motion_noise(spec: ProblemSpec, problem, solver: Solver, sol: Solution, data: DynamicData, log: Log
+                     ) -> tuple[DynamicData, Solution, dict]:
+    """The motion-dependent noise model of ``noise.motion_dependent`` (:mod:`castimate.solve.motion_noise`):
+    alternately its components by maximum likelihood from the residuals and their redundancy, and
+    the weighted fit with the σ's they give (warm-started, no rebuild), until they settle. Returns
+    the data with the per-sample σ's, the solution of the last weighted fit and, per sensor and
+    component, the parameter, its σ and its likelihood-ratio test (plus the number of rounds)."""
+    setting = spec.noise.motion_dependent
+    if spec.solver.method == "bcd" or not spec.noise.motion_noise:
+        return data, sol, {}
+    params = {s: {k: (0.0 if isinstance(v, str) else float(v)) for k, v in c.items()} for s, c in setting.items()}
+    estimated = any(v in ("auto", "free") for c in setting.values() for v in c.values())
+    fits: dict = {}
+    rounds = 0
+    for round_ in range(1, MOTION_NOISE_ROUNDS + 2):
+        regressors = noise_regressors(problem, sol.values, data)
+        new = {s: dict(c) for s, c in params.items()}
+        if estimated:
+            h = problem.per_triad(stage_leverages(solver, sol.x, (OMEGA, OMEGA_DOT, S), problem.data_vector(data)))
+            res = measurement_residuals(problem, data, sol)
+            for i, (sensor, kind) in enumerate(SENSORS):
+                names = list(res[i])
+                if not names or all(v == "none" for v in setting[sensor].values()):
+                    continue
+                base = data.acc_sigma if kind == "acc" else data.gyro_sigma
+                comps = {k: v for k, v in setting[sensor].items() if v != "none"}
+                fit = fit_noise([res[i][n] for n in names], [h[i][n] for n in names], [base[n] for n in names],
+                                {k: [regressors[i][n][k] for n in names] for k in comps}, comps,
+                                params[sensor], MOTION_NOISE_ALPHA)
+                fits[sensor] = fit
+                new[sensor].update({k: f.value for k, f in fit.items()})
+        settled = all(np.nanmax(np.abs(noise_sigma(base[n], new[s], g) / noise_sigma(base[n], params[s], g) - 1))
+                      <= MOTION_NOISE_TOL for (s, kind), reg in zip(SENSORS, regressors)
+                      for base in [data.acc_sigma if kind == "acc" else data.gyro_sigma] for n, g in reg.items())
+        if (round_ > 1 and settled) or round_ > MOTION_NOISE_ROUNDS or \
+                (round_ == 1 and not any(v for c in new.values() for v in c.values())):
+            break
+        params, rounds = new, round_
+        log(f"motion-dependent noise, round {round_}: " + "; ".join(
+            f"{s}: " + ", ".join(f"{k} {v:.3g}" for k, v in c.items() if v) for s, c in params.items()
+            if any(c.values())))
+        data = with_motion_noise(data, params, regressors)
+        prev = sol
+        sol = solver.solve(sol.x, data=problem.data_vector(data), lam_g0=sol.lam_g)
+        log(f"  weighted refit: {sol.message} in {sol.iterations} iterations, {sol.wall_s:.2f} s, "
+            f"χ²/dof {sol.chi2_per_dof:.4g}")
+        if not sol.success:
+            raise NotConvergedError(f"{spec.path}: the refit with the motion-dependent noise model did not converge: "
+                                    f"{sol.message} (χ²/dof before {prev.chi2_per_dof:.4g})")
+    units = {k: u for k, (_, u) in COMPONENTS.items()}
+    out = {"rounds": rounds}
+    for sensor, c in params.items():
+        out[sensor] = {}
+        for k, v in c.items():
+            f = fits.get(sensor, {}).get(k)
+            out[sensor][k] = {"value": v, "std": f.std if f is not None and v else 0.0, "unit": units[k][sensor],
+                              "setting": setting[sensor][k],
+                              "statistic": f.statistic if f is not None else float("nan"),
+                              "p_value": f.p_value if f is not None else float("nan")}
+    return data, sol, out
 
 
 def _static_phase(spec: ProblemSpec, full: Recording, config: DynamicConfig, log: Log):
@@ -529,9 +625,9 @@ def implied_ages(outcome: DynamicOutcome) -> dict[str, tuple[np.ndarray, np.ndar
     d = outcome.data
     out = {}
     for n in outcome.config.names:
-        parts = [(outcome.residual_acc[n], rate_acc[n], d.acc_sigma[n])]
+        parts = [(outcome.residual_acc[n], rate_acc[n], d.sigma("acc", n))]
         if n in rate_gyro:
-            parts.append((outcome.residual_gyro[n], rate_gyro[n], d.gyro_sigma[n]))
+            parts.append((outcome.residual_gyro[n], rate_gyro[n], d.sigma("gyro", n)))
         out[n] = implied_age(*map(list, zip(*parts)))
     return out
 
@@ -544,19 +640,9 @@ def estimate_clocks(outcome: DynamicOutcome) -> dict[str, Beat]:
 def measurement_residuals(problem, data: DynamicData, sol: Solution) -> tuple[dict, dict]:
     """Residuals y - model per triad and sample (m/s^2, rad/s), NaN where an axis was masked.
     The solution's residuals are those of the valid axes, sample-major over the triads."""
-    r = sol.residual
-    out_a, out_g, off = {}, {}, 0
-    for kind, names, sig, out in (("acc", problem.config.names, data.acc_sigma, out_a),
-                                  ("gyro", problem.gyro_triads, data.gyro_sigma, out_g)):
-        if not names:
-            continue
-        ok = problem.valid_axes(kind, names)  # (N, K, 3)
-        full = np.full((data.n, len(names), 3), np.nan)
-        full[ok] = r[off: off + int(ok.sum())]
-        off += int(ok.sum())
-        for i, n in enumerate(names):
-            out[n] = full[:, i] * sig[n]
-    return out_a, out_g
+    white_a, white_g = problem.per_triad(sol.residual)
+    return ({n: r * data.sigma("acc", n) for n, r in white_a.items()},
+            {n: r * data.sigma("gyro", n) for n, r in white_g.items()})
 
 
 def orientation_quaternion(outcome: DynamicOutcome, name: str) -> np.ndarray:
@@ -651,8 +737,8 @@ class DynamicKind:
         """Sample times and the residuals (NaN where masked) with their σ per sensor and triad."""
         d = outcome.data
         return d.t, {
-            "accelerometer": {n: (r, np.broadcast_to(d.acc_sigma[n], r.shape)) for n, r in outcome.residual_acc.items()},
-            "gyroscope": {n: (r, np.broadcast_to(d.gyro_sigma[n], r.shape)) for n, r in outcome.residual_gyro.items()}}
+            "accelerometer": {n: (r, d.sigma("acc", n)) for n, r in outcome.residual_acc.items()},
+            "gyroscope": {n: (r, d.sigma("gyro", n)) for n, r in outcome.residual_gyro.items()}}
 
 
 KIND = DynamicKind()

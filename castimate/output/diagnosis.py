@@ -78,7 +78,9 @@ def diagnosis_document(d: Diagnosis) -> dict:
             "added": d.added, "before": _model(d.before), "after": _model(d.after), "rounds": rounds,
             "residuals_before": analysis(d.residuals_before), "residuals_after": analysis(d.residuals_after),
             "timing_before": timing(d.timing_before), "timing_after": timing(d.timing_after),
-            "parameter_changes": parameter_changes(d)}
+            "parameter_changes": parameter_changes(d),
+            **({"with_motion_noise": {**_model(d.final), "motion_dependent": d.final.outcome.motion_noise}}
+               if d.final is not None and d.final is not d.after else {})}
 
 
 def refined_problem(d: Diagnosis, out_dir: Path) -> str:
@@ -110,5 +112,6 @@ def refined_problem(d: Diagnosis, out_dir: Path) -> str:
 
 
 def final_results(d: Diagnosis) -> dict:
-    """results.json of the refined model."""
-    return dynamic_results(d.after.outcome) if d.spec.kind == "dynamic_array" else static_results(d.after.outcome)
+    """results.json of the refined model (with the declared motion-dependent noise model, if any)."""
+    final = d.final or d.after
+    return dynamic_results(final.outcome) if d.spec.kind == "dynamic_array" else static_results(final.outcome)

@@ -141,7 +141,9 @@ def dynamic_results(outcome) -> dict:
         "saturated_samples_masked": {k: v["masked"] for k, v in outcome.saturation.items()},
         "saturation": _saturation(spec, outcome.saturation),
         "motion_model": _motion_model(cfg, outcome.variance),
-        "noise": {"accelerometer": outcome.data.acc_sigma, "gyroscope": outcome.data.gyro_sigma},
+        "noise": {"accelerometer": outcome.data.acc_sigma, "gyroscope": outcome.data.gyro_sigma,
+                  # σ² = σ₀² + σ_d² + (τ u̇)² + (κ|ω|)² per axis (castimate.solve.motion_noise)
+                  **({"motion_dependent": outcome.motion_noise} if outcome.motion_noise else {})},
         "triads": triads,
         "residuals": {"chi2": sol.chi2, "dof": sol.dof, "chi2_per_dof": sol.chi2_per_dof,
                       "rms": {n: rms(r) for n, r in outcome.residual_acc.items()}, "rms_unit": "m/s^2",

@@ -58,6 +58,10 @@ def dynamic_summary(outcome) -> str:
         lines.append("  saturated samples masked (on the low rail / the high rail; axis readings): " + ", ".join(
             f"{k} {v['masked']} ({v['low']} / {v['high']}" + (f", {v['adjacent']} adjacent" if v["adjacent"] else "")
             + f"; {v['axes']})" for k, v in masked.items()))
+    for sensor, comps in (outcome.motion_noise or {}).items():
+        if sensor != "rounds" and any(c["value"] for c in comps.values()):
+            lines.append(f"  motion-dependent noise, {sensor}: " + ", ".join(
+                f"{k} {c['value']:.3g}±{c['std']:.2g} {c['unit']}" for k, c in comps.items() if c["value"]))
     lines.append("  position [mm] (body frame, origin at the reference triad)  estimate ± σ   | nominal")
     for n in outcome.config.names:
         r, s = outcome.positions[n]

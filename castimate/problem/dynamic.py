@@ -118,6 +118,9 @@ class DynamicData:
 
     ``acc_sigma``/``gyro_sigma`` are per-sample white-noise σ per axis, (3,). ``acc_valid``/``gyro_valid``
     per triad: (N, 3) which axes read (an ADC clips each channel on its own), or (N,) per sample.
+    ``sigma_sample`` ("acc"
+    | "gyro" -> triad -> (N, 3)) replaces them sample by sample where a motion-dependent noise model
+    is fitted (:mod:`castimate.solve.motion_noise`); :meth:`sigma` gives the σ in effect.
     """
 
     t: np.ndarray
@@ -128,17 +131,26 @@ class DynamicData:
     acc_valid: dict[str, np.ndarray] = field(default_factory=dict)
     gyro_valid: dict[str, np.ndarray] = field(default_factory=dict)
     temp: dict[str, np.ndarray] = field(default_factory=dict)  # K, where logged
+    sigma_sample: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
 
     @property
     def n(self) -> int:
         return len(self.t)
+
+    def sigma(self, kind: str, name: str) -> np.ndarray:
+        """(N, 3) σ of triad ``name``'s ``kind`` ("acc" | "gyro") readings, sample by sample."""
+        s = self.sigma_sample.get(kind, {}).get(name)
+        if s is not None:
+            return s
+        return np.broadcast_to((self.acc_sigma if kind == "acc" else self.gyro_sigma)[name], (self.n, 3))
 
     def take(self, idx) -> "DynamicData":
         """The samples ``idx`` only (e.g. a cross-validation fold)."""
         idx = np.asarray(idx)
         pick = lambda d: {k: v[idx] for k, v in d.items()}  # noqa: E731
         return replace(self, t=self.t[idx], acc=pick(self.acc), gyro=pick(self.gyro), acc_valid=pick(self.acc_valid),
-                       gyro_valid=pick(self.gyro_valid), temp=pick(self.temp))
+                       gyro_valid=pick(self.gyro_valid), temp=pick(self.temp),
+                       sigma_sample={k: pick(v) for k, v in self.sigma_sample.items()})
 
     def window(self, start: int, n: int) -> "DynamicData":
         """Samples start .. start + n - 1 (a fixed-size window, e.g. for the C solver)."""
@@ -306,19 +318,19 @@ class DynamicProblem:
         prev, nxt = _neighbours(data.n)
         inv_span = 1.0 / (data.t[nxt] - data.t[prev]) if data.n > 1 else np.zeros(data.n)
 
-        def stack(names, kind, y, sigma):
+        def stack(names, kind, y):
             ok, axes = self.valid(kind, names), self.valid_axes(kind, names)
             Y = np.where(axes, np.stack([y[n] for n in names], axis=1), 0.0)
-            S = np.where(axes, np.stack([np.broadcast_to(sigma[n], (self.n_samples, 3)) for n in names], axis=1),
+            S = np.where(axes, np.stack([data.sigma(kind, n) for n in names], axis=1),
                          np.where(ok[..., None], MASKED_SIGMA, np.inf))
             Rv = np.broadcast_to(np.stack([R[n].ravel(order="F") for n in names]), (self.n_samples, len(names), 9))
             reg_ = np.stack([reg.sample_moments(data.t, data.temp.get(n), n) for n in names], axis=1)  # (N, K, 5)
             span = np.broadcast_to(inv_span[:, None, None], (self.n_samples, len(names), 1))
             return np.concatenate([Y, S, Rv, reg_, span], axis=2).reshape(-1, 16 + N_SAMPLE_REGRESSORS)
 
-        out = [stack(self.config.names, "acc", data.acc, data.acc_sigma)]
+        out = [stack(self.config.names, "acc", data.acc)]
         if self.gyro_triads:
-            out.append(stack(self.gyro_triads, "gyro", data.gyro, data.gyro_sigma))
+            out.append(stack(self.gyro_triads, "gyro", data.gyro))
         if self.config.process_model:
             m = self.config.motion
             dt = np.diff(data.t)
@@ -341,7 +353,25 @@ class DynamicProblem:
         return acc, gyro
 
     def data_vector(self, data: DynamicData) -> np.ndarray:
-        return self.lsq.pack(self.block_data(data))
+        """The data of every block for ``data`` (blocks beyond the dynamic ones, the static poses
+        of a joint problem, keep theirs)."""
+        blocks = self.block_data(data)
+        return self.lsq.pack(blocks + [b.data for b in self.lsq.blocks[len(blocks):]])
+
+    def per_triad(self, v: np.ndarray) -> tuple[dict, dict]:
+        """A vector over the data residuals (the valid axes, sample-major over the triads, the
+        accelerometers first) as (N, 3) per triad, NaN where an axis is masked: (accelerometers,
+        gyroscopes)."""
+        out_a, out_g, off = {}, {}, 0
+        for kind, names, out in (("acc", self.config.names, out_a), ("gyro", self.gyro_triads, out_g)):
+            if not names:
+                continue
+            ok = self.valid_axes(kind, names)  # (N, K, 3)
+            full = np.full((self.n_samples, len(names), 3), np.nan)
+            full[ok] = v[off: off + int(ok.sum())]
+            off += int(ok.sum())
+            out.update({n: full[:, i] for i, n in enumerate(names)})
+        return out_a, out_g
 
     def calibration(self, values: dict) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """(T, b) of every accelerometer triad: raw = T f + b with f in the body frame."""

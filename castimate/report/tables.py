@@ -117,3 +117,12 @@ def position_spread(results: list[dict], sessions: list[str]) -> str:
         lines.append(f"| {t} | {f3(nom)} | {f3(est.mean(axis=0))} | "
                      f"{', '.join(f'{x:.0f}' for x in (est.max(axis=0) - est.min(axis=0)) * 1e3)} | {sd:.1f} | {sds:.0f} |")
     return "\n".join(lines)
+
+
+def session_position_spread(results: list[dict]) -> tuple[float, float]:
+    """(RMS over triads and components of the positions' standard deviation across sessions, RMS of the
+    reported σ's) [m], the reference triad (fixed at the origin) left out: σ's are honest when the two agree."""
+    names = [n for n in results[0]["triads"] if np.any(results[0]["triads"][n]["position_std"])]
+    est = np.array([[r["triads"][n]["position"] for n in names] for r in results])
+    sd = np.array([[r["triads"][n]["position_std"] for n in names] for r in results])
+    return float(np.sqrt(np.mean(np.var(est, axis=0, ddof=1)))), float(np.sqrt(np.mean(sd ** 2)))

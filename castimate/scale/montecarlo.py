@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +23,7 @@ from ..simulate.montecarlo import MonteCarloResult
 from ..simulate.scenarios import simulate_scenario
 from ..solve.ipopt import Solver
 from ..solve.uncertainty import partial_bound
-from ..spec import load_problem
+from ..spec import load_problem, motion_noise_setting
 from ..validation import Check, load_yaml
 from .engine import TaskResult, run_tasks
 from .stats import Estimate, estimates, score_runs, truth_values
@@ -83,6 +83,8 @@ def solve_noise_free(scenario: dict, source: str = "") -> Simulated:
     (``undetermined``) and their parameters get an infinite bound, where the pipeline would refuse."""
     with tempfile.TemporaryDirectory(prefix="castimate-crb-") as tmp:
         truth, spec = _simulate(scenario, source, Path(tmp), None, True)
+        # the bound of the declared σ's: no motion-dependent noise fitted to the exact readings
+        spec = replace(spec, noise=replace(spec.noise, motion_dependent=motion_noise_setting("none")))
         kind = kind_of(spec)
         data = kind.load(spec)
         problem = kind.build(kind.configure(spec, data), data)

@@ -473,7 +473,7 @@ SENSORS = ("accelerometer", "gyroscope")
 
 def dynamic_measurements(motion: Motion, positions, T, b, rng: np.random.Generator, acc_sigma, gyro=None,
                          names: list[str] | None = None, effects: dict | None = None, *, delay: dict | None = None,
-                         pink: dict | None = None, adc: dict | None = None
+                         pink: dict | None = None, adc: dict | None = None, jitter: float = 0.0
                          ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], dict[str, np.ndarray]]:
     """Raw readings of K triads rigidly attached to the moving body.
 
@@ -502,8 +502,13 @@ def dynamic_measurements(motion: Motion, positions, T, b, rng: np.random.Generat
     ``accelerometer.clock_beat``, ``accelerometer.clock_drift``: both sensors of the triad read the
     true signal at t − a(t)), and the sample-wise ones
     that need no temperature or specific force at the gyroscope (drifts over the record, scale terms).
+
+    ``jitter`` [s] (RMS): every chip's sampling instant jitters at random from sample to sample
+    (:func:`castimate.simulate.effects.jitter_ages`, independent per chip, shared by its
+    accelerometer and gyroscope); both read the true signal at their sample's own instant. The error
+    this makes grows with the signal's rate: the truth of ``noise.motion_dependent``.
     """
-    effects, delay, pink, adc = effects or {}, delay or {}, pink or {}, adc or {}
+    effects, delay, pink, adc = dict(effects or {}), delay or {}, pink or {}, adc or {}
     for what, d in (("delay", delay), ("pink", pink), ("adc", adc)):
         if set(d) - set(SENSORS):
             raise ValueError(f"{what}: unknown sensors {sorted(set(d) - set(SENSORS))}; expected {SENSORS}")
@@ -529,6 +534,8 @@ def dynamic_measurements(motion: Motion, positions, T, b, rng: np.random.Generat
         counts, rail = fx.adc_counts(y, lsb, bits)
         return counts * lsb, rail
 
+    if jitter > 0:
+        effects.update({f"{n}.accelerometer.jitter": fx.jitter_ages(jitter, N, rng) for n in names})
     acc: dict[str, np.ndarray] = {}
     for k, n in enumerate(names):
         u = sensed_specific_force(effects, n, motion.t, force_at, positions[k], T[k], delay.get("accelerometer", 0.0))

@@ -104,13 +104,15 @@ def chip_clock(period: float, rate: float, rng: np.random.Generator) -> np.ndarr
 def time_offset(values: dict, name: str, sensor: str, t: np.ndarray) -> np.ndarray | float:
     """The triad's sampling delay Δt [s] at times t (it reads the signal at t + Δt), 0 if none: its
     own ``time_offset`` minus the sample age of its chip's clock, shared by both sensors:
-    ``accelerometer.clock_beat`` (A, ν, φ) a sawtooth A (frac(ν t + φ) − ½), and
-    ``accelerometer.clock_drift`` (a at the recording's end) linear in time, zero at its middle."""
+    ``accelerometer.clock_beat`` (A, ν, φ) a sawtooth A (frac(ν t + φ) − ½),
+    ``accelerometer.clock_drift`` (a at the recording's end) linear in time, zero at its middle, and
+    ``accelerometer.jitter`` (N,) the chip's random age of every sample (timing jitter, :func:`jitter_ages`)."""
     dt = float(np.ravel(values.get(f"{name}.{sensor}.time_offset", 0.0))[0])
     beat, drift = values.get(f"{name}.accelerometer.clock_beat"), values.get(f"{name}.accelerometer.clock_drift")
-    if beat is None and drift is None:
+    jitter = values.get(f"{name}.accelerometer.jitter")
+    if beat is None and drift is None and jitter is None:
         return dt
-    age = np.zeros(len(t))
+    age = np.zeros(len(t)) if jitter is None else np.asarray(jitter, float).copy()
     if beat is not None:
         A, nu, phi = np.ravel(beat)
         x = nu * t + phi
@@ -118,6 +120,13 @@ def time_offset(values: dict, name: str, sensor: str, t: np.ndarray) -> np.ndarr
     if drift is not None:
         age += float(np.ravel(drift)[0]) * (t - (t[0] + t[-1]) / 2) / max((t[-1] - t[0]) / 2, 1e-9)
     return dt - age
+
+
+def jitter_ages(rms: float, n: int, rng: np.random.Generator) -> np.ndarray:
+    """(n,) random sample ages [s] of a chip whose sampling instant jitters: independent from sample to
+    sample, uniform over ±√3 rms (a sample taken anywhere within a window of the chip's clock, not the
+    estimator's Gaussian), the truth of the motion-dependent noise of ``noise.motion_dependent``."""
+    return rms * np.sqrt(3.0) * rng.uniform(-1.0, 1.0, n)
 
 
 def shifted(t: np.ndarray, x: np.ndarray, dt) -> np.ndarray:

@@ -294,7 +294,7 @@ def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDra
     rate = c.number(s.get("rate", 100.0), "rate", positive=True, hi=1e5, unit="Hz")
     w_max = np.radians(c.number(s.get("max_omega", 2000.0), "max_omega", positive=True, hi=1e4, unit="deg/s"))
     wd_max = np.radians(c.number(s.get("max_omega_dot", 2000.0), "max_omega_dot", positive=True, hi=1e6, unit="deg/s^2"))
-    noise = c.mapping(s.get("noise"), "noise", ("accelerometer", "gyroscope", "pink"))
+    noise = c.mapping(s.get("noise"), "noise", ("accelerometer", "gyroscope", "pink", "jitter"))
     acc_sigma = c.number(noise.get("accelerometer", 0.04), "noise.accelerometer", positive=True, hi=100.0, unit="m/s^2")
     gyro_sigma = np.radians(c.number(noise.get("gyroscope", 0.06), "noise.gyroscope", positive=True, hi=500.0, unit="deg/s"))
     pink = c.mapping(noise.get("pink"), "noise.pink", ("accelerometer", "gyroscope"))
@@ -305,6 +305,7 @@ def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDra
     delay = c.mapping(s.get("delay"), "delay", ("accelerometer", "gyroscope"))
     delay = {k: c.number(delay.get(k, 0.0), f"delay.{k}", lo=0.0, hi=1.0, unit="s") for k in ("accelerometer", "gyroscope")}
     adc = _adc(c, s.get("adc")) if "adc" in s else None
+    jitter = c.number(noise.get("jitter", 0.0), "noise.jitter", lo=0.0, hi=0.1, unit="s")  # RMS random sample age per chip
     pos_err = c.number(s.get("position_error", 1e-3), "position_error", lo=0.0, hi=1.0, unit="m")
     if geometry == "carlsson":
         names, nominal, true, R = carlsson_geometry(rng, pos_err, reference="imu1")
@@ -359,7 +360,8 @@ def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDra
                                               np.zeros((K, 3)), draw.rng(seed, rng), acc_sigma * draw.scale,
                                               gyro=gyro_model, names=names, effects=effects, delay=delay,
                                               pink={k: v * draw.scale for k, v in pink.items()},
-                                              adc={k: (lsb, adc["bits"]) for k, lsb in adc["lsb"].items()} if adc else None)
+                                              adc={k: (lsb, adc["bits"]) for k, lsb in adc["lsb"].items()} if adc else None,
+                                              jitter=jitter)
     rec = Recording(t=motion.t, acc=acc, gyro=gy, source="simulation")
     if adc:  # the file holds the counts, the problem declares their conversion and rails
         lsb = adc["lsb"]
@@ -394,7 +396,7 @@ def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDra
                        "R": true_R[n]} for i, n in enumerate(names)},
         "motion": {"max_omega": float(np.linalg.norm(motion.omega, axis=1).max()),
                    "max_omega_dot": float(np.linalg.norm(motion.omega_dot, axis=1).max()), "binding": motion.binding},
-        "noise": {"accelerometer": acc_sigma, "gyroscope": float(gyro_sigma) if gyro else None},
+        "noise": {"accelerometer": acc_sigma, "gyroscope": float(gyro_sigma) if gyro else None, "jitter": jitter},
         "saturated_samples": {n: int(m.any(axis=1).sum()) for n, m in saturated.items()} if gyro else {},
         "saturated_by_rail": _by_rail(rec, rails) if adc else {},
         "gyroscope_T": {n: T_g[i] for i, n in enumerate(names)} if gyro else {},

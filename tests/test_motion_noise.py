@@ -1,0 +1,192 @@
+"""The motion-dependent noise model σ² = σ₀² + (τ u̇)² (noise.motion_dependent, issue 11 item 5):
+a hand-computed estimate, the score and information against finite differences, leverages against
+the hat matrix, the simulator's timing jitter against the analytic motion, recovery of a known τ
+on a simulated board with jittering chips, nothing found without jitter, and the problem file's
+errors."""
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import yaml
+
+from castimate.kinds.dynamic import calibrate_dynamic
+from castimate.simulate.dynamic import dynamic_measurements, smooth_random_motion
+from castimate.simulate.effects import jitter_ages
+from castimate.simulate.scenarios import simulate_scenario
+from castimate.solve.motion_noise import (block_leverages, fit_noise, negative_log_likelihood, noise_sigma,
+                                      score_information, variance_components)
+from castimate.spec import load_problem, motion_noise_setting
+
+from test_validation import expect_error
+
+
+def test_noise_sigma_by_hand():
+    # σ₀ = 3, τ = 0.5 s with u̇ = (0, 8, -4), floor 2, κ = 0.1 with |ω|² = 100: σ² = 9 + 4 + (0, 16, 4) + 1
+    g = {"jitter": np.array([[0.0, 64.0, 16.0]]), "floor": np.ones((1, 3)), "rate": np.full((1, 3), 100.0)}
+    assert np.allclose(noise_sigma([3.0, 3.0, 3.0], {"jitter": 0.5, "floor": 2.0, "rate": 0.1}, g),
+                       [[np.sqrt(14), np.sqrt(30), np.sqrt(18)]])
+
+
+def test_tau_by_hand():
+    """Residuals at rest inform nothing about τ (σ₀ = 1 held); at a rate u̇² = c the likelihood
+    is that of one variance v = 1 + τ² c, so v̂ = mean(e²/r) and τ̂² = (mean(e²/r) − 1) / c."""
+    e = np.array([0.3, -2.0, 1.5, 2.5, -3.0, 0.7])
+    r = np.array([1.0, 1.0, 1.0, 0.5, 0.5, 0.5])
+    c = np.array([0.0, 0.0, 0.0, 4.0, 4.0, 4.0])
+    fit = variance_components(e, r, np.column_stack([np.ones(6), c]), [1.0, 0.0], [False, True])
+    v = np.mean(e[3:] ** 2 / r[3:])
+    assert fit.theta[0] == 1.0 and fit.theta[1] == pytest.approx((v - 1) / 4, rel=1e-9)
+    # its Fisher σ: I = ½ Σ c² / v² over the three moving residuals
+    assert fit.std[1] == pytest.approx(1 / np.sqrt(0.5 * 3 * 16 / v ** 2), rel=1e-6)
+    # residuals smaller than σ₀: τ stays at its bound 0
+    small = variance_components(0.1 * e, r, np.column_stack([np.ones(6), c]), [1.0, 0.0], [False, True])
+    assert small.theta[1] == 0.0 and small.std[1] == 0.0
+
+
+def test_score_and_information_match_finite_differences():
+    rng = np.random.default_rng(1)
+    G = np.column_stack([rng.uniform(0.5, 2, 50), rng.uniform(0, 3, 50) ** 2])
+    theta = np.array([1.3, 0.4])
+    e2r = (G @ theta) * rng.chisquare(1, 50)
+    s, _ = score_information(theta, G, e2r)
+    h = 1e-6
+    fd = [-(negative_log_likelihood(theta + h * d, G, e2r) - negative_log_likelihood(theta - h * d, G, e2r)) / (2 * h)
+          for d in np.eye(2)]
+    assert np.allclose(s, fd, rtol=1e-6)
+    # the expected information is minus the derivative of the score where e²/r = v
+    at_v = G @ theta
+    dS = np.column_stack([(score_information(theta + h * d, G, at_v)[0] - score_information(theta - h * d, G, at_v)[0])
+                          / (2 * h) for d in np.eye(2)])
+    assert np.allclose(-dS, score_information(theta, G, at_v)[1], rtol=1e-5)
+
+
+def test_block_leverages_are_the_hat_matrix_per_sample():
+    rng = np.random.default_rng(2)
+    sample = np.array([0, 0, 0, 0, 1, 1, 1, 1, 1, 0, 2, 2, 2])  # unsorted; sample 2 has as many rows as states
+    rows = np.arange(len(sample))
+    A = rng.standard_normal((len(sample), 3))
+    h = block_leverages(rows, sample, A, 3)
+    for n in range(3):
+        An = A[sample == n]
+        assert np.allclose(h[sample == n], np.diag(An @ np.linalg.solve(An.T @ An, An.T)))
+    assert np.allclose(h[sample == 2], 1.0)  # no redundancy
+    assert h.sum() == pytest.approx(9.0)  # the rank of the three blocks
+
+
+def test_fit_noise_recovers_jitter_on_synthetic_residuals():
+    """Residuals of a reading with white noise σ₀ and a random sample age of RMS τ (uniform, not the
+    model's Gaussian): τ within a few of its Fisher σ's; the floor and the rate term, absent, are
+    dropped by the likelihood-ratio test."""
+    rng = np.random.default_rng(3)
+    n, tau, s0 = 20000, 2e-3, np.array([0.01, 0.02, 0.01])
+    u = rng.standard_normal((n, 3)) * np.array([5.0, 10.0, 20.0])
+    w2 = np.repeat(rng.uniform(0, 100, (n, 1)), 3, axis=1)
+    reg = {"floor": [np.ones((n, 3))], "jitter": [u ** 2], "rate": [w2]}
+    e = s0 * rng.standard_normal((n, 3)) - jitter_ages(tau, n, rng)[:, None] * u
+    fit = fit_noise([e], [np.zeros((n, 3))], [s0], reg, {"floor": "auto", "jitter": "auto", "rate": "auto"})
+    j = fit["jitter"]
+    assert abs(j.value - tau) < 4 * j.std and j.std < 0.05 * tau and j.p_value < 1e-10 and j.kept
+    assert not fit["floor"].kept and not fit["rate"].kept and fit["floor"].value == 0.0
+    none = fit_noise([s0 * rng.standard_normal((n, 3))], [np.zeros((n, 3))], [s0], reg, {"jitter": "auto"})
+    assert not none["jitter"].kept and none["jitter"].p_value > 1e-3
+    # a floor and a rate term, no jitter: both found, their parameters within 4σ
+    e = np.sqrt(s0 ** 2 + 0.05 ** 2 + 1e-4 * w2) * rng.standard_normal((n, 3))
+    both = fit_noise([e], [np.zeros((n, 3))], [s0], reg, {"floor": "free", "jitter": "auto", "rate": "auto"})
+    assert abs(both["floor"].value - 0.05) < 4 * both["floor"].std and abs(both["rate"].value - 1e-2) < 4 * both["rate"].std
+    assert not both["jitter"].kept
+
+
+def test_simulated_jitter_reads_the_motion_at_its_own_instant():
+    """With jitter and no white noise, each chip's readings differ from the jitter-free ones by
+    −δ u̇ to first order (δ its sample's age), the same δ for its accelerometer and gyroscope."""
+    rng = np.random.default_rng(4)
+    motion = smooth_random_motion(400, 100.0, 5.0, 30.0, rng)
+    r, T, gyro = np.array([[0.0, 0.0, 0.0], [0.01, -0.02, 0.0]]), np.eye(3), {"T_g": np.eye(3), "b_g": np.zeros(3), "sigma": 0.0}
+    a0, g0, _ = dynamic_measurements(motion, r, T, np.zeros(3), np.random.default_rng(0), 0.0, gyro)
+    a1, g1, _ = dynamic_measurements(motion, r, T, np.zeros(3), np.random.default_rng(9), 0.0, gyro, jitter=1e-3)
+    ages = np.random.default_rng(9)
+    for k, name in enumerate(("imu1", "imu2")):
+        d = jitter_ages(1e-3, 400, ages)
+        assert np.sqrt(np.mean(d ** 2)) == pytest.approx(1e-3, rel=0.1) and np.abs(d).max() <= np.sqrt(3) * 1e-3
+        inner = slice(5, -5)  # away from the spline's ends
+
+        def first_order(diff, rate):  # RMS of what the first-order term leaves, relative to the term
+            pred = -d[:, None] * rate
+            return np.sqrt(np.mean((diff - pred)[inner] ** 2) / np.mean(pred[inner] ** 2))
+
+        assert first_order(g1[name] - g0[name], motion.omega_dot) < 0.03
+        f_dot = np.gradient(motion.specific_force_at(r[k]), motion.t, axis=0)
+        assert first_order(a1[name] - a0[name], f_dot) < 0.03
+
+
+def _board(tmp_path, jitter):
+    scenario = {"kind": "dynamic_array", "seed": 5, "geometry": "carlsson", "imus": 6, "samples": 500, "rate": 62.5,
+                "max_omega": 1000, "max_omega_dot": 20000, "euler_consistent": False,
+                "motion": {"process_model": False}, "noise": {"jitter": jitter}}
+    (tmp_path / "s.yaml").write_text(yaml.safe_dump(scenario))
+    simulate_scenario(tmp_path / "s.yaml", tmp_path)
+    return load_problem(tmp_path / "problem.yaml"), json.loads((tmp_path / "truth.json").read_text())
+
+
+def test_known_jitter_recovered_and_sigmas_honest(tmp_path):
+    """Chips jittering by 100 µs RMS: the default (auto) finds τ for both sensors within a few σ of
+    the truth, χ²/dof is 1 within its sampling error and the positions are within their σ's."""
+    spec, truth = _board(tmp_path, 1e-4)
+    out = calibrate_dynamic(spec)
+    g, a = out.motion_noise["gyroscope"]["jitter"], out.motion_noise["accelerometer"]["jitter"]
+    assert abs(g["value"] - 1e-4) < 4 * g["std"] and g["std"] < 0.05e-4 and g["unit"] == "s"
+    assert abs(a["value"] - 1e-4) < 4 * a["std"]
+    dof = out.solution.dof
+    assert abs(out.solution.chi2_per_dof - 1) < 4 * np.sqrt(2 / dof) + 0.01  # + the leverage approximation
+    err = np.concatenate([(out.positions[n][0] - truth["triads"][n]["position"]) / out.positions[n][1]
+                          for n in spec.array.names if n != truth["reference"]])
+    assert np.sqrt(np.mean(err ** 2)) < 2.0
+    # the white-noise model on the same data: χ²/dof far above 1
+    white = calibrate_dynamic(replace(spec, noise=replace(spec.noise, motion_dependent=motion_noise_setting("none"))))
+    assert white.solution.chi2_per_dof > 10 and white.motion_noise == {}
+
+
+def test_no_jitter_nothing_added(tmp_path):
+    spec, _ = _board(tmp_path, 0.0)
+    out = calibrate_dynamic(spec)
+    assert all(c["value"] == 0.0 for s in ("accelerometer", "gyroscope") for c in out.motion_noise[s].values())
+    assert out.motion_noise["rounds"] == 0 and out.data.sigma_sample == {}
+
+
+@pytest.mark.parametrize("value, where, found", [
+    ("sometimes", "noise.motion_dependent.accelerometer", "expected one of auto, free, none or a fixed value, found 'sometimes'"),
+    ({"gyroscope": {"jitter": 0.5}}, "noise.motion_dependent.gyroscope.jitter", "expected a number from 0 to 0.1 s, found 0.5"),
+    ({"gyroscope": {"floor": -1e-3}}, "noise.motion_dependent.gyroscope.floor", "expected a number from 0 to 10 rad/s, found -0.001"),
+    ({"gyroscope": {"wobble": "auto"}}, "noise.motion_dependent.gyroscope.wobble", "unknown key; expected one of floor, jitter, rate"),
+    ({"gyroscope": 1e-4}, "noise.motion_dependent.gyroscope", "expected one of auto, free, none or a mapping of floor, jitter, rate, found 0.0001"),
+    ({"magnetometer": "auto"}, "noise.motion_dependent.magnetometer", "unknown key; expected one of accelerometer, gyroscope"),
+    (3, "noise.motion_dependent", "expected one of auto, free, none or a mapping per sensor, found 3"),
+])
+def test_motion_noise_key_errors(tmp_path, value, where, found):
+    spec, _ = _board(tmp_path, 0.0)
+    doc = yaml.safe_load((tmp_path / "problem.yaml").read_text())
+    doc["noise"]["motion_dependent"] = value
+    (tmp_path / "p.yaml").write_text(yaml.safe_dump(doc))
+    expect_error(lambda: load_problem(tmp_path / "p.yaml"), tmp_path / "p.yaml", where, found)
+
+
+def test_motion_noise_refused_for_static_problems(tmp_path):
+    (tmp_path / "s.yaml").write_text("kind: static_array\ntriads: 2\nposes: 12\nseed: 2\n")
+    simulate_scenario(tmp_path / "s.yaml", tmp_path)
+    doc = yaml.safe_load((tmp_path / "problem.yaml").read_text())
+    doc["noise"]["motion_dependent"] = "auto"
+    (tmp_path / "p.yaml").write_text(yaml.safe_dump(doc))
+    expect_error(lambda: load_problem(tmp_path / "p.yaml"), tmp_path / "p.yaml", "noise.motion_dependent",
+                 "the motion-dependent noise model is for kind dynamic_array, not static_array")
+
+
+def test_fixed_tau_and_none_parse(tmp_path):
+    _board(tmp_path, 0.0)
+    doc = yaml.safe_load((tmp_path / "problem.yaml").read_text())
+    doc["noise"]["motion_dependent"] = {"accelerometer": False, "gyroscope": {"jitter": 2.0e-4, "rate": "free"}}
+    (tmp_path / "p.yaml").write_text(yaml.safe_dump(doc))
+    assert load_problem(tmp_path / "p.yaml").noise.motion_dependent == {
+        "accelerometer": {"floor": "none", "jitter": "none", "rate": "none"},
+        "gyroscope": {"floor": "auto", "jitter": 2e-4, "rate": "free"}}
