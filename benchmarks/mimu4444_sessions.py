@@ -147,6 +147,9 @@ def main() -> None:
     spread = {}
     if len(rows) > 1:
         spread = {"chip clocks + noise model": session_position_spread([runs[i]["clocks"]["results"] for i in a.sessions])}
+        if all("coupling" in runs[i] for i in a.sessions):
+            spread["chip clocks + coupling + noise model"] = session_position_spread(
+                [runs[i]["coupling"]["results"] for i in a.sessions])
         if all("white" in runs[i] for i in a.sessions):
             spread["white noise"] = session_position_spread([runs[i]["white"]["results"] for i in a.sessions])
     md = table(rows, spread)
