@@ -37,6 +37,7 @@ from typing import Any, Callable
 from .calibration import Calibration
 from .errors import InputError, NotConvergedError
 from .spec import ProblemSpec, load_problem, parse_problem
+from .validation import as_path
 
 __all__ = ["Calibration", "InputError", "NotConvergedError", "ProblemSpec", "diagnose", "load", "solve", "write"]
 
@@ -64,8 +65,9 @@ def load(source: Problem, base_dir: str | Path = ".") -> ProblemSpec:
         return source
     if isinstance(source, dict):
         text = json.dumps(source, sort_keys=True, default=str)
-        return parse_problem(source, Path(base_dir) / "<dict>", hashlib.sha256(text.encode()).hexdigest())
-    return load_problem(source)
+        base = as_path(base_dir, "castimate.load", "base_dir", "a directory path")
+        return parse_problem(source, base / "<dict>", hashlib.sha256(text.encode()).hexdigest())
+    return load_problem(as_path(source, "castimate.load", "source", "a problem file path, a dict or a ProblemSpec"))
 
 
 def solve(problem: Problem, log: Log | None = None):
@@ -97,10 +99,18 @@ def write(outcome, directory: str | Path) -> Path:
     >>> doc["format"], doc["kind"], doc["status"]["success"]
     ('castimate.results/1', 'static_array', True)
     """
+    from .io.atomic import StagedOutput
+    from .kinds.dynamic import DynamicOutcome
+    from .kinds.static import StaticOutcome
     from .output import write_outputs
 
-    directory = Path(directory)
-    write_outputs(directory, outcome)
+    if not isinstance(outcome, (StaticOutcome, DynamicOutcome)):
+        raise TypeError(f"castimate.write: outcome: expected the outcome of castimate.solve, found "
+                        f"{type(outcome).__name__}")
+    directory = as_path(directory, "castimate.write", "directory", "a directory path")
+    with StagedOutput(directory, names=("results.json", "details.npz"), inputs=outcome.spec.inputs,
+                      option="directory") as stage:
+        write_outputs(stage, outcome)
     return directory / "results.json"
 
 

@@ -41,9 +41,16 @@ from .io.recording import Recording
 from .io.results import read_results
 from .io.units import parse_units
 from .jit import compile_functions
+from .prepare.plausibility import (
+    G0,
+    Declared,
+    check_accelerometer_units,
+    check_gyroscope_units,
+)
 from .problem.compensation import TriadLayout, triad_compensation
 from .problem.effects import BY_KEY, TEMPERATURE, TIME, included
 from .problem.triads import Regressors
+from .validation import as_path
 
 EXTENSIONS = {".csv": "csv", ".npz": "npz", ".bin": "mimu"}
 
@@ -81,7 +88,7 @@ class Calibration:
     @staticmethod
     def read(path: str | Path) -> "Calibration":
         """Read a results.json (checked: format, successful status, T and b, effect parameters)."""
-        path = Path(path)
+        path = as_path(path, "Calibration.read", "path", "the path of a results.json")
         doc = read_results(path)
         fx = doc.get("effects") or {}
         keys = tuple(fx.get("included", ()))
@@ -127,28 +134,42 @@ class Calibration:
         ``temp``: {triad: (N,)} or one (N,) array for every triad [K], needed by temperature effects.
         ω is None without gyroscope data; a triad without a calibrated gyroscope is left out of it.
         """
+        where = "Calibration.apply"
         single = not isinstance(acc, dict)
         if single:
             if len(self.names) != 1:
-                raise ValueError(f"expected a dict of readings per triad ({', '.join(self.names)}), found an array")
+                raise InputError(where, "acc", f"expected a dict of readings per triad ({', '.join(self.names)}), "
+                                               f"found {type(acc).__name__}")
+            if gyro is not None and isinstance(gyro, dict):
+                raise InputError(where, "gyro", "expected an (N, 3) array like acc, found a dict")
             acc = {self.names[0]: acc}
             gyro = None if gyro is None else {self.names[0]: gyro}
+        elif gyro is not None and not isinstance(gyro, dict):
+            raise InputError(where, "gyro", f"expected a dict of readings per triad like acc, found {type(gyro).__name__}")
+        for arg, d in (("acc", acc), ("gyro", gyro or {}), ("temp", temp if isinstance(temp, dict) else {})):
+            for name in d:
+                if name not in self.layouts:
+                    raise InputError(where, f"{arg}[{name!r}]", f"unknown triad; the calibration has "
+                                                                f"{', '.join(self.names)}")
         f, omega = {}, {}
         for name, y in acc.items():
-            if name not in self.layouts:
-                raise ValueError(f"unknown triad {name!r}; the calibration has {', '.join(self.names)}")
-            y = np.atleast_2d(np.asarray(y, float))
+            w = (lambda a: a) if single else (lambda a, name=name: f"{a}[{name!r}]")
+            y = readings(y, w("acc"))
             n = len(y)
             if self.needs(TIME) and t is None:
-                raise ValueError("the calibration has a time-dependent effect (drift): pass t")
-            tau = np.zeros(n) if t is None else (np.asarray(t, float) - self.regressors.t_mid) / self.regressors.t_half
+                raise InputError(where, "t", "the calibration has a time-dependent effect (drift): pass t, the "
+                                             "sample times in s")
+            tau = np.zeros(n) if t is None else \
+                (series(t, "t", n, w("acc")) - self.regressors.t_mid) / self.regressors.t_half
             T = temp.get(name) if isinstance(temp, dict) else temp
             if self.needs(TEMPERATURE) and T is None:
-                raise ValueError(f"the calibration has a temperature effect: pass temp for triad {name!r}")
-            dT = np.zeros(n) if T is None else np.asarray(T, float) - self.regressors.temp_mean.get(name, 0.0)
+                raise InputError(where, w("temp"), f"the calibration has a temperature effect: pass temp for triad "
+                                                   f"{name!r} (K)")
+            dT = np.zeros(n) if T is None else \
+                series(T, w("temp"), n, w("acc"), TEMPERATURE_RANGE, "K") - self.regressors.temp_mean.get(name, 0.0)
             g = None if gyro is None else gyro.get(name)
             has_gyro = g is not None and self.layouts[name].gyroscope
-            g = np.zeros((n, 3)) if not has_gyro else np.atleast_2d(np.asarray(g, float))
+            g = np.zeros((n, 3)) if not has_gyro else readings(g, w("gyro"), n, w("acc"))
             fi, wi = _evaluate(self.layouts[name], y, g, tau, dT, self.params[name])
             f[name] = fi
             if has_gyro:
@@ -156,6 +177,65 @@ class Calibration:
         if single:
             return f[self.names[0]], (omega.get(self.names[0]) if gyro is not None else None)
         return f, (omega if gyro is not None else None)
+
+
+#: Temperatures Calibration.apply accepts, K (-100 to 150 °C: a value in °C is refused).
+TEMPERATURE_RANGE = (173.0, 423.0)
+
+
+def _numeric(x, where: str) -> np.ndarray:
+    a = np.asarray(x) if not isinstance(x, np.ndarray) else x
+    if a.dtype == object:
+        try:
+            a = np.asarray(x, float)
+        except (TypeError, ValueError):
+            raise InputError("Calibration.apply", where, "expected numbers, found values that are not") from None
+    if a.dtype.kind not in "iuf":
+        raise InputError("Calibration.apply", where, f"expected real numbers, found an array of dtype {a.dtype}")
+    return a.astype(float)
+
+
+def _finite(a: np.ndarray, where: str) -> np.ndarray:
+    bad = ~np.isfinite(a)
+    if bad.any():
+        i = np.argwhere(bad)[0]
+        raise InputError("Calibration.apply", where, f"expected finite numbers, found {a[tuple(i)]} at index "
+                                                     f"{tuple(int(k) for k in i) if a.ndim > 1 else int(i[0])}")
+    return a
+
+
+def readings(x, where: str, n: int | None = None, like: str = "") -> np.ndarray:
+    """A triad's readings as an (N, 3) float array (one (3,) sample allowed), finite; N = ``n`` if given."""
+    try:
+        a = _numeric(x, where)
+    except ValueError as e:
+        if isinstance(e, InputError):
+            raise
+        raise InputError("Calibration.apply", where, "expected an (N, 3) array, found rows of different lengths") from None
+    if a.ndim == 1 and a.shape == (3,):
+        a = a[None, :]
+    if a.ndim != 2 or a.shape[1] != 3 or len(a) == 0:
+        hint = "; transpose it (one row per sample)" if a.ndim == 2 and a.shape[0] == 3 else ""
+        raise InputError("Calibration.apply", where, f"expected an (N, 3) array with N >= 1, found shape {a.shape}{hint}")
+    if n is not None and len(a) != n:
+        raise InputError("Calibration.apply", where, f"expected {n} samples like {like}, found {len(a)}")
+    return _finite(a, where)
+
+
+def series(x, where: str, n: int, like: str, bounds: tuple[float, float] | None = None, unit: str = "") -> np.ndarray:
+    """A per-sample series of N values (a scalar holds for every sample), finite and within ``bounds``."""
+    a = _numeric(x, where)
+    if a.ndim == 0:
+        a = np.full(n, float(a))
+    if a.ndim != 1 or len(a) != n:
+        raise InputError("Calibration.apply", where, f"expected a scalar or {n} values (one per sample of {like}), "
+                                                     f"found shape {a.shape}")
+    a = _finite(a, where)
+    if bounds is not None and (a.min() < bounds[0] or a.max() > bounds[1]):
+        v = a.min() if a.min() < bounds[0] else a.max()
+        raise InputError("Calibration.apply", where, f"expected {bounds[0]:g} to {bounds[1]:g} {unit}, found {v:g}"
+                                                     + (" (in °C? pass kelvin)" if unit == "K" and -60 < v < 150 else ""))
+    return a
 
 
 def _values(path: Path, name: str, t: dict, layout: TriadLayout) -> dict:
@@ -219,6 +299,9 @@ def apply_calibration(results_path, data_path, out_path, fmt: str | None = None,
         raise InputError(out_path, "", f"expected an output file ending in .csv or .npz, found {out_path.suffix!r}")
     units = read_results(results_path).get("units", {})
     log = log or (lambda msg: None)
+    if gyro_path is not None and fmt != "imutk":
+        raise InputError(gyro_path, "--gyro", f"a separate gyroscope file belongs to the imutk format; the data "
+                                              f"{data_path.name} are {fmt}, with their gyroscope in the same file")
     if gyro_path is None and fmt == "imutk":
         gyro_path = imutk_gyro_file(data_path)
         if gyro_path is not None:
@@ -227,6 +310,13 @@ def apply_calibration(results_path, data_path, out_path, fmt: str | None = None,
                          gyro_units=units.get("data_gyroscope"), gyro_path=gyro_path)
     for note in rec.notes if log else ():
         log(f"{data_path.name}: {note}")
+    # the data against physics in the calibration's units: data of another device or unit are refused
+    declared = Declared(results_path, data_path, str(units.get("data_accelerometer") or f"the {fmt} default"),
+                        str(units.get("data_gyroscope") or f"the {fmt} default"), units_key="units.data",
+                        fix=f"{data_path.name} is not in the units the calibration was made with; its data would need")
+    used = [n for n in cal.names if n in rec.acc]
+    check_accelerometer_units(rec, used, declared, G0, "dynamic", log)
+    check_gyroscope_units(rec, [n for n in used if n in rec.gyro], declared)
     for name in cal.names:
         if name not in rec.acc:
             raise InputError(data_path, f"{name}.ax", f"the calibration has triad {name!r}; the data has {', '.join(rec.acc)}")

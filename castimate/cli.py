@@ -20,11 +20,6 @@ def _log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def _inputs_of(spec) -> tuple:
-    """The files a problem reads: an output must never replace one of them."""
-    return (spec.path, spec.data.path, spec.data.gyro_path, spec.data.sections, spec.model.intrinsics)
-
-
 def cmd_solve(args) -> int:
     from .io.atomic import StagedOutput
     from .kinds import calibrate
@@ -35,7 +30,7 @@ def cmd_solve(args) -> int:
     spec = load_problem(args.problem)
     log = _log if not args.quiet else (lambda m: None)
     # refused up front (a file where the directory goes, an input in the way), written only on success
-    with StagedOutput(out, names=("results.json", "details.npz"), inputs=_inputs_of(spec)) as stage:
+    with StagedOutput(out, names=("results.json", "details.npz"), inputs=spec.inputs) as stage:
         summary = write_outputs(stage, calibrate(spec, log))
     print(summary)
     print(f"wrote {out / 'results.json'}")
@@ -92,7 +87,7 @@ def cmd_diagnose(args) -> int:
     spec = load_problem(args.problem)
     log = _log if not args.quiet else (lambda m: None)
     names = ("diagnose.json", "results.json", f"{Path(args.problem).stem}_refined.yaml", "report.html")
-    with StagedOutput(out, names=names, inputs=_inputs_of(spec)) as stage:
+    with StagedOutput(out, names=names, inputs=spec.inputs) as stage:
         d = diagnose(spec, log=log)
         write_json(stage / names[0], diagnosis_document(d))
         write_json(stage / names[1], final_results(d))
@@ -107,7 +102,7 @@ def cmd_diagnose(args) -> int:
 
 
 def cmd_noise(args) -> int:
-    from .io.atomic import write_atomic
+    from .io.atomic import StagedOutput, write_atomic
     from .io.results import write_json
     from .kinds.noise import characterise_noise
     from .output.noise import kalibr_imu_yaml, noise_document
@@ -115,24 +110,25 @@ def cmd_noise(args) -> int:
     from .spec import load_problem
 
     spec = load_problem(args.problem)
-    outcome = characterise_noise(spec, log=_log if not args.quiet else (lambda m: None))
     out = Path(args.output)
-    out.mkdir(parents=True, exist_ok=True)
-    single = len(outcome.accelerometer) == 1
-    written = [out / "noise.json"]
-    write_json(written[0], noise_document(outcome))
+    triads = spec.array.names
+    suffix = {n: "" if len(triads) == 1 else f"_{n}" for n in triads}
+    names = ("noise.json", *(f"{kind}{suffix[n]}.{ext}" for n in triads for kind, ext in (("imu", "yaml"),
+                                                                                            ("allan", "png"))))
+    with StagedOutput(out, names=names, inputs=spec.inputs) as stage:
+        outcome = characterise_noise(spec, log=_log if not args.quiet else (lambda m: None))
+        write_json(stage / names[0], noise_document(outcome))
+        for n in outcome.accelerometer:
+            write_atomic(stage / f"imu{suffix[n]}.yaml", kalibr_imu_yaml(outcome, n))
+            allan_figure(outcome, n).savefig(stage / f"allan{suffix[n]}.png", dpi=110)
     for n in outcome.accelerometer:
-        suffix = "" if single else f"_{n}"
-        write_atomic(out / f"imu{suffix}.yaml", kalibr_imu_yaml(outcome, n))
-        allan_figure(outcome, n).savefig(out / f"allan{suffix}.png", dpi=110)
-        written += [out / f"imu{suffix}.yaml", out / f"allan{suffix}.png"]
         for sensor, r in (("accelerometer", outcome.accelerometer[n]), ("gyroscope", outcome.gyroscope.get(n))):
             if r is not None:
                 print(f"{n} {sensor}: noise density {r.axis_max('noise_density'):.3g}, bias instability "
                       f"{r.axis_max('bias_instability'):.3g}, random walk {r.axis_max('random_walk'):.3g}"
                       + ("" if all(t.random_walk_resolved for t in r.terms) else " (bound)"))
-    for p in written:
-        print(f"wrote {p}")
+    for name in names:
+        print(f"wrote {out / name}")
     return 0
 
 
@@ -376,6 +372,9 @@ def main(argv: list[str] | None = None) -> int:
         return e.exit_code
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:  # the reader of stdout went away (`castimate ... | head`): nothing left to say
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
     except (MemoryError, RecursionError) as e:
         print(f"castimate {args.verb}: error: the input is too large to process ({type(e).__name__})", file=sys.stderr)
         return EXIT_INVALID_INPUT

@@ -24,6 +24,7 @@ one value per component, in the group's physical unit.
 from __future__ import annotations
 
 import hashlib
+import os
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -31,13 +32,14 @@ from typing import Any
 import numpy as np
 
 from .errors import InputError
-from .validation import Check, input_file, load_yaml
+from .validation import Check, input_file, load_yaml, range_text, shown
 from .io.units import UnitConversion, parse_units
 from .prepare.masks import SaturationOptions
 from .prepare.options import DetectionOptions
 from .problem.graph import SolverOptions
 from .problem.effects import DYNAMIC, STATIC, effects_for
-from .problem.triads import QUATERNION_MISALIGNMENT, SENSOR_GROUPS, GroupSetting
+from .problem.parameters import GroupDef
+from .problem.triads import POSITION, QUATERNION_MISALIGNMENT, SENSOR_GROUPS, GroupSetting
 
 KINDS = ("static_array", "dynamic_array", "ferraris")
 FORMATS = ("csv", "npz", "mimu", "imutk", "imucal")
@@ -74,6 +76,10 @@ GRAVITY_RANGE = (9.7, 9.9)  # m/s^2: the gravity anywhere on the Earth's surface
 SI = {"accelerometer": "m/s^2", "gyroscope": "rad/s"}
 SIGMA_RANGE = {"accelerometer": (1e-9, 100.0), "gyroscope": (1e-9, 10.0)}  # per-sample noise σ
 MOTION_SIGMA_MAX = 1e9
+#: Declared sample rates of a table without times (imucal), Hz.
+RATE_RANGE = (0.1, 1e5)
+#: Ferraris turns: the angle of each turn, deg (imucal's are one revolution; ten at most).
+TURN_MIN_DEG, TURN_MAX_DEG = 10.0, 3600.0
 #: Keys that only a scenario file (castimate simulate) has: a problem file with them and without data
 #: or array was given to the wrong command.
 SCENARIO_HINT_KEYS = frozenset(("seed", "triads", "poses", "geometry", "samples", "samples_per_pose", "time_series",
@@ -201,6 +207,11 @@ class ProblemSpec:
     solver: SolverOptions
     motion: MotionSpec | None = None
 
+    @property
+    def inputs(self) -> tuple:
+        """The files the problem reads: an output must never replace one of them."""
+        return (self.path, self.data.path, self.data.gyro_path, self.data.sections, self.model.intrinsics)
+
 
 def load_problem(path: str | Path) -> ProblemSpec:
     """Read and validate a problem file."""
@@ -223,14 +234,22 @@ def parse_problem(raw: Any, path: Path, sha256: str = "") -> ProblemSpec:
     data = _data(c, top["data"], path.parent)
     if kind == "ferraris" and data.sections is None:
         c.fail("data", "missing required key 'sections' (the labelled faces and turns of the Ferraris protocol)")
-    if kind != "ferraris" and data.sections is not None or "turn_angle_deg" in top["data"]:
+    if kind != "ferraris" and (data.sections is not None or "turn_angle_deg" in top["data"]):
         c.fail("data.sections" if data.sections is not None else "data.turn_angle_deg",
                f"labelled faces and turns are for kind ferraris, not {kind}")
+    if kind == "ferraris":
+        for key in ("segments", "time_range", "detection", "static"):
+            if key in top["data"]:
+                c.fail(f"data.{key}", "the Ferraris protocol's faces and turns are the labelled sample ranges of "
+                                      "data.sections (indices into the whole table); remove this key")
     if data.static_range is not None and kind != "dynamic_array":
         c.fail("data.static", f"a static phase beside the dynamic one is for kind dynamic_array, not {kind}")
     array = _array(c, top["array"])
     if kind == "ferraris" and len(array.triads) > 1:
         c.fail("array.triads", f"the Ferraris protocol calibrates one IMU; found {len(array.triads)} triads")
+    if kind == "ferraris" and array.triads[0].gyroscope is False:
+        c.fail("array.triads[0].gyroscope", "the Ferraris turns calibrate the gyroscope and need its readings; "
+                                            "found false")
     model = _model(c, top.get("model"), array, kind, path.parent, joint=data.static_range is not None)
     noise = _noise(c, top.get("noise"), array, kind)
     solver = _solver(c, top.get("solver"))
@@ -245,19 +264,26 @@ def parse_problem(raw: Any, path: Path, sha256: str = "") -> ProblemSpec:
     return ProblemSpec(path, sha256, kind, data, array, model, noise, solver, motion)
 
 
+def _path_text(c: Check, v, where: str, expected: str) -> str:
+    """A path given in a problem (a string; a dict given to castimate.load may hold a Path)."""
+    if isinstance(v, os.PathLike):
+        v = os.fspath(v)
+    if not isinstance(v, str) or not v or "\0" in v:
+        c.fail(where, f"expected {expected}, found {shown(v)}")
+    return v
+
+
 def _data(c: Check, d, base: Path) -> DataSpec:
     d = c.mapping(d, "data", ("path", "format", "units", "gyro_path", "time_range", "segments", "detection",
                               "saturation", "static", "rate", "sections", "turn_angle_deg"), required=("path", "format"))
     fmt = c.choice(d["format"], "data.format", FORMATS)
-    if not isinstance(d["path"], str):
-        c.fail("data.path", f"expected a file path, found {d['path']!r}")
-    p = (base / d["path"]).resolve()
+    p = (base / _path_text(c, d["path"], "data.path", "a file path")).resolve()
     input_file(p, "data file", c.source, "data.path")
     gp = None
     if "gyro_path" in d:
         if fmt != "imutk":
             c.fail("data.gyro_path", f"only the imutk format has a separate gyroscope file, format is {fmt}")
-        gp = (base / str(d["gyro_path"])).resolve()
+        gp = (base / _path_text(c, d["gyro_path"], "data.gyro_path", "a file path")).resolve()
         input_file(gp, "data file", c.source, "data.gyro_path")
     units = c.mapping(d.get("units"), "data.units", ("accelerometer", "gyroscope"))
     acc_u = parse_units(units["accelerometer"], c.source, "data.units.accelerometer", "accelerometer") \
@@ -295,18 +321,19 @@ def _data(c: Check, d, base: Path) -> DataSpec:
         static_range = (c.number(v[0], "data.static.time_range[0]"), c.number(v[1], "data.static.time_range[1]"))
         if static_range[1] <= static_range[0]:
             c.fail("data.static.time_range", f"end must be after start, found {list(static_range)}")
-    rate = c.number(d["rate"], "data.rate", positive=True) if "rate" in d else None
+    rate = c.number(d["rate"], "data.rate", positive=True, lo=RATE_RANGE[0], hi=RATE_RANGE[1], unit="Hz") \
+        if "rate" in d else None
     if fmt == "imucal" and rate is None:
         c.fail("data", "missing required key 'rate': an imucal table has sample numbers, not times (Hz)")
     sections = None
     if "sections" in d:
-        if not isinstance(d["sections"], str):
-            c.fail("data.sections", f"expected the path of imucal's section list (JSON), found {d['sections']!r}")
-        sections = (base / d["sections"]).resolve()
+        sections = (base / _path_text(c, d["sections"], "data.sections",
+                                      "the path of imucal's section list (JSON)")).resolve()
         input_file(sections, "section list", c.source, "data.sections")
-    turn = c.number(d.get("turn_angle_deg", FERRARIS_TURN_DEG), "data.turn_angle_deg")
-    if turn == 0:
-        c.fail("data.turn_angle_deg", "expected a non-zero angle in degrees, found 0")
+    turn = c.number(d.get("turn_angle_deg", FERRARIS_TURN_DEG), "data.turn_angle_deg", lo=-TURN_MAX_DEG,
+                    hi=TURN_MAX_DEG, unit="deg")
+    if abs(turn) < TURN_MIN_DEG:
+        c.fail("data.turn_angle_deg", f"expected a turn of at least {TURN_MIN_DEG:g} deg either way, found {turn:g}")
     return DataSpec(p, fmt, acc_u, gyro_u, gp, tr, seg, det, saturation, static_range, rate, sections, turn)
 
 
@@ -329,7 +356,8 @@ def _array(c: Check, a) -> ArraySpec:
             r = c.matrix3(r, f"{w}.rotation")
         elif r not in ("identity", "auto"):
             c.fail(f"{w}.rotation", f"expected identity, auto or a 3x3 rotation matrix, found {r!r}")
-        pos = np.array(c.vector(t["position"], f"{w}.position", 3)) if "position" in t else None
+        pos = np.array(c.vector(t["position"], f"{w}.position", 3, lo=POSITION.limits[0], hi=POSITION.limits[1],
+                                unit="m")) if "position" in t else None
         gy = t.get("gyroscope")
         if gy is not None and not isinstance(gy, bool):
             c.fail(f"{w}.gyroscope", f"expected true or false, found {gy!r}")
@@ -342,11 +370,13 @@ def _array(c: Check, a) -> ArraySpec:
     return ArraySpec(ref, tuple(triads))
 
 
-def _group_setting(c: Check, v, where, size, base: dict, neutral: tuple) -> dict:
+def _group_setting(c: Check, v, where, size, base: dict, gdef: GroupDef) -> dict:
     """Merge a group's YAML value into ``base`` (a dict of GroupSetting fields).
 
-    ``neutral`` is the group's default initial value, checked against bounds given here.
+    ``gdef.neutral`` is the group's default initial value, checked against bounds given here; initial
+    values and prior means must lie in the group's physical range (``gdef.physical_range``).
     """
+    neutral = gdef.neutral
     out = dict(base)
     if v in ("free", "fixed"):
         out["free"] = (v == "free",) * size
@@ -356,8 +386,18 @@ def _group_setting(c: Check, v, where, size, base: dict, neutral: tuple) -> dict
     v = c.mapping(v, where, ("free", "initial", "bounds", "prior"))
     if "free" in v:
         out["free"] = c.vector(v["free"], f"{where}.free", size, bool)
+    lo, hi = gdef.physical_range()
+    unit = "" if gdef.unit == "-" else gdef.unit
+
+    def in_range(values, w):
+        for i, x in enumerate(values):
+            if not lo[i] <= x <= hi[i]:
+                c.fail(w, f"expected {gdef.components[i]} {range_text(lo[i], hi[i], unit)} (the physical range), "
+                          f"found {x:g}")
+        return values
+
     if "initial" in v:
-        out["initial"] = c.vector(v["initial"], f"{where}.initial", size)
+        out["initial"] = in_range(c.vector(v["initial"], f"{where}.initial", size), f"{where}.initial")
     if "bounds" in v:
         b = v["bounds"]
         if not (isinstance(b, list) and len(b) == 2):
@@ -368,7 +408,7 @@ def _group_setting(c: Check, v, where, size, base: dict, neutral: tuple) -> dict
         out["lower"], out["upper"] = lo, hi
     if "prior" in v:
         p = c.mapping(v["prior"], f"{where}.prior", ("mean", "std"), required=("mean", "std"))
-        out["prior_mean"] = c.vector(p["mean"], f"{where}.prior.mean", size)
+        out["prior_mean"] = in_range(c.vector(p["mean"], f"{where}.prior.mean", size), f"{where}.prior.mean")
         out["prior_std"] = c.vector(p["std"], f"{where}.prior.std", size)
         if any(s <= 0 for s in out["prior_std"]):
             c.fail(f"{where}.prior.std", f"expected positive standard deviations, found {list(out['prior_std'])}")
@@ -389,9 +429,8 @@ def _model(c: Check, m, array: ArraySpec, kind: str = "static_array", base: Path
                                "triads", "intrinsics", "reuse") + (("position",) if dynamic else ()))
     intrinsics = None
     if "intrinsics" in m:
-        if not isinstance(m["intrinsics"], str):
-            c.fail("model.intrinsics", f"expected the path of a castimate results.json, found {m['intrinsics']!r}")
-        intrinsics = (base / m["intrinsics"]).resolve()
+        intrinsics = (base / _path_text(c, m["intrinsics"], "model.intrinsics",
+                                        "the path of a castimate results.json")).resolve()
         input_file(intrinsics, "results file", c.source, "model.intrinsics")
     reuse = c.choice(m.get("reuse", "fixed"), "model.reuse", ("fixed", "prior"))
     if "reuse" in m and intrinsics is None:
@@ -424,16 +463,16 @@ def _model(c: Check, m, array: ArraySpec, kind: str = "static_array", base: Path
         for g in groups:
             base = {"free": (defaults[sensor][g],) * size(sensor, g)}
             glob[sensor, g] = _group_setting(c, sec[g], f"model.{sensor}.{g}", size(sensor, g), base,
-                                             gdef(sensor, g).neutral) if g in sec else base
+                                             gdef(sensor, g)) if g in sec else base
             check_quaternion(sensor, g, glob[sensor, g], f"model.{sensor}.{g}")
         for g, e in effects[sensor].items():
             if g in sec:
                 n = len(e.group.components)
                 glob[sensor, g] = _group_setting(c, sec[g], f"model.{sensor}.{g}", n, {"free": (True,) * n},
-                                                 e.group.neutral)
+                                                 e.group)
     pos_base = {"free": (True,) * 3}
     if "position" in m:
-        pos_base = _group_setting(c, m["position"], "model.position", 3, pos_base, (0.0, 0.0, 0.0))
+        pos_base = _group_setting(c, m["position"], "model.position", 3, pos_base, POSITION)
     per = c.mapping(m.get("triads"), "model.triads", tuple(array.names))
     settings = {}
     for name in array.names:
@@ -443,7 +482,7 @@ def _model(c: Check, m, array: ArraySpec, kind: str = "static_array", base: Path
             if name == array.reference and "position" in tsec:
                 c.fail(w, "the reference triad is the origin of the body frame; its position is fixed")
             settings[name, "position", "position"] = GroupSetting(
-                **(_group_setting(c, tsec["position"], w, 3, pos_base, (0.0, 0.0, 0.0)) if "position" in tsec else pos_base))
+                **(_group_setting(c, tsec["position"], w, 3, pos_base, POSITION) if "position" in tsec else pos_base))
         for sensor, groups in SENSOR_GROUPS.items():
             ssec = c.mapping(tsec.get(sensor), f"model.triads.{name}.{sensor}", tuple(groups) + tuple(effects[sensor]))
             for g, e in effects[sensor].items():
@@ -451,14 +490,14 @@ def _model(c: Check, m, array: ArraySpec, kind: str = "static_array", base: Path
                 if g in ssec:
                     settings[name, sensor, g] = GroupSetting(**_group_setting(
                         c, ssec[g], f"model.triads.{name}.{sensor}.{g}", n,
-                        glob.get((sensor, g), {"free": (True,) * n}), e.group.neutral))
+                        glob.get((sensor, g), {"free": (True,) * n}), e.group))
                 elif (sensor, g) in glob:
                     settings[name, sensor, g] = GroupSetting(**glob[sensor, g])
             for g in groups:
                 w = f"model.triads.{name}.{sensor}.{g}"
                 if name == array.reference and sensor == "accelerometer" and g == "misalignment" and g in ssec:
                     c.fail(w, "the reference triad defines the body frame; it has no misalignment")
-                s = _group_setting(c, ssec[g], w, size(sensor, g), glob[sensor, g], gdef(sensor, g).neutral) \
+                s = _group_setting(c, ssec[g], w, size(sensor, g), glob[sensor, g], gdef(sensor, g)) \
                     if g in ssec else glob[sensor, g]
                 check_quaternion(sensor, g, s, w)
                 if s.get("prior_std") and not all(s["free"]):

@@ -31,7 +31,8 @@ def shown(v: Any) -> str:
     return r if len(r) <= 80 else r[:77] + "..."
 
 
-def _range_text(lo, hi, unit: str) -> str:
+def range_text(lo, hi, unit: str) -> str:
+    """'from lo to hi unit', 'at least lo unit' or 'at most hi unit'."""
     u = f" {unit}" if unit else ""
     if lo is not None and hi is not None:
         return f"from {lo:g} to {hi:g}{u}"
@@ -74,7 +75,7 @@ class Check:
             kind += "integer" if integer else "finite number"
             self.fail(where, f"expected {kind}, found {shown(v)}")
         if (lo is not None and x < lo) or (hi is not None and x > hi):
-            self.fail(where, f"expected {'an integer' if integer else 'a number'} {_range_text(lo, hi, unit)}, "
+            self.fail(where, f"expected {'an integer' if integer else 'a number'} {range_text(lo, hi, unit)}, "
                              f"found {shown(v)}")
         return int(v) if integer else x
 
@@ -126,6 +127,13 @@ MAX_YAML_DEPTH = 32
 MAX_YAML_NODES = 200_000
 #: Integers with more digits are refused where YAML is read, before they overflow a float.
 MAX_INT_DIGITS = 30
+
+
+def as_path(v: Any, function: str, argument: str, expected: str = "a path") -> Path:
+    """An API argument as a Path; a value that is not a path is a TypeError naming the argument."""
+    if not isinstance(v, (str, os.PathLike)):
+        raise TypeError(f"{function}: {argument}: expected {expected}, found {type(v).__name__} {shown(v)}")
+    return Path(v)
 
 
 def input_file(path: str | os.PathLike, what: str = "file", source: object = None, where: str = "") -> os.stat_result:

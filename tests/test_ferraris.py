@@ -74,7 +74,7 @@ def test_cli_solve_writes_results(tmp_path):
     (lambda s: s.replace("rate: 102.4", "rate: -1"), "data.rate: expected a positive finite number"),
     (lambda s: s.replace("sections.json", "nowhere.json"), "data.sections: section list .* does not exist"),
     (lambda s: s.replace("kind: ferraris", "kind: static_array"), "data.sections: labelled faces and turns are for kind ferraris"),
-    (lambda s: s.replace("sections.json}", "sections.json, turn_angle_deg: 0}"), "data.turn_angle_deg: expected a non-zero"),
+    (lambda s: s.replace("sections.json}", "sections.json, turn_angle_deg: 0}"), "data.turn_angle_deg: expected a turn of at least"),
     (lambda s: s.replace("[{name: imu}]", "[{name: imu}, {name: imu2}]"), "array.triads: the Ferraris protocol calibrates one IMU"),
 ])
 def test_problem_file_refusals(tmp_path, edit, match):

@@ -97,6 +97,9 @@ def check_output(target: str | os.PathLike, directory: bool, names: tuple[str, .
     for slot in slots:
         if slot.is_dir():
             raise InputError(slot, option, "is a directory; expected a file to write (remove or rename it)")
+        if os.path.lexists(slot) and not (slot.is_symlink() or stat.S_ISREG(os.stat(slot).st_mode)):
+            raise InputError(slot, option, "is not a regular file (a device, FIFO or socket); refusing to replace it: "
+                                           "choose another output")
         for inp in inputs:
             if inp is not None and os.path.lexists(slot) and _same_file(slot, Path(inp)):
                 raise InputError(slot, option, f"is an input of this command ({inp}); refusing to overwrite an input: "

@@ -76,7 +76,8 @@ def read_sections(path: str | os.PathLike) -> dict[str, tuple[int, int]]:
         raise InputError(source, "", f"expected a mapping label -> {{start, end}}, found {type(raw).__name__}")
     out = {}
     for label, v in raw.items():
-        if not (isinstance(v, dict) and set(v) >= {"start", "end"} and all(isinstance(v[k], int) for k in ("start", "end"))):
+        if not (isinstance(v, dict) and set(v) >= {"start", "end"}
+                and all(isinstance(v[k], int) and not isinstance(v[k], bool) for k in ("start", "end"))):
             raise InputError(source, str(label), f"expected {{\"start\": int, \"end\": int}}, found {v!r}")
         if not 0 <= v["start"] < v["end"]:
             raise InputError(source, f"{label}.end", f"expected 0 <= start < end, found start {v['start']}, end {v['end']}")

@@ -134,7 +134,9 @@ def _check_structure(c: Check, doc: dict) -> None:
     for name, t in doc["triads"].items():
         w = f"triads.{name}"
         if "R_nominal" in t:
-            _numbers(c, t["R_nominal"], f"{w}.R_nominal", (3, 3))
+            R = _numbers(c, t["R_nominal"], f"{w}.R_nominal", (3, 3))
+            if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+                c.fail(f"{w}.R_nominal", f"expected a proper rotation matrix (orthonormal, det +1), found {R.tolist()}")
         elif "gyroscope" in t:
             c.fail(f"{w}.R_nominal", "missing; expected the nominal rotation (3x3) that the gyroscope compensation uses")
         for key in ("position", "position_std", "position_std_scaled", "nominal_position"):
@@ -148,7 +150,9 @@ def _check_structure(c: Check, doc: dict) -> None:
             if comps is not None and (not isinstance(comps, list) or len(comps) != value.size):
                 c.fail(f"{pw}.value", f"expected one value per component ({shown(comps)}), found {shown(p['value'])}")
             if p.get("std") is not None:
-                _numbers(c, p["std"], f"{pw}.std", value.shape, nullable=True)
+                std = _numbers(c, p["std"], f"{pw}.std", value.shape, nullable=True)
+                if np.any(std < 0):
+                    c.fail(f"{pw}.std", f"expected non-negative standard deviations, found {shown(p['std'])}")
     res = c.mapping(doc.get("residuals"), "residuals", None)
     for key in ("chi2", "dof", "chi2_per_dof"):
         if res.get(key) is not None:

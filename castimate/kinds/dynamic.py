@@ -14,7 +14,7 @@ import numpy as np
 
 from . import CrossValidation, Log, Residuals, quiet
 from .intrinsics import read_intrinsics, reused
-from .static import check_plausible, check_temperature, declared, load_recording
+from .static import check_gyroscope_effects, check_plausible, check_temperature, declared, load_recording
 from ..errors import InputError, NotConvergedError
 from ..io.readers import read_recording
 from ..io.recording import Recording
@@ -34,7 +34,8 @@ from ..solve.ipopt import Solver
 from ..solve.variance import block_rows, estimate_levels
 from ..problem.graph import SolverOptions
 from ..prepare.masks import saturation_mask
-from ..prepare.plausibility import check_dynamic_information
+from ..prepare.plausibility import check_dynamic_information, check_uniform_sampling
+from ..problem.effects import BY_KEY, MOTION, RATE
 from ..solve.motion_noise import COMPONENTS, fit_noise, noise_sigma, stage_leverages
 
 #: A sensor with more than this fraction of its samples masked as saturated is refused.
@@ -100,6 +101,7 @@ def dynamic_config(spec: ProblemSpec, full: Recording, log: Log) -> DynamicConfi
             return reused(s[t.name, sensor, g], intr.get(t.name), sensor, g, mis, spec.model.reuse == "prior")
 
         has_gyro = t.name in full.gyro if t.gyroscope is None else t.gyroscope
+        check_gyroscope_effects(spec, t, has_gyro)
         triads.append(TriadConfig(t.name, R,
                                   {**{g: setting("accelerometer", g) for g in ACC_GROUPS},
                                    **spec.model.effect_settings(t.name, "accelerometer")},
@@ -231,6 +233,10 @@ def load_dynamic(spec: ProblemSpec, log: Log = quiet) -> DynamicInput:
         log(f"  {note}")
     rec = load_recording(spec)
     check_plausible(spec, rec, "dynamic", log)
+    timed = [k for k in spec.model.effects if {RATE, MOTION} & set(BY_KEY[k].needs)]
+    if spec.motion.process_model or timed:
+        check_uniform_sampling(rec.t, declared(spec), "the process model (motion.process_model)" if not timed
+                               else f"{timed[0]} (model.{timed[0]})")
     acc_sigma, gyro_sigma = noise_from_static(spec, full, log)
     names = spec.array.names
     opt = spec.data.saturation

@@ -15,7 +15,9 @@ from ..prepare.poses import average_poses
 from ..problem.ferraris import FACES, TURNS, build_ferraris, turn_data
 from ..problem.static import StaticConfig, StaticProblem
 from ..spec import ProblemSpec
-from .static import StaticData, StaticKind, StaticOutcome, declared_noise, load_recording, session_config, solve_static
+from ..prepare.plausibility import check_ferraris_sections
+from .static import (StaticData, StaticKind, StaticOutcome, check_plausible, declared, declared_noise, load_recording,
+                     session_config, solve_static)
 
 
 @dataclass(frozen=True)
@@ -46,7 +48,10 @@ def load_ferraris(spec: ProblemSpec, log: Log = quiet) -> FerrarisData:
     name = spec.array.triads[0].name
     if name not in rec.gyro:
         raise InputError(spec.path, "array.triads[0]", f"the Ferraris turns need a gyroscope; {spec.data.path.name} has none")
+    check_plausible(spec, rec, "static", log)
     sec = ferraris_sections(spec, len(rec.t))
+    check_ferraris_sections(rec, name, sec, FACES, TURNS, spec.data.turn_angle_deg, spec.data.sections,
+                            declared(spec))
     faces = [sec[k] for k in FACES]
     det = Detection(faces, threshold_method=f"labelled faces from {spec.data.sections.name}",
                     segment_times=[(float(rec.t[a]), float(rec.t[b - 1])) for a, b in faces],

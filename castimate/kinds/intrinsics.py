@@ -10,7 +10,14 @@ import numpy as np
 
 from ..errors import InputError
 from ..io.results import read_results
-from ..problem.triads import GroupSetting
+from ..problem.effects import BY_KEY
+from ..problem.parameters import GroupDef
+from ..problem.triads import (
+    POSITION,
+    QUATERNION_MISALIGNMENT,
+    SENSOR_GROUPS,
+    GroupSetting,
+)
 from ..spec import ProblemSpec
 
 
@@ -37,10 +44,38 @@ def read_intrinsics(spec: ProblemSpec) -> dict[str, Intrinsics]:
         vals, std = {}, {}
         for key, p in t.get("parameters", {}).items():
             sensor, group = ("accelerometer", key) if "." not in key else key.split(".", 1)
+            where = f"triads.{name}.parameters.{key}.value"
+            gdef = group_def(sensor, group, np.size(p["value"]))
+            if gdef is None:
+                raise InputError(path, f"triads.{name}.parameters.{key}", "unknown parameter group; expected "
+                                 "accelerometer and gyroscope groups, effects of castimate's library, or position")
             vals[sensor, group] = np.asarray(p["value"], float)
-            std[sensor, group] = np.asarray(p.get("std", np.zeros_like(vals[sensor, group])), float)
+            lo, hi = gdef.physical_range()
+            if vals[sensor, group].shape != lo.shape:
+                raise InputError(path, where, f"expected {lo.size} values ({', '.join(gdef.components)}), found "
+                                              f"{vals[sensor, group].tolist()}")
+            bad = (vals[sensor, group] < lo) | (vals[sensor, group] > hi)
+            if bad.any():
+                i = int(np.argmax(bad))
+                raise InputError(path, where, f"expected {gdef.components[i]} from {lo[i]:g} to {hi[i]:g} "
+                                              f"{gdef.unit} (the physical range), found {vals[sensor, group][i]:g}")
+            s = p.get("std")
+            std[sensor, group] = np.zeros_like(vals[sensor, group]) if s is None else \
+                np.array([np.nan if x is None else x for x in np.ravel(s)], float)
         out[name] = Intrinsics(vals, std, np.asarray(t.get("R_nominal", np.eye(3)), float))
     return out
+
+
+def group_def(sensor: str, group: str, size: int) -> GroupDef | None:
+    """The definition of a results.json parameter group (a misalignment of 4 values is a quaternion)."""
+    if sensor == "position" or (sensor, group) == ("accelerometer", "position"):
+        return POSITION
+    if (sensor, group) == ("accelerometer", "misalignment") and size == 4:
+        return QUATERNION_MISALIGNMENT
+    if group in SENSOR_GROUPS.get(sensor, {}):
+        return SENSOR_GROUPS[sensor][group]
+    effect = BY_KEY.get(f"{sensor}.{group}")
+    return effect.group if effect is not None else None
 
 
 def misalignment_as(value: np.ndarray, kind: str) -> np.ndarray:

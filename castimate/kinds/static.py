@@ -12,7 +12,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from . import CrossValidation, Log, Residuals, quiet
-from .intrinsics import read_intrinsics, reused
+from .intrinsics import group_def, read_intrinsics, reused
 from ..errors import InputError, NotConvergedError
 from ..io.readers import read_recording
 from ..io.recording import Recording
@@ -107,6 +107,46 @@ def check_temperature(spec: ProblemSpec, logged: set[str]) -> None:
                              f"needs a logged temperature, but {spec.data.path.name} has none for triad {missing[0]!r}")
 
 
+def check_estimates(spec: ProblemSpec, values: dict, names: list[str]) -> None:
+    """Refuse a converged fit whose gain, angle or effect lies outside its physical range
+    (``GroupDef.physical_range``): the data contradict the model, e.g. an axis read with reversed sign."""
+    for name in names:
+        for key, v in values.items():
+            parts = key.split(".")
+            if len(parts) != 3 or parts[0] != name:
+                continue
+            gdef = group_def(parts[1], parts[2], np.size(v))
+            if gdef is None:
+                continue
+            lo, hi = gdef.physical_range()
+            v = np.ravel(v)
+            bad = (v < lo) | (v > hi) if v.shape == lo.shape else np.zeros(v.shape, bool)
+            if bad.any():
+                i = int(np.argmax(bad))
+                axis = gdef.components[i]
+                column = f"{name}.{'a' if parts[1] == 'accelerometer' else 'g'}{axis}" if axis in "xyz" else name
+                raise InputError(spec.data.path, column,
+                                 f"the fit puts the {parts[1]} {parts[2]} ({axis}) at {v[i]:.4g}, outside its physical "
+                                 f"range {lo[i]:g} to {hi[i]:g}: the data contradict the model (an axis read with "
+                                 "reversed sign, mislabelled poses or wrong units)")
+
+
+def check_gyroscope_effects(spec: ProblemSpec, triad, has_gyro: bool) -> None:
+    """Refuse gyroscope parameters the problem file frees (gain, misalignment) or effects it includes
+    for a triad without gyroscope readings: they would be silently dropped."""
+    if has_gyro:
+        return
+    named = [g for g in ("gain", "misalignment") if spec.kind == "static_array"
+             and any(spec.model.settings[triad.name, "gyroscope", g].free)]
+    named += list(spec.model.effect_settings(triad.name, "gyroscope"))
+    if named:
+        raise InputError(spec.path, f"model.gyroscope.{named[0]}",
+                         f"{'is free' if named[0] in ('gain', 'misalignment') else 'acts on the gyroscope'}, but triad "
+                         f"{triad.name!r} has no gyroscope readings "
+                         + ("(array gyroscope: false)" if triad.gyroscope is False else f"in {spec.data.path.name}")
+                         + ": leave it out or give the gyroscope data")
+
+
 def static_config(spec: ProblemSpec, avg: PoseAverages) -> tuple[StaticConfig, dict[str, str]]:
     """The static problem structure; ``rotation: auto`` is recovered from the pose means.
 
@@ -132,6 +172,7 @@ def static_config(spec: ProblemSpec, avg: PoseAverages) -> tuple[StaticConfig, d
             notes[t.name] = (f"nominal rotation recovered from the static poses: {np.round(R).astype(int).tolist()} "
                              f"(exact fit {resid:.1f} deg from it)")
         has_gyro = t.name in avg.gyro_mean if t.gyroscope is None else t.gyroscope
+        check_gyroscope_effects(spec, t, has_gyro)
         def setting(sensor, g):
             return reused(m.settings[t.name, sensor, g], intr.get(t.name), sensor, g, m.misalignment,
                           m.reuse == "prior")
@@ -177,8 +218,14 @@ def check_transitions(spec: ProblemSpec, config: StaticConfig, data: "StaticData
         raise InputError(spec.path, f"model.gyroscope.{effects[0].name}",
                          "is not modelled during the rotations between the poses, which a free gyroscope gain or "
                          "misalignment is calibrated from: leave the effect out or fix the gain and misalignment")
+    segments = data.detection.segments
+    for i in range(1, len(segments)):
+        if segments[i][0] < segments[i - 1][1]:
+            raise InputError(spec.path, "data.segments", f"the gyroscope calibration from the rotations between the "
+                                                         f"poses needs the segments in time order; segment {i} starts "
+                                                         f"before segment {i - 1} ends")
     names = [t.name for t in config.triads if t.gyroscope is not None and t.name in data.averages.gyro_mean]
-    check_sample_angles(data.recording, transition_samples(data.recording, data.detection.segments), names,
+    check_sample_angles(data.recording, transition_samples(data.recording, segments), names,
                         spec.data.gyro_path or spec.data.path)
 
 
@@ -312,8 +359,12 @@ class StaticData:
 def declared(spec: ProblemSpec) -> Declared:
     """The problem's declared units and files, for the plausibility checks' messages."""
     d = spec.data
+    columns = {}
+    if d.format == "imucal":  # the table's own column names
+        name = spec.array.triads[0].name
+        columns = {f"{name}.{s}{a}": f"{f}_{a}" for s, f in (("a", "acc"), ("g", "gyr")) for a in "xyz"}
     return Declared(spec.path, d.path, d.acc_units.describe() if d.acc_units else f"the {d.format} default",
-                    d.gyro_units.describe() if d.gyro_units else f"the {d.format} default")
+                    d.gyro_units.describe() if d.gyro_units else f"the {d.format} default", columns)
 
 
 def check_plausible(spec: ProblemSpec, rec: Recording, kind: str, log: Log) -> None:
@@ -371,6 +422,7 @@ def solve_static(spec: ProblemSpec, data: StaticData, problem: StaticProblem, no
     sol = solver.solve()
     if not sol.success:
         raise NotConvergedError(f"{spec.path}: IPOPT did not converge: {sol.message} after {sol.iterations} iterations")
+    check_estimates(spec, sol.values, problem.config.names)
     cal, gcal = problem.calibration(sol.values), problem.gyro_calibration(sol.values)
     P = avg.n_poses
     names = config.names + problem.gyro_triads

@@ -71,6 +71,7 @@ DETAILS_SHAPES = {
                       "position_std": ("M", 3), "nominal_position": ("M", 3), "gyro_triads": ("G",),
                       "residual_gyro": ("G", "N", 3)},
 }
+DETAILS_SHAPES["ferraris"] = DETAILS_SHAPES["static_array"]  # the six faces are its poses
 #: Arrays of text (triad names); all others are numbers.
 DETAILS_NAMES = ("triads", "gyro_triads")
 

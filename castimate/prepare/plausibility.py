@@ -23,7 +23,7 @@ refuse, with the numbers and the fix, where the evidence is conclusive; they war
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
@@ -45,6 +45,8 @@ MAX_RATE = 70.0
 MAX_GYRO_NOISE_AT_REST = 0.05
 #: An accelerometer axis at its extreme in more than this fraction of the samples is clipped.
 CLIPPED_FRACTION = 0.02
+#: ... and in at least this many samples (one sample of a tiny recording is its own maximum).
+MIN_CLIPPED_SAMPLES = 5
 #: A residual error of the intrinsics (biases, misalignments) that data do not average out, m/s^2 (2 mg).
 MODEL_ERROR = 0.02
 #: A dynamic segment is refused when the predicted position error exceeds this fraction of the array size.
@@ -63,10 +65,14 @@ class Declared:
     data: object  # the data file
     acc_units: str = "m/s^2"  # a description of the declared conversion
     gyro_units: str = "rad/s"
+    columns: dict = field(default_factory=dict)  # castimate's column (imu.gx) -> the file's (gyr_x), where they differ
+    units_key: str = "data.units"  # where the units were declared (castimate apply: the results' units.data_*)
+    fix: str = "declare"  # the verb of the suggested fix
 
 
-def _columns(name: str, sensor: str) -> list[str]:
-    return [f"{name}.{a}" for a in (("ax", "ay", "az") if sensor == "accelerometer" else ("gx", "gy", "gz"))]
+def _columns(name: str, sensor: str, declared: Declared | None = None) -> list[str]:
+    cols = [f"{name}.{a}" for a in (("ax", "ay", "az") if sensor == "accelerometer" else ("gx", "gy", "gz"))]
+    return [declared.columns.get(c, c) for c in cols] if declared is not None else cols
 
 
 def check_channels(rec: Recording, names: list[str], declared: Declared, clipping: bool) -> None:
@@ -76,7 +82,7 @@ def check_channels(rec: Recording, names: list[str], declared: Declared, clippin
             if name not in group or len(rec.t) < 2:
                 continue
             y = group[name]
-            cols = _columns(name, sensor)
+            cols = _columns(name, sensor, declared)
             if np.all(y == 0):
                 raise InputError(declared.data, f"{cols[0]}, {cols[1]}, {cols[2]}",
                                  f"triad {name!r} reads 0 on every {sensor} axis in all {len(y)} samples: a dead or "
@@ -91,8 +97,9 @@ def check_channels(rec: Recording, names: list[str], declared: Declared, clippin
                                      + (" or set its gyroscope: false" if sensor == "gyroscope" else ""))
                 if clipping and sensor == "accelerometer":
                     for label, v in (("maximum", a.max()), ("minimum", a.min())):
-                        frac = np.count_nonzero(a == v) / len(a)
-                        if frac > CLIPPED_FRACTION:
+                        count = np.count_nonzero(a == v)
+                        frac = count / len(a)
+                        if frac > CLIPPED_FRACTION and count >= MIN_CLIPPED_SAMPLES:
                             raise InputError(declared.data, col,
                                              f"sits at its {label} {v:.6g} m/s^2 in {100 * frac:.1f} % of the samples: "
                                              "clipped at an ADC rail, so the static poses there are wrong; record with "
@@ -112,15 +119,15 @@ def check_accelerometer_units(rec: Recording, names: list[str], declared: Declar
             f"by hand reads about g = {gravity:g} m/s^2")
     if not NORM_REFUSE[0] <= r <= NORM_REFUSE[1]:
         if abs(np.log(r * G0)) < 0.35:
-            fix = "the data look like they are in g: declare data.units.accelerometer: g"
+            fix = f"the data look like they are in g: {declared.fix} {declared.units_key}.accelerometer: g"
         elif abs(np.log(r / G0)) < 0.35:
-            fix = "the data look like they are already in m/s^2: declare data.units.accelerometer: m/s^2"
+            fix = f"the data look like they are already in m/s^2: {declared.fix} {declared.units_key}.accelerometer: m/s^2"
         else:
-            fix = f"the declared scale is off by a factor {1 / r:.4g}: check data.units.accelerometer"
-        raise InputError(declared.problem, "data.units.accelerometer", f"{what}; {fix}")
+            fix = f"the declared scale is off by a factor {1 / r:.4g}: check {declared.units_key}.accelerometer"
+        raise InputError(declared.problem, f"{declared.units_key}.accelerometer", f"{what}; {fix}")
     lo, hi = NORM_WARN[kind]
     if not lo <= r <= hi:
-        log(f"warning: {what} ({r:.3g} g); check data.units.accelerometer")
+        log(f"warning: {what} ({r:.3g} g); check {declared.units_key}.accelerometer")
 
 
 def _gyro_limit(values: dict[str, float], limit: float, what: str, declared: Declared) -> None:
@@ -130,9 +137,9 @@ def _gyro_limit(values: dict[str, float], limit: float, what: str, declared: Dec
         return
     name = max(values, key=values.get)
     if values[name] > limit:
-        fix = "the data look like deg/s; declare data.units.gyroscope: deg/s" \
-            if np.radians(values[name]) <= limit else "check data.units.gyroscope"
-        raise InputError(declared.problem, "data.units.gyroscope",
+        fix = f"the data look like deg/s; {declared.fix} {declared.units_key}.gyroscope: deg/s" \
+            if np.radians(values[name]) <= limit else f"check {declared.units_key}.gyroscope"
+        raise InputError(declared.problem, f"{declared.units_key}.gyroscope",
                          f"the gyroscope of {name} {what} {values[name]:.4g} rad/s after the declared conversion "
                          f"{declared.gyro_units}; no MEMS gyroscope exceeds {limit:g} rad/s there: {fix}")
 
@@ -186,6 +193,23 @@ def position_error(omega: np.ndarray, t: np.ndarray, acc_sigma: float) -> tuple[
     return max(sd, MODEL_ERROR / rms if rms > 0 else np.inf), sd, rms
 
 
+#: A sample interval longer than this many median periods is a gap in the recording.
+MAX_GAP_PERIODS = 5.0
+
+
+def check_uniform_sampling(t: np.ndarray, declared: Declared, needs: str) -> None:
+    """Refuse a gap in the time stamps where the model integrates or differentiates over the samples."""
+    if len(t) < 3:
+        return
+    d = np.diff(t)
+    period = float(np.median(d))
+    k = int(np.argmax(d))
+    if period > 0 and d[k] > MAX_GAP_PERIODS * period:
+        raise InputError(declared.data, "t", f"a gap of {d[k]:.4g} s in the time stamps at t = {t[k]:.3f} s (the sample "
+                                             f"period is {period:.4g} s); {needs} assumes uniform sampling: cut the "
+                                             "recording there (data.time_range)")
+
+
 def check_dynamic_information(rec: Recording, reference: str, free_position: bool, nominal: np.ndarray | None,
                               acc_sigma: float, declared: Declared, log: Log) -> None:
     """Refuse a dynamic segment whose angular motion cannot determine the free positions."""
@@ -204,3 +228,66 @@ def check_dynamic_information(rec: Recording, reference: str, free_position: boo
                          "the time range where the array is twisted by hand, or fix model.position")
     if err > POSITION_ERROR_WARN * size:
         log(f"warning: {what}; the positions will be poorly determined")
+
+
+#: Ferraris protocol: a labelled face whose mean specific force is further than this from the
+#: label's axis is not that face (uncalibrated sensors and hand placement are off by a few degrees).
+FACE_ANGLE_MAX_DEG = 30.0
+#: ... or that moves: an RMS angular rate above this (rad/s; a hand holding still reads < 0.05).
+FACE_RATE_MAX = 0.2
+#: Fewest samples of a labelled face.
+FACE_MIN_SAMPLES = 10
+#: A labelled turn's integrated rate must lie within this factor of the declared angle, and within
+#: FACE_ANGLE_MAX_DEG of its axis.
+TURN_RATIO = (0.75, 1.33)
+
+
+def check_ferraris_sections(rec: Recording, name: str, sections: dict[str, tuple[int, int]], faces: dict,
+                            turns: dict, turn_angle_deg: float, source: object, declared: Declared) -> None:
+    """The labelled faces and turns against the raw readings: each face still and pointing the
+    specific force along its label's axis, each turn integrating to about the declared angle about
+    its label's axis (Ferraris 1995: the labels are the protocol's known orientations and angles).
+
+    Refused with the label (``source``: the section list) and the likely cause: swapped or misplaced
+    labels, a turn the other way or a reversed gyroscope axis, wrong gyroscope units or sample rate.
+    """
+    acc, gyro, t = rec.acc[name], rec.gyro[name], rec.t
+    gcols = _columns(name, "gyroscope", declared)
+    bias = np.zeros(3)
+    for label, axis in faces.items():
+        a, b = sections[label]
+        if b - a < FACE_MIN_SAMPLES:
+            raise InputError(source, label, f"holds {b - a} samples; a face needs at least {FACE_MIN_SAMPLES}")
+        f = acc[a:b].mean(axis=0)
+        ang = np.degrees(np.arccos(np.clip(f @ np.asarray(axis, float) / max(np.linalg.norm(f), 1e-300), -1, 1)))
+        if ang > FACE_ANGLE_MAX_DEG:
+            raise InputError(source, label, f"the mean specific force of samples {a}-{b} points "
+                                            f"{np.round(f / np.linalg.norm(f), 2).tolist()}, {ang:.0f} deg from the "
+                                            f"face's axis {list(axis)}: a wrong or swapped label")
+        rate = float(np.sqrt(np.mean(np.sum((gyro[a:b] - np.median(gyro[a:b], axis=0)) ** 2, axis=1))))
+        if rate > FACE_RATE_MAX:
+            raise InputError(source, label, f"samples {a}-{b} turn at {rate:.3g} rad/s (RMS); a face is held still "
+                                            f"(below {FACE_RATE_MAX:g} rad/s): the label covers motion")
+        bias += gyro[a:b].mean(axis=0) / len(faces)
+    expected_deg = abs(turn_angle_deg)
+    for label, axis in turns.items():
+        a, b = sections[label]
+        dt = np.diff(t[a:b + 1]) if b < len(t) else np.append(np.diff(t[a:b]), np.median(np.diff(t)))
+        theta = np.degrees(((gyro[a:b] - bias) * dt[:, None]).sum(axis=0))
+        size = float(np.linalg.norm(theta))
+        e = np.sign(turn_angle_deg) * np.asarray(axis, float)
+        k = int(np.argmax(np.abs(axis)))
+        found = (f"the gyroscope integrates samples {a}-{b} to {size:.4g} deg about "
+                 f"{np.round(theta / max(size, 1e-300), 2).tolist()}")
+        if not TURN_RATIO[0] <= size / expected_deg <= TURN_RATIO[1]:
+            raise InputError(source, label, f"{found}, where the protocol turns {turn_angle_deg:g} deg "
+                                            f"({declared.problem}: data.turn_angle_deg); check data.units.gyroscope "
+                                            f"({declared.gyro_units}) and data.rate, or the label (no turn there?)")
+        ang = np.degrees(np.arccos(np.clip(theta @ e / size, -1, 1)))
+        if ang > 180 - FACE_ANGLE_MAX_DEG:
+            raise InputError(source, label, f"{found}, the opposite way to the declared {turn_angle_deg:g} deg about "
+                                            f"{list(axis)} ({declared.problem}: data.turn_angle_deg; imucal turns -360, clockwise from "
+                                            f"above) or the gyroscope column {gcols[k]} reads with reversed sign")
+        if ang > FACE_ANGLE_MAX_DEG:
+            raise InputError(source, label, f"{found}, {ang:.0f} deg from the turn's axis {list(axis)}: a wrong or "
+                                            "swapped label")

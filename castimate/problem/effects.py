@@ -184,7 +184,7 @@ EFFECTS: tuple[Effect, ...] = (
     Effect("time_offset", "gyroscope", GroupDef(("dt",), (0.0,), 1e-3, "s"),
            lambda c, x: fx.time_offset(c, x.u_dot), kinds=(DYNAMIC,), needs=(RATE,), sample_wise=False,
            title="gyroscope time offset"),
-    Effect("coupling", "gyroscope", GroupDef(("yx", "zx", "zy"), (0.0,) * 3, 1e-2, "-"),
+    Effect("coupling", "gyroscope", GroupDef(("yx", "zx", "zy"), (0.0,) * 3, 1e-2, "-", limits=(-1.0, 1.0)),
            lambda c, x: fx.coupling(c, x.u), kinds=(DYNAMIC,),
            title="gyroscope cross-axis coupling: unit lower-triangular C in C K_g M_g Rbar (a general 3x3 matrix)"),
     Effect("clock_drift", "accelerometer", GroupDef(("end",), (0.0,), 1e-4, "s"),

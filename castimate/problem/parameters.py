@@ -18,13 +18,27 @@ XYZ = ("x", "y", "z")
 
 @dataclass(frozen=True)
 class GroupDef:
-    """Static description of a parameter group kind: components, neutral value, scale, unit."""
+    """Static description of a parameter group kind: components, neutral value, scale, unit, and the
+    physical range of its components (``limits``; by default the neutral value ± RANGE_SCALES scales),
+    outside which a value given in a problem file or an earlier results.json is refused."""
 
     components: tuple[str, ...]
     neutral: tuple[float, ...]
     scale: float
     unit: str
     unit_norm: bool = False
+    limits: tuple[float, float] | None = None
+
+    def physical_range(self) -> tuple[np.ndarray, np.ndarray]:
+        """(lower, upper) per component."""
+        n = np.asarray(self.neutral, float)
+        if self.limits is not None:
+            return np.full(n.shape, float(self.limits[0])), np.full(n.shape, float(self.limits[1]))
+        return n - RANGE_SCALES * self.scale, n + RANGE_SCALES * self.scale
+
+
+#: Default physical range of a group's components, in units of its scale around the neutral value.
+RANGE_SCALES = 1e4
 
 
 @dataclass(frozen=True)

@@ -16,19 +16,25 @@ from . import effects as fxs
 from .clocks import sawtooth
 from .parameters import XYZ, Group, GroupDef
 
+#: A gain outside this range is a unit or wiring error (the plausibility checks refuse those in the data).
+GAIN_RANGE = (0.1, 10.0)
+#: Small angles (non-orthogonality, misalignment about the nominal rotation), rad.
+ANGLE_RANGE = (-np.pi / 2, np.pi / 2)
 ACCELEROMETER_GROUPS = {
-    "gain": GroupDef(XYZ, (1.0, 1.0, 1.0), 1.0, "-"),
+    "gain": GroupDef(XYZ, (1.0, 1.0, 1.0), 1.0, "-", limits=GAIN_RANGE),
     "bias": GroupDef(XYZ, (0.0, 0.0, 0.0), 0.1, "m/s^2"),
-    "nonorthogonality": GroupDef(tri.NONORTHOGONALITY_COMPONENTS, (0.0, 0.0, 0.0), 1e-2, "rad"),
-    "misalignment": GroupDef(XYZ, (0.0, 0.0, 0.0), 1e-2, "rad"),
+    "nonorthogonality": GroupDef(tri.NONORTHOGONALITY_COMPONENTS, (0.0, 0.0, 0.0), 1e-2, "rad", limits=ANGLE_RANGE),
+    "misalignment": GroupDef(XYZ, (0.0, 0.0, 0.0), 1e-2, "rad", limits=ANGLE_RANGE),
 }
 GYROSCOPE_GROUPS = {
-    "gain": GroupDef(XYZ, (1.0, 1.0, 1.0), 1.0, "-"),
+    "gain": GroupDef(XYZ, (1.0, 1.0, 1.0), 1.0, "-", limits=GAIN_RANGE),
     "bias": GroupDef(XYZ, (0.0, 0.0, 0.0), 1e-2, "rad/s"),
-    "misalignment": GroupDef(XYZ, (0.0, 0.0, 0.0), 1e-2, "rad"),
+    "misalignment": GroupDef(XYZ, (0.0, 0.0, 0.0), 1e-2, "rad", limits=ANGLE_RANGE),
 }
 #: Misalignment as a full rotation: a unit quaternion with |q|^2 = 1.
-QUATERNION_MISALIGNMENT = GroupDef(("w", "x", "y", "z"), (1.0, 0.0, 0.0, 0.0), 1.0, "-", True)
+QUATERNION_MISALIGNMENT = GroupDef(("w", "x", "y", "z"), (1.0, 0.0, 0.0, 0.0), 1.0, "-", True, limits=(-1.0, 1.0))
+#: A triad's position relative to the reference, m (a board, not a building).
+POSITION = GroupDef(XYZ, (0.0, 0.0, 0.0), 1e-2, "m", limits=(-10.0, 10.0))
 SENSOR_GROUPS = {"accelerometer": ACCELEROMETER_GROUPS, "gyroscope": GYROSCOPE_GROUPS}
 
 

@@ -17,8 +17,8 @@ import numpy as np
 
 from ..errors import InputError
 from ..io.results import check_results, load_results_json
-from ..output.details import check_details
-from ..validation import input_file
+from ..output.details import DETAILS_SHAPES, check_details
+from ..validation import input_file, shown
 
 DEG = 180 / np.pi  # degrees per radian: every angle on a page is shown in degrees
 
@@ -69,6 +69,8 @@ def load_results(directory: Path) -> dict:
     path = directory / "results.json"
     input_file(path, "results file")
     doc = check_results(load_results_json(path), path, require_success=False)
+    if doc.get("kind") not in DETAILS_SHAPES:
+        raise InputError(path, "kind", f"expected one of {', '.join(DETAILS_SHAPES)}, found {shown(doc.get('kind'))}")
     for name, t in doc["triads"].items():
         if "parameters" not in t:
             raise InputError(path, f"triads.{name}.parameters", "missing; expected the estimated parameter groups")
