@@ -2042,6 +2042,70 @@ def elimination_none_ok(base, tmp):
     return _dyn_model(_set(("solver", "elimination"), "none"), (), rc=0)(base, tmp)
 
 
+# ---------------------------------------------------------------- batch, montecarlo, plan (refused before any cluster starts)
+
+
+def _plan_file(tmp: Path, plan: str, extra: str = "") -> Path:
+    p = tmp / "plan.yaml"
+    p.write_text(f"kind: static_array\ntriads: 3\nposes: 12\n{extra}plan: {plan}\n")
+    return p
+
+
+SCALE_CASES = {
+    "batch_recording_is_a_device": (lambda b, t: ["batch", str(b / "static" / "problem.yaml"), "/dev/zero", "-o",
+                                                  str(t / "o"), "--workers", "1"], ("/dev/zero", "regular file")),
+    "batch_recording_is_a_directory": (lambda b, t: ["batch", str(b / "static" / "problem.yaml"), str(b / "static"),
+                                                     "-o", str(t / "o"), "--workers", "1"], ("static", "directory")),
+    "batch_glob_matches_nothing": (lambda b, t: ["batch", str(b / "static" / "problem.yaml"), str(t / "x*.csv"), "-o",
+                                                 str(t / "o"), "--workers", "1"], ("x*.csv", "glob")),
+    "batch_template_is_a_scenario": (lambda b, t: ["batch", str(b / "rows.yaml"), str(b / "static" / "data.csv"),
+                                                   "-o", str(t / "o"), "--workers", "1"], ("rows.yaml", "data")),
+    "batch_template_ferraris": (lambda b, t: ["batch", str(b / "ferraris" / "problem.yaml"),
+                                              str(b / "ferraris" / "session.csv"), "-o", str(t / "o"), "--workers",
+                                              "1"], ("problem.yaml", "sections")),
+    "batch_workers_zero": (lambda b, t: ["batch", str(b / "static" / "problem.yaml"), str(b / "static" / "data.csv"),
+                                         "-o", str(t / "o"), "--workers", "0"], ("--workers",)),
+    "batch_threshold_nan": (lambda b, t: ["batch", str(b / "static" / "problem.yaml"), str(b / "static" / "data.csv"),
+                                          "-o", str(t / "o"), "--workers", "1", "--outlier-threshold", "nan"],
+                            ("--outlier-threshold",)),
+    "batch_scheduler_not_an_address": (lambda b, t: ["batch", str(b / "static" / "problem.yaml"),
+                                                     str(b / "static" / "data.csv"), "-o", str(t / "o"), "--scheduler",
+                                                     "nonsense"], ("--scheduler",)),
+    "batch_output_is_a_file": (lambda b, t: ["batch", str(b / "static" / "problem.yaml"), str(b / "static" / "data.csv"),
+                                             "-o", str(b / "static" / "data.csv"), "--workers", "1"],
+                               ("data.csv", "directory")),
+    "montecarlo_one_run": (lambda b, t: ["montecarlo", str(b / "rows.yaml"), "--runs", "1", "-o", str(t / "o")],
+                           ("--runs",)),
+    "montecarlo_runs_unbounded": (lambda b, t: ["montecarlo", str(b / "rows.yaml"), "--runs", "100000000", "-o",
+                                                str(t / "o")], ("--runs",)),
+    "montecarlo_problem_file": (lambda b, t: ["montecarlo", str(b / "static" / "problem.yaml"), "--runs", "2", "-o",
+                                              str(t / "o"), "--workers", "1"], ("problem.yaml", "problem file")),
+    "montecarlo_scenario_a_device": (lambda b, t: ["montecarlo", "/dev/zero", "--runs", "2", "-o", str(t / "o")],
+                                     ("/dev/zero", "regular file")),
+    "plan_problem_file": (lambda b, t: ["plan", str(b / "static" / "problem.yaml"), "-o", str(t / "o")],
+                          ("problem.yaml", "problem file")),
+    "plan_no_plan_key": (lambda b, t: ["plan", str(b / "rows.yaml"), "-o", str(t / "o")], ("rows.yaml", "plan")),
+    "plan_durations_empty": (lambda b, t: ["plan", str(_plan_file(t, "{durations: []}")), "-o", str(t / "o")],
+                             ("plan.yaml", "plan.durations")),
+    "plan_duration_negative": (lambda b, t: ["plan", str(_plan_file(t, "{durations: [-1, 5]}")), "-o", str(t / "o")],
+                               ("plan.yaml", "plan.durations[0]")),
+    "plan_duration_unbounded": (lambda b, t: ["plan", str(_plan_file(t, "{durations: [1.0e+12]}")), "-o",
+                                              str(t / "o")], ("plan.yaml", "plan.durations[0]")),
+    "plan_durations_a_string": (lambda b, t: ["plan", str(_plan_file(t, "{durations: soon}")), "-o", str(t / "o")],
+                                ("plan.yaml", "plan.durations")),
+    "plan_unknown_key": (lambda b, t: ["plan", str(_plan_file(t, "{durations: [10], extra: 1}")), "-o", str(t / "o")],
+                         ("plan.yaml", "plan.extra")),
+    "plan_time_series": (lambda b, t: ["plan", str(_plan_file(t, "{durations: [10]}", "time_series: true\n")), "-o",
+                                       str(t / "o")], ("plan.yaml", "time_series")),
+    "plan_output_overwrites_plan": (lambda b, t: ["plan", str(_plan_file(t, "{durations: [10]}").rename(
+        t / "plan.json") or t / "plan.json"), "-o", str(t)], ("plan.json", "input")),
+}
+for _name, (_argv, _names) in SCALE_CASES.items():
+    def _scale_case(base, tmp, _argv=_argv, _names=_names):
+        return Spec(_argv(base, tmp), 2, _names)
+    CASES.append(Case(_name, "scale", _scale_case))
+
+
 # ============================================================================ the test
 
 

@@ -37,6 +37,9 @@ def load_scenario(path: str | Path, drop: tuple[str, ...] = ()) -> dict:
     raw = load_yaml(path, "scenario file")
     if not isinstance(raw, dict):
         Check(Path(path)).fail("", f"expected a scenario mapping, found {type(raw).__name__}")
+    if "data" in raw or "array" in raw:
+        Check(Path(path)).fail("", f"this is a problem file (it has {' and '.join(k for k in ('data', 'array') if k in raw)})"
+                                   ", not a scenario: expected a scenario as for `castimate simulate`")
     return {k: v for k, v in raw.items() if k not in drop}
 
 
