@@ -76,6 +76,13 @@ GRAVITY_RANGE = (9.7, 9.9)  # m/s^2: the gravity anywhere on the Earth's surface
 SI = {"accelerometer": "m/s^2", "gyroscope": "rad/s"}
 SIGMA_RANGE = {"accelerometer": (1e-9, 100.0), "gyroscope": (1e-9, 10.0)}  # per-sample noise σ
 MOTION_SIGMA_MAX = 1e9
+#: Smallest process-model levels: tighter ones make the motion's information ~1e12 times the readings' and
+#: the solve fails (euler sigma_integration 1e-8 rad/s did not converge in 300 s on a 200-sample array, every
+#: level at 1e-300 broke the eigendecomposition); at these bounds the same array solves.
+MOTION_LEVEL_MIN = {"sigma_s": 1e-3, "sigma_omega_dot": 1e-3, "sigma_integration": 1e-6, "density_s": 1e-3,
+                    "density_omega": 1e-2}
+MOTION_UNITS = {"sigma_s": "m/s^2", "sigma_omega_dot": "rad/s^2", "sigma_integration": "rad/s",
+                "density_s": "m/s^2.5", "density_omega": "rad/s^2.5 or rad/s^3.5"}
 #: Declared sample rates of a table without times (imucal), Hz.
 RATE_RANGE = (0.1, 1e5)
 #: Ferraris turns: the angle of each turn, deg (imucal's are one revolution; ten at most).
@@ -519,7 +526,8 @@ MOTION_LEVELS = {"wiener3": ("density_s", "density_omega"), "wiener2": ("density
 def _motion(c: Check, m) -> MotionSpec:
     levels = ("sigma_s", "sigma_omega_dot", "sigma_integration", "density_s", "density_omega")
     m = c.mapping(m, "motion", ("integration", "process_noise", "process_model") + levels)
-    kw = {k: c.number(v, f"motion.{k}", positive=True, hi=MOTION_SIGMA_MAX) for k, v in m.items() if k in levels}
+    kw = {k: c.number(v, f"motion.{k}", positive=True, lo=MOTION_LEVEL_MIN[k], hi=MOTION_SIGMA_MAX,
+                      unit=MOTION_UNITS[k]) for k, v in m.items() if k in levels}
     kw["integration"] = c.choice(m.get("integration", "wiener3"), "motion.integration", tuple(MOTION_LEVELS))
     kw["process_noise"] = c.choice(m.get("process_noise", "auto"), "motion.process_noise", ("auto", "fixed"))
     for k in kw:
