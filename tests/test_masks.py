@@ -133,3 +133,14 @@ def test_rails_declaration_errors(rails, quantity, message):
     with pytest.raises(InputError, match=__import__("re").escape(message)) as e:
         parse_units({"unit": "counts", "scale": 1, "rails": rails}, "p.yaml", "data.units.x", quantity)
     assert "p.yaml: data.units.x.rails: " in str(e.value)
+
+
+def test_csv_counts_declared_with_rails_carry_them(tmp_path):
+    from castimate.io.readers import read_csv
+
+    p = tmp_path / "d.csv"
+    p.write_text("t,a.ax,a.ay,a.az,a.gx,a.gy,a.gz\n0,1,2,3,4,5,6\n0.01,1,2,3,4,5,6\n")
+    rec = read_csv(p, {"unit": "counts", "scale": 2.0, "offset": 1, "rails": [-8, 7]},
+                   {"unit": "counts", "scale": 1.0, "scale_unit": "deg/s"})
+    np.testing.assert_array_equal(rec.rails_of("a", "accelerometer"), [[-18.0] * 3, [12.0] * 3])
+    assert rec.rails_of("a", "gyroscope") is None  # not declared: found as plateaus, if any
