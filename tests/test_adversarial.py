@@ -2037,8 +2037,7 @@ def clock_beat_ok(base, tmp):
     return _dyn_model(edit, (), rc=0)(base, tmp)
 
 
-@case("effects", pytest.mark.xfail(reason="known bug in castimate/solve/variance.py (process_noise: auto with "
-                                          "clock_beat): 'the stage Hessian is wider than its band'", strict=False))
+@case("effects")
 def clock_beat_ok_with_process_model(base, tmp):
     return _dyn_model(_set(("model", "accelerometer", "clock_beat"), "free"), (), rc=0)(base, tmp)
 

@@ -8,6 +8,7 @@ that is a sample of the model, and the problem file's motion keys.
 
 import casadi as ca
 import numpy as np
+import scipy.sparse as sp
 import pytest
 
 from castimate.errors import InputError
@@ -122,6 +123,40 @@ def test_redundancies_match_the_dense_hat_matrix(integration):
     red = redundancies(J, G, stages, comps)
     for k, rows in comps.items():
         assert red[k] == pytest.approx(rows.size - h[rows.ravel()].sum(), rel=1e-8, abs=1e-8)
+
+
+def test_redundancies_with_rows_reading_both_neighbours():
+    """Rows that read the stages n-1, n and n+1 (a sample age's central differences) couple stages
+    two apart: the redundancies still equal the dense hat matrix's (super-stages of two samples,
+    an odd number of stages so that one is padded)."""
+    rng = np.random.default_rng(7)
+    N, m, c = 11, 2, 3
+    stages = np.arange(N * m).reshape(N, m)
+    comps: dict[str, list[int]] = {"reading": [], "process": [], "rate": []}
+    rows = []
+
+    def row(name, reads):
+        r = np.zeros(N * m + c)
+        for n in reads:
+            r[stages[n]] = rng.normal(size=m)
+        r[N * m:] = rng.normal(size=c)
+        comps[name].append(len(rows))
+        rows.append(r)
+
+    for n in range(N):
+        for _ in range(3):
+            row("reading", [n])
+    for n in range(N - 1):
+        for _ in range(m):
+            row("process", [n, n + 1])
+    for n in range(1, N - 1):
+        row("rate", [n - 1, n, n + 1])
+    J = np.array(rows)
+    h = np.einsum("ri,ij,rj->r", J, np.linalg.inv(J.T @ J), J)
+    red = redundancies(sp.csr_matrix(J), sp.csr_matrix((0, J.shape[1])), stages,
+                       {k: np.array(v) for k, v in comps.items()})
+    for k, r in comps.items():
+        assert red[k] == pytest.approx(len(r) - h[r].sum(), rel=1e-9, abs=1e-9)
 
 
 def test_known_process_noise_recovered():

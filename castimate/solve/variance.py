@@ -109,8 +109,18 @@ def redundancies(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, components:
         raise ValueError("constraints on the stage variables")
     Jm, Jt = J[:, mx].tocsc(), J[:, theta].tocsc()
     Hmm = (Jm.T @ Jm).tocsc()
+    H = Hmm.tocoo()
+    w = int(np.abs(H.row // m - H.col // m).max(initial=1))
+    if w > 1:
+        # rows that read samples n-1..n+1 (sample-age effects' central differences) couple stages w
+        # apart: super-stages of w samples are block-tridiagonal again. Padded with decoupled unit
+        # stages (no rows read them) to a whole number of super-stages.
+        pad = (-N) % w * m
+        Jm = sp.hstack([Jm, sp.csc_matrix((Jm.shape[0], pad))]).tocsc()
+        Hmm = (Jm.T @ Jm + sp.diags(np.r_[np.zeros(N * m), np.ones(pad)])).tocsc()
+        N, m = (N * m + pad) // (w * m), w * m
     Hmt = (Jm.T @ Jt).toarray()
-    B = _banded_solve(Hmm, Hmt, 2 * m - 1) if len(theta) else np.zeros((len(mx), 0))
+    B = _banded_solve(Hmm, Hmt, 2 * m - 1) if len(theta) else np.zeros((Jm.shape[1], 0))
     S = (Jt.T @ Jt).toarray() - Hmt.T @ B
     Gt = G[:, theta].toarray()
     U = np.linalg.qr(Gt.T, mode="complete")[0][:, Gt.shape[0]:] if Gt.shape[0] else np.eye(len(theta))
