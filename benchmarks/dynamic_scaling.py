@@ -377,7 +377,7 @@ def worker_castimate(d: dict, progress: Progress, hessian: str = "exact", cold: 
     ``polish``: Gauss-Newton first, then the exact Hessian from its solution (both solvers built,
     both solves timed), which is what ``castimate solve`` does for arrays without gyroscopes."""
     from castimate.problem.dynamic import DynamicData, build_dynamic
-    from castimate.solve.ipopt import Solver
+    from castimate.solver.ipopt import Solver
     from castimate.problem.graph import SolverOptions
     config, data = make_config(d)
     if cold:
@@ -472,7 +472,7 @@ def worker_scipy(d: dict, progress: Progress) -> dict:
 
 
 def worker_bcd(d: dict, progress: Progress) -> dict:
-    from castimate.solve.bcd import bcd_positions
+    from castimate.solver.bcd import bcd_positions
     progress("setup")
     t0, c0 = time.perf_counter(), time.process_time()
     Rn = d["R_nominal"]  # calibrated body-frame readings: intrinsics are the nominal ones (T = Rbar, b = 0)

@@ -59,7 +59,7 @@ from castimate.models.rotation import rotation_to_quaternion
 from castimate.problem.dynamic import OMEGA, OMEGA_DDOT, OMEGA_DOT, S, DynamicConfig, DynamicData, MotionSigmas, build_dynamic
 from castimate.problem.triads import GroupSetting, TriadConfig
 from castimate.simulate.dynamic import carlsson_geometry, dynamic_measurements, schopp_geometry, sinusoid_motion
-from castimate.solve.ipopt import Solver
+from castimate.solver.ipopt import Solver
 
 SEED = 2016
 GEOMETRIES = {

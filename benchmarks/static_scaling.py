@@ -50,7 +50,7 @@ from castimate.problem.triads import ACCELEROMETER_GROUPS, GroupSetting, TriadCo
 from castimate.problem.static import StaticConfig, build_static, initial_directions
 from castimate.prepare.poses import pose_averages_from_means
 from castimate.simulate.static import pose_directions, random_static_truth, static_pose_means
-from castimate.solve.ipopt import Solver
+from castimate.solver.ipopt import Solver
 
 SIZES = [(14, 20), (32, 60)]  # (triads, poses)
 LM_MAX_TRIADS = 14  # dense "lm" only for the small size

@@ -168,7 +168,7 @@ class MotionSpec:
     process_model: bool = True
 
 
-#: noise.motion_dependent (castimate.solve.motion_noise): per sensor and component (floor, jitter, rate),
+#: noise.motion_dependent (castimate.solver.motion_noise): per sensor and component (floor, jitter, rate),
 #: auto (estimated, kept where the likelihood-ratio test finds it), free (estimated), none (zero), or a
 #: number: the component's parameter fixed (σ_d, τ, κ in the units of solve.motion_noise.COMPONENTS).
 MOTION_NOISE = ("auto", "free", "none")

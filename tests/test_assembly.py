@@ -2,7 +2,7 @@
 
 ``Solver`` assembles IPOPT's objective, gradient and exact Hessian of the Lagrangian in numpy from
 compiled local functions (unstaged blocks through a sparse matrix, staged blocks stage by stage, see
-``castimate.solve``). Here they must equal ``ca.gradient`` and ``ca.hessian`` of the same problem
+``castimate.solver``). Here they must equal ``ca.gradient`` and ``ca.hessian`` of the same problem
 written as one symbolic graph (``Solver.symbolic_nlp``), at a random point and for random
 multipliers, on small static and dynamic problems with priors, unit-norm constraints, masked
 samples, a process model and free intrinsics.
@@ -18,7 +18,7 @@ from castimate.problem.dynamic import DynamicConfig, DynamicData, MotionSigmas, 
 from castimate.problem.triads import GroupSetting, TriadConfig
 from castimate.problem.static import build_static
 from castimate.simulate.dynamic import dynamic_measurements, euler_consistent, smooth_random_motion
-from castimate.solve.ipopt import Solver
+from castimate.solver.ipopt import Solver
 from castimate.problem.graph import SolverOptions
 
 from test_static import make_case
@@ -177,7 +177,7 @@ def test_compiled_and_virtual_machine_assembly_agree():
 
 def test_chunked_evaluation_equals_one_chunk(monkeypatch):
     """Splitting the instances into chunks (whole stage groups) changes nothing."""
-    from castimate.solve import assembly as solve
+    from castimate.solver import assembly as solve
 
     prob = dynamic_case()
     x = prob.lsq.layout.x0()
@@ -210,7 +210,7 @@ def test_projection_compiled_virtual_machine_and_chunks_agree(monkeypatch):
     machine, with the instances split into chunks that are not a multiple of the triads, and
     with each instance's entries scattered in numpy instead of a stage group's summed in the
     stage functions; the information too."""
-    import castimate.solve.elimination as elimination
+    import castimate.solver.elimination as elimination
 
     prob = dynamic_case()
     pf = prob.lsq.layout.p0()

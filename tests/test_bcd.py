@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from castimate.solve import bcd
+from castimate.solver import bcd
 
 SIGMA_A = 0.04  # m/s²
 SIGMA_G = 0.001  # rad/s

@@ -181,7 +181,7 @@ def test_sigma_masking_has_the_optimum_of_leaving_readings_out(shared_data):
     from castimate.kinds.dynamic import dynamic_inputs
     from castimate.problem.dynamic import build_dynamic, build_dynamic_sigma_masked
     from castimate.spec import load_problem
-    from castimate.solve.ipopt import Solver
+    from castimate.solver.ipopt import Solver
 
     inputs = dynamic_inputs(load_problem(PROBLEMS / "mimu4444_exp1_dynamic.yaml"))
     data = inputs.data.window(1000, 60)

@@ -18,7 +18,7 @@ from castimate.problem.dynamic import DynamicConfig, DynamicData, build_dynamic
 from castimate.spec import load_problem
 from castimate.problem.triads import GroupSetting, TriadConfig
 from castimate.simulate.dynamic import carlsson_geometry, dynamic_measurements, euler_consistent, smooth_random_motion
-from castimate.solve.ipopt import Solver
+from castimate.solver.ipopt import Solver
 
 FIXED = GroupSetting(free=(False,) * 3)
 

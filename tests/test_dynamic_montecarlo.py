@@ -27,7 +27,7 @@ from castimate.models.rotation import rotation_to_quaternion
 from castimate.problem.dynamic import OMEGA, OMEGA_DOT, S, DynamicConfig, DynamicData, MotionSigmas, build_dynamic, initial_motion
 from castimate.problem.triads import GroupSetting, TriadConfig
 from castimate.simulate.dynamic import carlsson_geometry, dynamic_measurements, euler_consistent, schopp_geometry, smooth_random_motion
-from castimate.solve.ipopt import Solver
+from castimate.solver.ipopt import Solver
 from castimate.problem.graph import SolverOptions
 
 RUNS = 20

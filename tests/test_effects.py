@@ -12,7 +12,7 @@ from castimate.problem.static import StaticConfig, build_static
 from castimate.prepare.poses import pose_averages_from_means
 from castimate.simulate.effects import REALISTIC_EFFECTS, random_effects
 from castimate.simulate.static import pose_directions, random_static_truth, static_pose_means
-from castimate.solve.ipopt import Solver
+from castimate.solver.ipopt import Solver
 
 
 def ev(expr):

@@ -10,7 +10,7 @@ import pytest
 
 from castimate.problem.dynamic import MotionSigmas
 from castimate.problem.static import build_static
-from castimate.solve import Solver, SolverOptions
+from castimate.solver import Solver, SolverOptions
 
 from test_assembly import dynamic_case, static_case
 from test_static import make_case
@@ -134,7 +134,7 @@ def test_single_row_inputs_reach_casadi_in_c_order(elimination):
     functions must still get C-order inputs (CasADi's buffers refused them). Both paths solve it
     with a pull of 3 instances on a free gain, to the same optimum."""
     from castimate.problem.graph import FactorBlock, LeastSquaresProblem
-    from castimate.solve.assembly import Block
+    from castimate.solver.assembly import Block
     import casadi as ca
     prob = static_case()
     z, d = ca.SX.sym("z", 3), ca.SX.sym("d", 3)
@@ -152,7 +152,7 @@ def test_elimination_note_says_what_was_eliminated_and_why_not():
     """The solver states what it eliminated (results.json's status.elimination); a nuisance group
     with bounds or a prior stays a calibration variable, with the reason."""
     from types import SimpleNamespace
-    from castimate.solve.elimination import Family
+    from castimate.solver.elimination import Family
     assert Solver(dynamic_case(10).lsq).elimination_note == \
         "eliminated: 10 x 12 (motion.omega, motion.omega_dot, motion.s, motion.omega_ddot)"  # wiener3
     assert Solver(dynamic_case(10).lsq, SolverOptions(elimination="none")).elimination_note == \

@@ -12,7 +12,7 @@ import pytest
 from castimate.models import effects as fx
 from castimate.problem.dynamic import build_dynamic
 from castimate.problem.effects import BY_KEY, DYNAMIC, NEWTON
-from castimate.solve import Solver
+from castimate.solver import Solver
 
 from test_effects import assert_dynamic_jacobian_matches_finite_differences, dynamic_effect_case
 

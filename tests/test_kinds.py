@@ -49,7 +49,7 @@ def static_problem(tmp_path_factory):
 
 def test_the_steps_compose_to_the_kinds_calibration(static_problem):
     """load -> configure -> build -> check -> solve gives the optimum of kind.calibrate."""
-    from castimate.solve.ipopt import Solver
+    from castimate.solver.ipopt import Solver
 
     kind = kind_of(static_problem)
     data = kind.load(static_problem)

@@ -18,7 +18,7 @@ LAYERS = [
     ("validation",),   # the one style of input checks
     ("models",),       # symbolic physics only
     ("problem",),      # factor graphs composed from the models, parameter groups, the effect registry
-    ("solve",),        # IPOPT driver, numpy assembly, uncertainty, BCD
+    ("solver",),       # IPOPT driver, numpy assembly, uncertainty, BCD
     ("io",),           # readers, units, recordings, atomic writes, results.json reading
     ("prepare",),      # static-segment detection, pose averages, sample masks
     ("spec",),         # problem file -> validated ProblemSpec

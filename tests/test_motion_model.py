@@ -18,8 +18,8 @@ from castimate.problem.dynamic import OMEGA_DDOT, DynamicConfig, DynamicData, Mo
 from castimate.problem.graph import SolverOptions
 from castimate.problem.triads import GroupSetting, TriadConfig
 from castimate.simulate.dynamic import Motion, dynamic_measurements, sinusoid_motion
-from castimate.solve.ipopt import Solver
-from castimate.solve.variance import block_rows, redundancies, selected_inverse
+from castimate.solver.ipopt import Solver
+from castimate.solver.variance import block_rows, redundancies, selected_inverse
 
 from test_assembly import dynamic_case
 

@@ -15,7 +15,7 @@ from castimate.kinds.dynamic import calibrate_dynamic
 from castimate.simulate.dynamic import dynamic_measurements, smooth_random_motion
 from castimate.simulate.effects import jitter_ages
 from castimate.simulate.scenarios import simulate_scenario
-from castimate.solve.motion_noise import (block_leverages, fit_noise, negative_log_likelihood, noise_sigma,
+from castimate.solver.motion_noise import (block_leverages, fit_noise, negative_log_likelihood, noise_sigma,
                                       score_information, variance_components)
 from castimate.spec import load_problem, motion_noise_setting
 

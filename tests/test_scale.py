@@ -376,8 +376,8 @@ def test_six_faces_leave_the_common_nonorthogonality_undetermined():
 
 def test_partial_bound_is_the_covariance_when_everything_is_determined():
     from castimate.kinds import kind_of
-    from castimate.solve.ipopt import Solver
-    from castimate.solve.uncertainty import partial_bound
+    from castimate.solver.ipopt import Solver
+    from castimate.solver.uncertainty import partial_bound
 
     with __import__("tempfile").TemporaryDirectory() as tmp:
         files = simulate_scenario(write(Path(tmp) / "s.yaml", STATIC), Path(tmp) / "o")

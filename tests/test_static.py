@@ -11,7 +11,7 @@ from castimate.problem.triads import ACCELEROMETER_GROUPS, GYROSCOPE_GROUPS, Gro
 from castimate.problem.static import StaticConfig, build_static
 from castimate.prepare.poses import pose_averages_from_means
 from castimate.simulate.static import pose_directions, random_static_truth, static_pose_means
-from castimate.solve.ipopt import Solver
+from castimate.solver.ipopt import Solver
 
 FREE, FIXED = GroupSetting(free=(True,) * 3), GroupSetting(free=(False,) * 3)
 SIGMA, N_SAMPLES = 0.01, 1000

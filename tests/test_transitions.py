@@ -101,7 +101,7 @@ def test_recovers_simulated_gyroscope_truth(tmp_path):
 def test_static_poses_alone_leave_the_gain_undetermined(tmp_path):
     from castimate.kinds.static import check_identifiable, pose_averages, static_config, load_recording
     from castimate.problem.static import build_static
-    from castimate.solve import Solver
+    from castimate.solver import Solver
     from castimate.spec import load_problem
 
     p, *_ = _session(tmp_path, poses=6)

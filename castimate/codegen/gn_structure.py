@@ -1,6 +1,6 @@
 """The structure of a least-squares problem as the C Gauss-Newton solver sees it.
 
-From a :class:`castimate.solve.Solver` (its factor blocks bound to the layout) this module derives,
+From a :class:`castimate.solver.Solver` (its factor blocks bound to the layout) this module derives,
 in numpy, everything the generic C driver ``c/castimate_gn.c`` needs as constant tables:
 
 - the split of the decision vector x into *global* variables (calibration parameters, positions)
@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from ..solve.ipopt import Solver
+from ..solver.ipopt import Solver
 
 
 class UnsupportedProblem(ValueError):

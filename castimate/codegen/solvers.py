@@ -34,7 +34,7 @@ import numpy as np
 
 from ..errors import InputError, NotConvergedError
 from ..problem.graph import Solution
-from ..solve.ipopt import Solver
+from ..solver.ipopt import Solver
 from .ctext import c_comment, c_double, casadi_sources
 from .gn_structure import GNStructure, UnsupportedProblem, gn_structure
 from .options import CodegenOptions

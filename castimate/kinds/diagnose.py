@@ -40,7 +40,7 @@ from ..errors import CastimateError, InputError
 from ..problem.effects import BY_KEY, EFFECTS, TEMPERATURE, Effect
 from ..spec import ProblemSpec, motion_noise_setting
 from ..problem.triads import GroupSetting, group_name
-from ..solve.ipopt import Solver
+from ..solver.ipopt import Solver
 
 
 #: Family-wise false-alarm level of one round of score tests (Bonferroni over the candidates).

@@ -30,13 +30,13 @@ from ..problem.static import recover_nominal_rotation
 from ..prepare.poses import average_poses
 from ..prepare.detect import detect_static
 from ..problem.graph import Solution
-from ..solve.ipopt import Solver
-from ..solve.variance import block_rows, estimate_levels
+from ..solver.ipopt import Solver
+from ..solver.variance import block_rows, estimate_levels
 from ..problem.graph import SolverOptions
 from ..prepare.masks import saturation_mask
 from ..prepare.plausibility import check_dynamic_information, check_uniform_sampling
 from ..problem.effects import BY_KEY, MOTION, RATE
-from ..solve.motion_noise import COMPONENTS, fit_noise, noise_sigma, stage_leverages
+from ..solver.motion_noise import COMPONENTS, fit_noise, noise_sigma, stage_leverages
 
 #: A sensor with more than this fraction of its samples masked as saturated is refused.
 MAX_MASKED = 0.5
@@ -195,7 +195,7 @@ class DynamicOutcome:
     residual_acc: dict  # name -> (N, 3) m/s^2, NaN where masked
     residual_gyro: dict
     nominal: dict  # name -> nominal position in the body frame
-    variance: object = None  # solve.variance.VarianceComponents of the process noise, if estimated
+    variance: object = None  # solver.variance.VarianceComponents of the process noise, if estimated
     motion_noise: dict = None  # sensor -> the fitted τ of noise.motion_dependent (:func:`fit_motion_noise`)
 
     @property
@@ -417,7 +417,7 @@ def solve_dynamic(config: DynamicConfig, data: DynamicData, nominal: dict, optio
 def estimate_process_noise(problem, data: DynamicData, solver: Solver, sol: Solution, options: SolverOptions,
                            static_problem, nominal: dict, log: Log = quiet):
     """Process-noise levels of the motion model from the data: variance components of the process
-    rows (``solve.variance.estimate_levels``, Helmert/Förstner), each iteration re-solved from the
+    rows (``solver.variance.estimate_levels``, Helmert/Förstner), each iteration re-solved from the
     previous solution with the exact Hessian. Returns (problem, solver, solution, VarianceComponents)
     at the estimated levels."""
     config = problem.config
@@ -474,7 +474,7 @@ def noise_regressors(problem, values: dict, data: DynamicData) -> tuple[dict, di
 
 def with_motion_noise(data: DynamicData, params: dict[str, dict[str, float]], regressors: tuple[dict, dict]
                       ) -> DynamicData:
-    """``data`` with the per-sample σ of σ² = σ₀² + Σ θ g (:func:`castimate.solve.motion_noise.noise_sigma`)
+    """``data`` with the per-sample σ of σ² = σ₀² + Σ θ g (:func:`castimate.solver.motion_noise.noise_sigma`)
     for the sensors with a non-zero component; ``params`` sensor -> component -> √θ."""
     sample = {}
     for (sensor, kind), reg in zip(SENSORS, regressors):
@@ -486,7 +486,7 @@ def with_motion_noise(data: DynamicData, params: dict[str, dict[str, float]], re
 
 def fit_motion_noise(spec: ProblemSpec, problem, solver: Solver, sol: Solution, data: DynamicData, log: Log
                      ) -> tuple[DynamicData, Solution, dict]:
-    """The motion-dependent noise model of ``noise.motion_dependent`` (:mod:`castimate.solve.motion_noise`):
+    """The motion-dependent noise model of ``noise.motion_dependent`` (:mod:`castimate.solver.motion_noise`):
     alternately its components by maximum likelihood from the residuals and their redundancy, and
     the weighted fit with the σ's they give (warm-started, no rebuild), until they settle. Returns
     the data with the per-sample σ's, the solution of the last weighted fit and, per sensor and
@@ -572,7 +572,7 @@ def _static_phase(spec: ProblemSpec, full: Recording, config: DynamicConfig, log
 def _solve_bcd(spec: ProblemSpec, config: DynamicConfig, data: DynamicData, log: Log):
     """Carlsson 2017, Algorithm 1, on the same problem: calibrated readings, then alternate the
     per-sample ML motion and the closed-form positions (eq. 9). σ's from the same Fisher information."""
-    from ..solve.bcd import bcd_positions
+    from ..solver.bcd import bcd_positions
 
     problem = build_dynamic(config, data)
     lay = problem.lsq.layout

@@ -1,7 +1,7 @@
 """From a validated problem spec to a calibrated outcome: read, detect, average, compose, solve.
 
 This module orchestrates; the physics is in :mod:`castimate.models` and
-:mod:`castimate.problem`, the numerical solve in :mod:`castimate.solve`. It does not write
+:mod:`castimate.problem`, the numerical solve in :mod:`castimate.solver`. It does not write
 files or plot.
 """
 
@@ -27,7 +27,7 @@ from ..problem.triads import Regressors, TriadConfig, fixed_config
 from ..prepare.detect import Detection, detect_static, explicit_segments
 from ..prepare.poses import PoseAverages, average_poses, pose_averages_from_means
 from ..problem.graph import Solution
-from ..solve.ipopt import Solver
+from ..solver.ipopt import Solver
 from ..prepare.plausibility import (Declared, check_accelerometer_units, check_channels, check_gyroscope_noise,
                                     check_gyroscope_units)
 

@@ -142,7 +142,7 @@ def dynamic_results(outcome) -> dict:
         "saturation": _saturation(spec, outcome.saturation),
         "motion_model": _motion_model(cfg, outcome.variance),
         "noise": {"accelerometer": outcome.data.acc_sigma, "gyroscope": outcome.data.gyro_sigma,
-                  # σ² = σ₀² + σ_d² + (τ u̇)² + (κ|ω|)² per axis (castimate.solve.motion_noise)
+                  # σ² = σ₀² + σ_d² + (τ u̇)² + (κ|ω|)² per axis (castimate.solver.motion_noise)
                   **({"motion_dependent": outcome.motion_noise} if outcome.motion_noise else {})},
         "triads": triads,
         "residuals": {"chi2": sol.chi2, "dof": sol.dof, "chi2_per_dof": sol.chi2_per_dof,

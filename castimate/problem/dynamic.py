@@ -51,7 +51,7 @@ class MotionSigmas:
     a random walk in all. ``s``, ``omega`` and ``omega_dot`` are the levels of the s, ω and ω̇ rows
     (Wiener: √q_s, and ``omega`` = ``omega_dot`` = √q_ω of the ω chain); None takes the
     integration's defaults. ``estimate``: re-estimate the levels from the data (variance
-    components, ``solve.variance``), starting from these.
+    components, ``solver.variance``), starting from these.
     """
 
     integration: str = "wiener3"
@@ -120,7 +120,7 @@ class DynamicData:
     per triad: (N, 3) which axes read (an ADC clips each channel on its own), or (N,) per sample.
     ``sigma_sample`` ("acc"
     | "gyro" -> triad -> (N, 3)) replaces them sample by sample where a motion-dependent noise model
-    is fitted (:mod:`castimate.solve.motion_noise`); :meth:`sigma` gives the σ in effect.
+    is fitted (:mod:`castimate.solver.motion_noise`); :meth:`sigma` gives the σ in effect.
     """
 
     t: np.ndarray

@@ -41,7 +41,7 @@ class SolverOptions:
     elimination
         ``motion`` (default): IPOPT solves for the calibration parameters only, with the per-sample
         motion and the per-pose directions eliminated exactly at every iterate (variable projection,
-        :mod:`castimate.solve.elimination`): time and memory per iteration linear in the samples,
+        :mod:`castimate.solver.elimination`): time and memory per iteration linear in the samples,
         only the calibration parameters dense. ``none``: the full NLP with every nuisance variable,
         its KKT system factorised by MUMPS (the reference path). Problems without such nuisance
         rows solve the same either way.

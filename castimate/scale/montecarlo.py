@@ -21,8 +21,8 @@ from ..kinds import kind_of
 from ..output import OUTPUTS
 from ..simulate.montecarlo import MonteCarloResult
 from ..simulate.scenarios import simulate_scenario
-from ..solve.ipopt import Solver
-from ..solve.uncertainty import partial_bound
+from ..solver.ipopt import Solver
+from ..solver.uncertainty import partial_bound
 from ..spec import load_problem, motion_noise_setting
 from ..validation import Check, load_yaml
 from .engine import TaskResult, run_tasks

@@ -11,7 +11,7 @@ A duration is the time held in each pose (static: ``samples_per_pose`` = duratio
 means) or the length of the motion (dynamic: ``samples`` = duration x ``rate``). Every case is the
 noise-free session solved (:func:`castimate.scale.montecarlo.solve_noise_free`): the σ's of that
 solution are the bound, from the Fisher information of castimate's own model
-(:mod:`castimate.solve.uncertainty`).
+(:mod:`castimate.solver.uncertainty`).
 """
 
 from __future__ import annotations

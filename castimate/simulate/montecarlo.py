@@ -14,7 +14,7 @@ from ..problem.triads import ACCELEROMETER_GROUPS, GroupSetting, TriadConfig
 from ..problem.static import DIRECTIONS, StaticConfig, build_static
 from ..prepare.poses import pose_averages_from_means
 from .static import pose_directions, random_static_truth, static_pose_means
-from ..solve.ipopt import Solver
+from ..solver.ipopt import Solver
 
 
 @dataclass

@@ -29,7 +29,7 @@ sample); groups with priors or bounds on their rows, or read by a block without 
 stay calibration variables, and the reason is reported (``Solver.elimination_note``). A staged
 block is evaluated a stage group at a time by compiled functions that also sum its instances'
 entries onto the stage's arrays (:class:`_StageFunctions`); otherwise local derivatives from the
-same local functions as the reference assembly (:mod:`castimate.solve.assembly`), plus one of the
+same local functions as the reference assembly (:mod:`castimate.solver.assembly`), plus one of the
 nuisance components alone for the inner steps, land on the eliminated system's arrays through
 small constant maps in numpy (:class:`_Plan`).
 

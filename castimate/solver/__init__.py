@@ -22,7 +22,7 @@ samples.) ``Solver.symbolic_nlp`` gives the same problem as one graph, as a refe
 
 By default (``SolverOptions.elimination = "motion"``) IPOPT sees only the calibration parameters:
 the per-sample motion and the per-pose directions are eliminated exactly at every iterate
-(variable projection, :mod:`castimate.solve.elimination`), with the reduced gradient and the exact
+(variable projection, :mod:`castimate.solver.elimination`), with the reduced gradient and the exact
 reduced Hessian (the Schur complement of the full Hessian) from the implicit function theorem; the
 per-sample work is block diagonal or block banded, so nothing dense grows with the samples. The
 full NLP above (``elimination = "none"``) is kept as the reference.

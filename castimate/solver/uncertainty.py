@@ -84,7 +84,7 @@ def eliminate(solver, x, p_fixed=None, data=None, g: np.ndarray | None = None):
 
 def _eliminate_projected(solver, x, p_fixed, data, g):
     """:func:`eliminate` with the nuisance families eliminated by the projection
-    (:meth:`castimate.solve.elimination.Projection.marginal`), then the remaining nuisance
+    (:meth:`castimate.solver.elimination.Projection.marginal`), then the remaining nuisance
     calibration variables (if any) by a dense Schur complement with their constraints."""
     P = solver.projection
     pf, d = solver.fixed_and_data(p_fixed, data)

@@ -1,5 +1,5 @@
 """Numpy assembly of the objective, gradient and exact Hessian of the Lagrangian from compiled local
-functions (see castimate.solve for the overview).
+functions (see castimate.solver for the overview).
 """
 
 from __future__ import annotations

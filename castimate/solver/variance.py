@@ -12,7 +12,7 @@ estimate of the levels; Σ_k ρ_k + (the other rows' redundancy) = rows − (var
 
 The hat-matrix trace uses the arrow structure of the dynamic problems: the motion states are
 stages coupled to their neighbours only (a block-tridiagonal H_mm, as eliminated in
-:mod:`castimate.solve.elimination`) and to a dense border θ. With B = H_mm⁻¹ H_mθ and P_θ the
+:mod:`castimate.solver.elimination`) and to a dense border θ. With B = H_mm⁻¹ H_mθ and P_θ the
 constrained inverse of the Schur complement S = H_θθ − H_θm B,
 
     j P jᵀ = j_m Σ j_mᵀ + (j_m B − j_θ) P_θ (j_m B − j_θ)ᵀ,

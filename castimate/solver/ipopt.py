@@ -1,5 +1,5 @@
 """The IPOPT driver: one NLP per problem structure, built once from the numpy assembly
-(:mod:`castimate.solve.assembly`) and solved for any data or fixed values."""
+(:mod:`castimate.solver.assembly`) and solved for any data or fixed values."""
 
 from __future__ import annotations
 
@@ -118,7 +118,7 @@ class Solver:
     def _projected_nlp(self, x, p, c):
         """IPOPT over the calibration variables θ: the reduced objective, its gradient and the
         dense upper triangle of its exact Hessian plus the constraints' curvature
-        (:class:`castimate.solve.elimination.Projection`)."""
+        (:class:`castimate.solver.elimination.Projection`)."""
         P, lay = self.projection, self.problem.layout
         H_sp = ca.Sparsity.upper(P.c)
         hr, hc = (np.asarray(v, int) for v in H_sp.get_triplet())
@@ -233,7 +233,7 @@ class Solver:
         return {"x": x, "p": p, "f": 0.5 * ca.sumsqr(r), "g": ca.vertcat(*g) if g else ca.MX(0, 1)}
 
     def information(self, x, p_fixed=None, data=None) -> sp.csc_matrix:
-        """The Fisher information J^T J at scaled x (:func:`castimate.solve.uncertainty.information`)."""
+        """The Fisher information J^T J at scaled x (:func:`castimate.solver.uncertainty.information`)."""
         return uncertainty.information(self, x, p_fixed, data)
 
     def marginal_information(self, x, p_fixed=None, data=None) -> tuple[np.ndarray, np.ndarray]:
