@@ -41,6 +41,7 @@ from castimate.kinds.static import load_recording  # noqa: E402
 from castimate.output.results import static_results  # noqa: E402
 from castimate.prepare.detect import detect_static  # noqa: E402
 from castimate.prepare.options import DetectionOptions  # noqa: E402
+from castimate.scale.stats import errors_over_sigma  # noqa: E402
 from castimate.simulate.scenarios import simulate_scenario  # noqa: E402
 from castimate.spec import load_problem  # noqa: E402
 
@@ -58,13 +59,7 @@ RATE = 200.0
 
 def z_scores(res: dict, truth: dict) -> np.ndarray:
     """(estimate - truth) / σ of every free parameter."""
-    z = []
-    for name, t in truth["triads"].items():
-        for key, value in t["parameters"].items():
-            p = res["triads"][name]["parameters"][key.split(".", 1)[1] if key.startswith("accelerometer.") else key]
-            s = np.array(p["std"])
-            z += list(((np.array(p["value"]) - value) / np.where(s > 0, s, 1))[s > 0])
-    return np.array(z)
+    return np.array(list(errors_over_sigma(res, truth).values()))
 
 
 def one(variant: str, seed: int, tmp: Path) -> dict:

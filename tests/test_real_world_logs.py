@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from castimate.cli import main
+from castimate.scale.stats import errors_over_sigma
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIO = ROOT / "problems" / "sim_rounded_stamps_1x24.yaml"
@@ -16,13 +17,7 @@ SCENARIO = ROOT / "problems" / "sim_rounded_stamps_1x24.yaml"
 
 def _z(res: dict, truth: dict) -> np.ndarray:
     """(estimate - truth) / σ of every free parameter."""
-    z = []
-    for name, t in truth["triads"].items():
-        for key, value in t["parameters"].items():
-            p = res["triads"][name]["parameters"][key.split(".", 1)[1] if key.startswith("accelerometer.") else key]
-            s = np.array(p["std"])
-            z += list(((np.array(p["value"]) - value) / np.where(s > 0, s, 1))[s > 0])
-    return np.array(z)
+    return np.array(list(errors_over_sigma(res, truth).values()))
 
 
 def test_rounded_stamps_and_short_holds_calibrate_untuned(tmp_path, capsys):

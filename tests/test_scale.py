@@ -28,6 +28,7 @@ from castimate.scale.plan import load_plan, run_plan
 from castimate.scale.stats import (
     Estimate,
     batch_spread,
+    errors_over_sigma,
     duration_exponent,
     sampling_band,
     score_runs,
@@ -411,3 +412,14 @@ def test_without_dask_the_verbs_say_what_to_install(monkeypatch):
     with pytest.raises(InputError, match=r"pip install 'castimate\[scale\]'"):
         with dask_client(workers=1):
             pass
+
+
+def test_errors_over_sigma_by_hand():
+    """Free components with a σ are scored against truth.json; fixed ones and those truth does not state are not."""
+    results = {"triads": {"a": {"parameters": {
+        "gain": {"value": [1.02, 0.99, 1.0], "std": [0.01, 0.005, 0.0], "free": [True, True, False]},
+        "bias": {"value": [0.3, 0.0, 0.0], "std": [0.1, 0.1, 0.1]}}}}}
+    truth = {"triads": {"a": {"parameters": {"accelerometer.gain": [1.0, 1.0, 1.0]}}}}
+    z = errors_over_sigma(results, truth)
+    assert sorted(z) == ["a.accelerometer.gain[x]", "a.accelerometer.gain[y]"]
+    assert z["a.accelerometer.gain[x]"] == pytest.approx(2.0) and z["a.accelerometer.gain[y]"] == pytest.approx(-2.0)

@@ -73,6 +73,12 @@ def truth_values(truth: dict) -> dict[str, float]:
     return out
 
 
+def errors_over_sigma(results: dict, truth: dict) -> dict[str, float]:
+    """Label -> (estimate - truth) / σ of every free parameter component that truth.json states."""
+    true = truth_values(truth)
+    return {lab: (e.value - true[lab]) / e.std for lab, e in estimates(results).items() if lab in true and e.std > 0}
+
+
 def group_of(label: str) -> str:
     """The parameter group of a label without triad and component: ``accelerometer.gain``."""
     return label.split(".", 1)[1].split("[")[0]
