@@ -4,6 +4,7 @@ them repeated) and 1-3 s holds calibrates through the CLI with no edits, and agr
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +40,11 @@ def test_rounded_stamps_and_short_holds_calibrate_untuned(tmp_path, capsys):
     assert tb["repaired"] and abs(tb["rate_hz"] - 200) < 0.01 and tb["missing_samples"] == 0
     assert tb["repeated_stamps"] > 0.45 * len(stamps) and tb["max_correction_s"] < 0.0055
     assert note in printed.out  # and in the summary printed at the end
+    assert main(["report", str(tmp_path / "out")]) == 0  # and on the report page, with the repair's figures
+    page = (tmp_path / "out" / "report.html").read_text()
+    row = re.search(r"<td>time base</td><td>(.*?)</td>", page).group(1)
+    assert f"{tb['rate_hz']:.6g} Hz (the stamps)" in row and f"{tb['repeated_stamps']} repeated" in row, row
+    assert "no gaps" in row
 
     # every hold of 1-3 s found (at most one near 1 s lost), none reaching into a turn by more than 10 ms
     holds = np.array(truth["static_intervals_s"])

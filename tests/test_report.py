@@ -101,6 +101,23 @@ def test_format_pm():
     assert "?" in format_pm(1.0, None)
 
 
+def test_time_base_row_hand_computed():
+    from castimate.report.page import time_base_row
+
+    assert time_base_row({}) is None and time_base_row({"time_base": {"rate_hz": None}}) is None
+    tb = {"rate_hz": 62.5, "rate_from": "declared", "repaired": False, "gaps": []}
+    assert time_base_row({"time_base": tb}) == ("time base", "62.5 Hz (declared); no gaps")
+    tb = {"rate_hz": 100.0, "rate_from": "stamps", "repaired": True, "repeated_stamps": 7, "backward_stamps": 1,
+          "max_correction_s": 0.0042, "missing_samples": 3,
+          "gaps": [{"row": 10, "t_before_s": 0.09, "missing": 1}, {"row": 50, "t_before_s": 0.5, "missing": 2}]}
+    _, text = time_base_row({"time_base": tb})
+    assert text == ("100 Hz (stamps); stamps put on the grid a + T n: 7 repeated, 1 backward, largest correction "
+                    '4.2 ms; <span class="warn">3 samples missing in 2 gap(s)</span>: 1 before row 10 (t = 0.09 s), '
+                    "2 before row 50 (t = 0.5 s)")
+    tb["gaps"] = [{"row": r, "t_before_s": r / 100, "missing": 1} for r in range(7)]
+    assert time_base_row({"time_base": tb})[1].endswith("(t = 0.04 s) and 2 more")
+
+
 def test_figures_are_figures():
     from matplotlib.figure import Figure
 

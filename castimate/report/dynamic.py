@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from . import figures
-from .page import DEG, fig_html, chi2_text, finite, format_pm, kv, matrix, page_head, parameter_tables, status_row, wide
+from .page import (DEG, fig_html, chi2_text, finite, format_pm, kv, matrix, page_head, parameter_tables, status_row,
+                   time_base_row, wide)
 REQUIRED_DYNAMIC_DETAILS = ("triads", "t", "omega", "omega_dot", "s", "residual_acc", "acc_sigma", "position",
                             "position_std", "nominal_position")
 
@@ -219,6 +220,8 @@ def render_dynamic_report(results: dict, details: dict[str, np.ndarray]) -> str:
     duration = float(t[-1] - t[0]) if len(t) > 1 else 0.0
     rate = f", {(len(t) - 1) / duration:.4g} Hz" if duration > 0 else ""
     rows.append(("samples", f"{N} over {duration:.3g} s{rate}"))
+    if (row := time_base_row(results)) is not None:
+        rows.append(row)
     rows.append(("triads", f"{len(names)} (reference {escape(str(results.get('reference', '?')))}; "
                            f"{len(details.get('gyro_triads', []))} with a gyroscope)"))
     sat = results.get("saturated_samples_masked", {}) or {}

@@ -253,6 +253,31 @@ def status_row(results: dict) -> tuple[str, str]:
                              f'— {escape(str(status.get("message", "")))}')
 
 
+def time_base_row(results: dict) -> tuple[str, str] | None:
+    """The summary's time-base row from results.json ``time_base`` (io/timestamps.py): the sampling
+    rate and where it came from, whether the stamps were put on a grid, and every gap (None when
+    the results carry no time base)."""
+    tb = results.get("time_base")
+    if not isinstance(tb, dict) or not finite(tb.get("rate_hz")):
+        return None
+    text = f"{tb['rate_hz']:.6g} Hz ({escape(str(tb.get('rate_from', '?')))})"
+    if tb.get("repaired"):
+        corr = tb.get("max_correction_s")
+        text += ("; stamps put on the grid a + T n: " f"{int(tb.get('repeated_stamps') or 0)} repeated, "
+                 f"{int(tb.get('backward_stamps') or 0)} backward"
+                 + (f", largest correction {corr * 1e3:.3g} ms" if finite(corr) else ""))
+    gaps = tb.get("gaps") or []
+    if gaps:
+        shown = ", ".join(f"{int(g['missing'])} before row {int(g['row'])} (t = {g['t_before_s']:.4g} s)"
+                          for g in gaps[:5])
+        more = f" and {len(gaps) - 5} more" if len(gaps) > 5 else ""
+        text += (f'; <span class="warn">{int(tb.get("missing_samples") or 0)} samples missing in {len(gaps)} '
+                 f"gap(s)</span>: {shown}{more}")
+    else:
+        text += "; no gaps"
+    return ("time base", text)
+
+
 def kv(rows: list[tuple[str, str]]) -> str:
     return '<table class="kv">' + "".join(f"<tr><td>{k}</td><td>{v}</td></tr>" for k, v in rows) + "</table>"
 

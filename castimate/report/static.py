@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from . import figures
-from .page import DEG, chi2_text, fig_html, finite, kv, matrix, page_head, parameter_tables, status_row, wide
+from .page import (DEG, chi2_text, fig_html, finite, kv, matrix, page_head, parameter_tables, status_row,
+                   time_base_row, wide)
 
 REQUIRED_DETAILS = ("triads", "acc_sigma", "residual_acc", "norm_error_before", "norm_error_after")
 
@@ -52,6 +53,8 @@ def render_report(results: dict, details: dict[str, np.ndarray]) -> str:
     poses = results.get("poses", {})
     rows.append(("triads, poses", f"{len(triads)} triads (reference {escape(str(results.get('reference', '?')))}), "
                                   f"{poses.get('count', rms.shape[1])} poses"))
+    if (row := time_base_row(results)) is not None:
+        rows.append(row)
     if finite(results.get("gravity")):
         rows.append(("gravity", f"{results['gravity']:.5g} m/s²"))
     add(kv(rows))
