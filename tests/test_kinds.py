@@ -73,3 +73,24 @@ def test_a_static_window_takes_consecutive_poses(static_problem):
     np.testing.assert_array_equal(part.averages.t_start, data.averages.t_start[2:7])
     with pytest.raises(InputError, match=r"data: expected 1\.\.2 poses from pose 10 \(the problem has 12\), found 3"):
         kind.window(static_problem, data, 10, 3)
+
+
+def test_fitted_estimates_outside_their_physical_range_are_refused(tmp_path):
+    """A converged fit with a gain, an effect or a dynamic problem's position outside its physical range
+    (GroupDef.physical_range) is refused in one line naming the data file and the triad's column."""
+    from types import SimpleNamespace
+
+    from castimate.kinds.static import check_estimates
+
+    spec = SimpleNamespace(data=SimpleNamespace(path=tmp_path / "data.csv"))
+    fine = {"imu1.accelerometer.gain": np.ones(3), "imu1.position": np.array([0.01, 0.02, 0.0]),
+            "imu1.gyroscope.coupling": np.zeros(3), "omega": np.full((5, 3), 1e9)}  # motion is not a parameter group
+    check_estimates(spec, fine, ["imu1"])
+    for key, value, column, found in (("imu1.gyroscope.gain", [1.0, -7.5e8, 1.0], "imu1.gy", "-7.5e+08"),
+                                      ("imu1.position", [0.0, 0.0, 12.0], "imu1", "12"),
+                                      ("imu1.gyroscope.coupling", [0.0, 2.0, 0.0], "imu1", "2")):
+        with pytest.raises(InputError) as err:
+            check_estimates(spec, {**fine, key: np.array(value)}, ["imu1"])
+        text = str(err.value)
+        assert "data.csv" in text and column in text and f"at {found}, outside its physical range" in text, text
+        assert "\n" not in text

@@ -14,7 +14,7 @@ import numpy as np
 
 from . import CrossValidation, Log, Residuals, quiet
 from .intrinsics import read_intrinsics, reused
-from .static import check_gyroscope_effects, check_plausible, check_temperature, declared, load_recording
+from .static import check_estimates, check_gyroscope_effects, check_plausible, check_temperature, declared, load_recording
 from ..errors import InputError, NotConvergedError
 from ..io.readers import read_recording
 from ..io.recording import Recording
@@ -323,6 +323,7 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = quiet, max_restarts: int = 2
 
     if spec.solver.method == "bcd":
         problem, solver, sol, attempts = _solve_bcd(spec, config, data, log)
+        check_estimates(spec, sol.values, problem.config.names)
         cal, gcal = problem.calibration(sol.values), problem.gyro_calibration(sol.values)
         res_acc, res_gyro = measurement_residuals(problem, data, sol)
         return DynamicOutcome(spec, data, config, problem, solver, sol, attempts, sat, cal, gcal, res_acc, res_gyro,
@@ -330,6 +331,7 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = quiet, max_restarts: int = 2
     problem, solver, sol, attempts, variance = solve_dynamic(config, data, nominal, spec.solver, spec.path,
                                                              static_problem, log, max_restarts)
     data, sol, noise = fit_motion_noise(spec, problem, solver, sol, data, log)
+    check_estimates(spec, sol.values, problem.config.names)
     cal, gcal = problem.calibration(sol.values), problem.gyro_calibration(sol.values)
     res_acc, res_gyro = measurement_residuals(problem, data, sol)
     return DynamicOutcome(spec, data, problem.config, problem, solver, sol, attempts, sat, cal, gcal, res_acc,

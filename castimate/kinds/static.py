@@ -109,13 +109,15 @@ def check_temperature(spec: ProblemSpec, logged: set[str]) -> None:
 
 def check_estimates(spec: ProblemSpec, values: dict, names: list[str]) -> None:
     """Refuse a converged fit whose gain, angle or effect lies outside its physical range
-    (``GroupDef.physical_range``): the data contradict the model, e.g. an axis read with reversed sign."""
+    (``GroupDef.physical_range``): the data contradict the model, e.g. an axis read with reversed sign.
+    Keys are ``triad.sensor.group`` or, for a dynamic problem's positions, ``triad.position``."""
     for name in names:
         for key, v in values.items():
             parts = key.split(".")
-            if len(parts) != 3 or parts[0] != name:
+            if parts[0] != name or len(parts) not in (2, 3):
                 continue
-            gdef = group_def(parts[1], parts[2], np.size(v))
+            sensor, group = (parts[1], parts[-1])
+            gdef = group_def(sensor, group, np.size(v))
             if gdef is None:
                 continue
             lo, hi = gdef.physical_range()
@@ -124,9 +126,11 @@ def check_estimates(spec: ProblemSpec, values: dict, names: list[str]) -> None:
             if bad.any():
                 i = int(np.argmax(bad))
                 axis = gdef.components[i]
-                column = f"{name}.{'a' if parts[1] == 'accelerometer' else 'g'}{axis}" if axis in "xyz" else name
+                reading = axis in "xyz" and sensor in ("accelerometer", "gyroscope")
+                column = f"{name}.{'a' if sensor == 'accelerometer' else 'g'}{axis}" if reading else name
+                what = f"{sensor} {group}" if sensor != group else group
                 raise InputError(spec.data.path, column,
-                                 f"the fit puts the {parts[1]} {parts[2]} ({axis}) at {v[i]:.4g}, outside its physical "
+                                 f"the fit puts the {what} ({axis}) at {v[i]:.4g}, outside its physical "
                                  f"range {lo[i]:g} to {hi[i]:g}: the data contradict the model (an axis read with "
                                  "reversed sign, mislabelled poses or wrong units)")
 
