@@ -28,7 +28,7 @@ from castimate.simulate.scenarios import simulate_scenario  # noqa: E402
 from castimate.spec import load_problem  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-TIMING = {"accelerometer.clock_beat", "accelerometer.clock_drift", "accelerometer.time_offset", "gyroscope.time_offset"}
+TIMING = {"accelerometer.clock_beat", "accelerometer.clock_drift", "accelerometer.age", "gyroscope.delay"}
 runs = int(sys.argv[1]) if len(sys.argv) > 1 else 5
 raw = yaml.safe_load((ROOT / "problems" / "sim_chip_clocks_8x1000.yaml").read_text())
 rows, t0 = [], time.perf_counter()

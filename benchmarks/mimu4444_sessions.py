@@ -55,8 +55,10 @@ def variant(i: int, name: str) -> Path:
         raw.setdefault("noise", {})["motion_dependent"] = "none"
     else:
         raw["model"].setdefault("accelerometer", {})["clock_beat"] = "free"
-    if name == "coupling":
+    if name in ("coupling", "delay"):
         raw["model"].setdefault("gyroscope", {})["coupling"] = "free"
+    if name == "delay":  # the accelerometer-gyroscope delay (benchmarks/mimu4444_delay.py)
+        raw["model"]["gyroscope"]["delay"] = "free"
     out = BUILD / f"exp{i}_{name}.yaml"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(f"# {problem.name}, variant {name} (benchmarks/mimu4444_sessions.py)\n" + yaml.safe_dump(raw, sort_keys=False))

@@ -48,7 +48,7 @@ from .prepare.plausibility import (
     check_gyroscope_units,
 )
 from .problem.compensation import TriadLayout, triad_compensation
-from .problem.effects import BY_KEY, TEMPERATURE, TIME, included
+from .problem.effects import BY_KEY, RETIRED, TEMPERATURE, TIME, included
 from .problem.triads import Regressors
 from .validation import as_path
 
@@ -91,7 +91,8 @@ class Calibration:
         path = as_path(path, "Calibration.read", "path", "the path of a results.json")
         doc = read_results(path)
         fx = doc.get("effects") or {}
-        keys = tuple(fx.get("included", ()))
+        # a retired effect (time_offset) was never undone sample by sample: nothing to apply
+        keys = tuple(k for k in fx.get("included", ()) if k not in RETIRED)
         for k in keys:
             if k not in BY_KEY:
                 raise InputError(path, "effects.included", f"expected effects of {', '.join(BY_KEY)}, found {k!r}")

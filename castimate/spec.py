@@ -37,7 +37,7 @@ from .io.units import UnitConversion, parse_units
 from .prepare.masks import SaturationOptions
 from .prepare.options import DetectionOptions
 from .problem.graph import SolverOptions
-from .problem.effects import DYNAMIC, STATIC, effects_for
+from .problem.effects import DYNAMIC, RETIRED, STATIC, effects_for
 from .problem.parameters import GroupDef
 from .problem.triads import POSITION, QUATERNION_MISALIGNMENT, SENSOR_GROUPS, GroupSetting
 
@@ -464,8 +464,14 @@ def _model(c: Check, m, array: ArraySpec, kind: str = "static_array", base: Path
 
     # effects (problem.effects) are named like groups; absent unless a section names them
     effects = {sensor: effects_for(sensor, kind) if kind in EFFECT_KINDS else {} for sensor in SENSOR_GROUPS}
+    def retired(sec, where, sensor):  # a group the library no longer has: say what replaced it
+        for g in sec if isinstance(sec, dict) else ():
+            if f"{sensor}.{g}" in RETIRED:
+                c.fail(f"{where}.{g}", RETIRED[f"{sensor}.{g}"])
+
     glob = {}
     for sensor, groups in SENSOR_GROUPS.items():
+        retired(m.get(sensor), f"model.{sensor}", sensor)
         sec = c.mapping(m.get(sensor), f"model.{sensor}", tuple(groups) + tuple(effects[sensor]))
         for g in groups:
             base = {"free": (defaults[sensor][g],) * size(sensor, g)}
@@ -491,6 +497,7 @@ def _model(c: Check, m, array: ArraySpec, kind: str = "static_array", base: Path
             settings[name, "position", "position"] = GroupSetting(
                 **(_group_setting(c, tsec["position"], w, 3, pos_base, POSITION) if "position" in tsec else pos_base))
         for sensor, groups in SENSOR_GROUPS.items():
+            retired(tsec.get(sensor), f"model.triads.{name}.{sensor}", sensor)
             ssec = c.mapping(tsec.get(sensor), f"model.triads.{name}.{sensor}", tuple(groups) + tuple(effects[sensor]))
             for g, e in effects[sensor].items():
                 n = len(e.group.components)

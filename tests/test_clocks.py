@@ -86,7 +86,7 @@ def test_clock_beat_acts_on_both_sensors_by_hand():
 
 
 def test_timing_factor_derivatives_match_finite_differences():
-    cfg = _config([BEAT, DRIFT, "gyroscope.time_offset"])
+    cfg = _config([BEAT, DRIFT, "accelerometer.age", "gyroscope.delay"])
     rng = np.random.default_rng(3)
     for F in (accelerometer_sample_factor(cfg), gyroscope_sample_factor(cfg)):
         z = rng.standard_normal(F.size1_in(0))

@@ -129,7 +129,7 @@ def test_undoing_is_derived_from_the_symbolic_term():
     assert how["gyroscope.g_sensitivity"] == fxs.SUBTRACTED  # depends on f, not on the gyroscope's reading
     assert how["accelerometer.temperature_gain"] == how["accelerometer.scale_nonlinearity"] == fxs.NEWTON
     assert how["gyroscope.coupling"] == fxs.NEWTON
-    assert how["accelerometer.axis_offsets"] == how["gyroscope.time_offset"] == fxs.NOT_SAMPLE_WISE
+    assert how["accelerometer.axis_offsets"] == how["gyroscope.delay"] == how["accelerometer.age"] == fxs.NOT_SAMPLE_WISE
 
 
 def test_calibration_docstring_example_runs():

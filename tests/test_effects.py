@@ -46,9 +46,32 @@ def test_axis_offsets_by_hand():
     assert np.allclose(out, [0, 0, 0.1])
 
 
-def test_time_offset_by_hand():
-    # 2 ms late on a reading rising at 5 m/s^3 along x reads 0.01 m/s^2 more
-    assert np.allclose(ev(fx.time_offset(2e-3, ca.DM([5.0, 0, -1.0]))), [0.01, 0, -2e-3])
+def test_sample_age_by_hand():
+    # a sample 2 ms old of a reading rising at 5 m/s^3 along x reads 0.01 m/s^2 less
+    assert np.allclose(ev(fx.sample_age(2e-3, ca.DM([5.0, 0, -1.0]))), [-0.01, 0, 2e-3])
+
+
+def test_chip_age_and_gyroscope_delay_by_hand():
+    """ω_z(t) = 2 sin(5 t) rad/s, s_x(t) = 3 t m/s^2 at t = 0 (T = I, r = 0): the chip's sample is
+    a = 1 ms old, its gyroscope's d = 0.5 ms older still. The gyroscope reads ω(−1.5 ms) ≈ −0.015 rad/s
+    (the registry's terms: −(a + d) ω̇ with ω̇_z = 10 rad/s^2), the accelerometer s(−1 ms) = −0.003 m/s^2
+    (−a ṡ), each within the second-order error of the exact value."""
+    from castimate.problem.effects import Context, acting_on, total
+
+    keys = {"accelerometer.age", "gyroscope.delay"}
+    values = {"accelerometer.age": ca.DM([1e-3]), "gyroscope.delay": ca.DM([5e-4])}
+
+    def term(sensor, u_dot):
+        fxs = acting_on(keys, sensor)
+        ctx = Context(tau=(0, 0), temp=(0, 0), u=ca.DM.zeros(3), u_dot=ca.DM(u_dot))
+        return ev(total(fxs, [values[e.key] for e in fxs], ctx))
+
+    assert [e.key for e in acting_on(keys, "gyroscope")] == ["accelerometer.age", "gyroscope.delay"]
+    assert [e.key for e in acting_on(keys, "accelerometer")] == ["accelerometer.age"]
+    gyro = term("gyroscope", [0, 0, 10.0])
+    assert np.allclose(gyro, [0, 0, -0.015], atol=1e-15)
+    assert abs(gyro[2] - 2 * np.sin(5 * -1.5e-3)) < 1e-6
+    assert np.allclose(term("accelerometer", [3.0, 0, 0]), [-0.003, 0, 0], atol=1e-15)
 
 
 def test_g_sensitivity_by_hand():
@@ -60,8 +83,9 @@ def test_g_sensitivity_by_hand():
 def test_library_lists_every_issue_effect():
     names = {e.key for e in EFFECTS}
     for key in ("accelerometer.bias_drift", "accelerometer.temperature_bias", "accelerometer.temperature_gain",
-                "accelerometer.scale_nonlinearity", "accelerometer.axis_offsets", "accelerometer.time_offset",
-                "gyroscope.g_sensitivity", "gyroscope.bias_drift"):
+                "accelerometer.scale_nonlinearity", "accelerometer.axis_offsets", "accelerometer.age",
+                "gyroscope.g_sensitivity", "gyroscope.bias_drift", "gyroscope.delay", "accelerometer.clock_drift",
+                "accelerometer.clock_beat"):
         assert key in names
     assert set(effects_for("accelerometer", STATIC)) == {"bias_drift", "temperature_bias", "temperature_gain",
                                                            "scale_nonlinearity"}
@@ -166,8 +190,8 @@ def dynamic_effect_case(seed=4, n=600, effects=None, reshape_motion=None, positi
     Rs = np.stack([R[nm] for nm in names])
     effects = effects if effects is not None else {
         **{f"{nm}.accelerometer.axis_offsets": 5e-4 * rng.standard_normal(6) for nm in names[1:]},
-        **{f"{nm}.accelerometer.time_offset": np.array([1e-3 * rng.standard_normal()]) for nm in names[1:]},
-        **{f"{nm}.gyroscope.time_offset": np.array([1e-3 * rng.standard_normal()]) for nm in names}}
+        **{f"{nm}.accelerometer.age": np.array([1e-3 * rng.standard_normal()]) for nm in names[1:]},
+        **{f"{nm}.gyroscope.delay": np.array([1e-3 * rng.standard_normal()]) for nm in names}}
     gyro = {"T_g": Rs, "b_g": np.zeros((K, 3)), "sigma": 1e-3, "saturation": None}
     acc, gy, _ = dynamic_measurements(motion, true - true[0], Rs, np.zeros((K, 3)), rng, 0.04, gyro=gyro, names=names,
                                       effects=effects)
@@ -187,7 +211,7 @@ def dynamic_effect_case(seed=4, n=600, effects=None, reshape_motion=None, positi
 
 
 def test_dynamic_effects_recovered_within_sigma():
-    """Size-effect offsets (0.5 mm) and time offsets (1 ms) simulated exactly (cubic-spline time shift,
+    """Size-effect offsets (0.5 mm), chip sample ages and gyroscope delays (1 ms) simulated exactly (cubic-spline time shift,
     each axis at its own point) are recovered within the σ's the first-order model reports."""
     from castimate.problem.dynamic import build_dynamic
 
@@ -199,8 +223,8 @@ def test_dynamic_effects_recovered_within_sigma():
     assert len(z) == 7 * 6 + 7 + 8
     assert np.abs(z).max() < 4.5, z
     assert abs(sol.chi2 - sol.dof) < 5 * np.sqrt(2 * sol.dof)
-    # the reference triad's accelerometer time offset and element offsets are the gauge: fixed at zero
-    for g in ("time_offset", "axis_offsets"):
+    # the reference triad's sample age and element offsets are the gauge: fixed at zero
+    for g in ("age", "axis_offsets"):
         assert np.all(sol.values[f"imu1.accelerometer.{g}"] == 0) and np.all(sol.std[f"imu1.accelerometer.{g}"] == 0)
 
 
@@ -224,8 +248,9 @@ def assert_dynamic_jacobian_matches_finite_differences(cfg, data, label: str, n_
         assert np.allclose(J[:, i], fd, rtol=1e-5, atol=1e-6 * max(1, np.abs(fd).max())), lay.x_labels[i]
 
 
-def test_dynamic_effect_jacobian_matches_finite_differences():
-    assert_dynamic_jacobian_matches_finite_differences(*dynamic_effect_case(n=30)[:2], "offset")
+@pytest.mark.parametrize("label", ["offsets", "accelerometer.age", "gyroscope.delay"])
+def test_dynamic_effect_jacobian_matches_finite_differences(label):
+    assert_dynamic_jacobian_matches_finite_differences(*dynamic_effect_case(n=30)[:2], label)
 
 
 def test_apply_inverts_the_effect_model(tmp_path):

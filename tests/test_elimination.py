@@ -23,21 +23,21 @@ def static_directions(direction: str):
     return build_static(cfg, poses)
 
 
-def dynamic_time_offsets():
-    """8 IMUs with accelerometer and gyroscope time offsets: the accelerometer's rate reads the
+def dynamic_sample_ages():
+    """8 IMUs with chip sample ages and gyroscope delays: the accelerometer's rate reads the
     neighbouring samples' motion (central differences, one-sided at the ends), so its block is
     staged in three runs (first sample, interior, last sample) and the motion block banded."""
     from castimate.problem.dynamic import build_dynamic
     from test_effects import dynamic_effect_case
     names = [f"imu{i}" for i in (1, 4, 6, 11, 13, 17, 23, 32)]
-    effects = {**{f"{nm}.accelerometer.time_offset": np.array([1e-3 * (-1) ** i]) for i, nm in enumerate(names[1:])},
-               **{f"{nm}.gyroscope.time_offset": np.array([-5e-4 * (-1) ** i]) for i, nm in enumerate(names)}}
+    effects = {**{f"{nm}.accelerometer.age": np.array([1e-3 * (-1) ** i]) for i, nm in enumerate(names[1:])},
+               **{f"{nm}.gyroscope.delay": np.array([-5e-4 * (-1) ** i]) for i, nm in enumerate(names)}}
     cfg, data, _ = dynamic_effect_case(n=40, effects=effects)
     return build_dynamic(cfg, data)
 
 
 CASES = {"dynamic": lambda: dynamic_case(40, True), "dynamic_no_process_model": lambda: dynamic_case(40, False),
-         "dynamic_time_offsets": dynamic_time_offsets,
+         "dynamic_sample_ages": dynamic_sample_ages,
          "dynamic_wiener2": lambda: dynamic_case(40, True, MotionSigmas("wiener2")),
          "dynamic_euler": lambda: dynamic_case(40, True, MotionSigmas("euler")),
          "static": static_case, "static_quaternion": lambda: static_directions("quaternion"),
@@ -75,7 +75,7 @@ def test_families_found():
     process model, 9 and block diagonal without); static: the pose directions with their unit-norm constraint."""
     fams = {k: [(f.R, f.m, f.width, len(f.unit)) for f in Solver(mk().lsq).projection.fams] for k, mk in CASES.items()}
     assert fams == {"dynamic": [(40, 12, 2, 0)], "dynamic_wiener2": [(40, 9, 2, 0)], "dynamic_euler": [(40, 9, 2, 0)],
-                    "dynamic_no_process_model": [(40, 9, 1, 0)], "dynamic_time_offsets": [(40, 9, 3, 0)],
+                    "dynamic_no_process_model": [(40, 9, 1, 0)], "dynamic_sample_ages": [(40, 9, 3, 0)],
                     "static": [(8, 3, 1, 1)], "static_quaternion": [(20, 3, 1, 1)], "static_pitch_roll": [(20, 2, 1, 0)]}
 
 
@@ -107,7 +107,7 @@ def test_reduced_derivatives_match_finite_differences(kind):
 def test_rate_factors_are_staged_in_runs():
     """The accelerometer block with time offsets is cut into its first sample, the interior and
     its last sample (K = 8 instances per stage group); the gyroscope block stays whole."""
-    P = Solver(dynamic_time_offsets().lsq).projection
+    P = Solver(dynamic_sample_ages().lsq).projection
     runs = [(u.parent, u.rows, u.st[1].J) for u in P.units]
     assert runs == [(0, slice(0, 8), 1), (0, slice(8, 312), 38), (0, slice(312, 320), 1), (1, None, 40)]
 

@@ -316,8 +316,12 @@ SPEC_CASES = [
      "model.triads.imu2.accelerometer.scale_nonlinearity.initial", "expected a scalar or a list of 3 values, found a list of 2"),
     ("effect_of_the_other_sensor", {"model.accelerometer.g_sensitivity": "free"}, "model.accelerometer.g_sensitivity",
      "unknown key; expected one of bias, bias_drift, gain"),
-    ("dynamic_only_effect_in_static", {"model.accelerometer.time_offset": "free"}, "model.accelerometer.time_offset",
+    ("dynamic_only_effect_in_static", {"model.accelerometer.age": "free"}, "model.accelerometer.age",
      "unknown key; expected one of bias, bias_drift, gain"),
+    ("retired_time_offset", {"model.accelerometer.time_offset": "free"}, "model.accelerometer.time_offset",
+     "was retired: a chip's constant sample age is accelerometer.age"),
+    ("retired_time_offset_per_triad", {"model.triads.imu2.gyroscope.time_offset": "free"},
+     "model.triads.imu2.gyroscope.time_offset", "was retired: the gyroscope's age beyond its own accelerometer's"),
     # solver
     ("solver_not_mapping", {"solver": "fast"}, "solver", "expected a mapping, found str 'fast'"),
     ("unknown_solver_key", {"solver.maxiter": 10}, "solver.maxiter", "unknown key; expected one of"),
@@ -785,9 +789,11 @@ def test_scenario_effect_errors(tmp_path, edits, where, found):
 @pytest.mark.parametrize("edits, where, found", [
     ({"imus": 1}, "imus", "expected 2 to 32 IMUs of the Carlsson board, found 1"),
     ({"effects": {"accelerometer.bias_drift": "realistic"}}, "effects.accelerometer.bias_drift", "unknown key"),
-    ({"effects": {"gyroscope.time_offset": "realistic"}, "gyroscope": False}, "effects.gyroscope.time_offset",
+    ({"effects": {"gyroscope.delay": "realistic"}, "gyroscope": False}, "effects.gyroscope.delay",
      "a gyroscope effect needs gyroscope: true"),
-], ids=["too_few_imus", "static_effect_in_dynamic_scenario", "gyro_effect_without_gyro"])
+    ({"effects": {"accelerometer.time_offset": "realistic"}}, "effects.accelerometer.time_offset",
+     "was retired: a chip's constant sample age is accelerometer.age"),
+], ids=["too_few_imus", "static_effect_in_dynamic_scenario", "gyro_effect_without_gyro", "retired_time_offset"])
 def test_dynamic_scenario_effect_errors(tmp_path, edits, where, found):
     p = write_yaml(tmp_path / "scenario.yaml", {"kind": "dynamic_array", "geometry": "carlsson", "samples": 50, **edits})
     expect_error(lambda: simulate_scenario(p, tmp_path / "out"), p, where, found)

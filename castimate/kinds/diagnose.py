@@ -315,7 +315,12 @@ def confirm(session: Session, model: Model, test: ScoreTest, level: float) -> Re
     F = (model.chi2 - new.chi2) / k / new.s2
     p = float(stats.f.sf(F, k, new.dof))
     model.cv = model.cv or session.cross_validate(model.effects)
-    new.cv = session.cross_validate(new.effects)
+    try:
+        new.cv = session.cross_validate(new.effects)
+    except CastimateError as e:  # a fold cannot determine it (or did not converge): not confirmed
+        nan = CrossValidation(0, np.nan, np.nan, np.nan)
+        return Refit(test.effect, k, model.chi2, new.chi2, F, p, model.cv, nan, np.nan, False,
+                     f"the cross-validation failed: {e}", new)
     n = len(new.outcome.solution.residual)
     dbic = (new.chi2 - model.chi2) / new.s2 + k * np.log(n)
     if p >= level:

@@ -10,9 +10,9 @@ non-orthogonality, misalignment):
 - a quadratic scale nonlinearity per axis (:func:`scale_nonlinearity`);
 - per-axis sensing-element offsets inside an accelerometer triad, the "size effect"
   (:func:`axis_offsets`);
-- a time offset of a triad's samples (:func:`time_offset`), and the age of a sample taken on the
-  chip's own clock, constant, drifting or a sawtooth at the beat between the chip's clock and the
-  board's read-out (:func:`sample_age`);
+- the age of a triad's sample: a chip's constant age, drifting or a sawtooth at the beat between the
+  chip's clock and the board's read-out, and a gyroscope's delay behind its accelerometer
+  (:func:`sample_age`);
 - the g-sensitivity of a gyroscope (:func:`g_sensitivity`);
 - the cross-axis coupling of a gyroscope (:func:`coupling`).
 
@@ -59,17 +59,12 @@ def axis_offsets(T, delta, omega, omega_dot):
     return ca.vertcat(0, extra(delta[0:3])[1], extra(delta[3:6])[2])
 
 
-def time_offset(dt, h_dot):
-    """Δt ḣ: a triad sampled Δt [s] late reads h(t + Δt) ≈ h(t) + Δt ḣ(t) (first order), with ḣ
-    the time derivative of its noise-free reading."""
-    return dt * h_dot
-
-
 def sample_age(age, h_dot):
     """−a ḣ: a triad whose sample is a [s] old when the board reads it returns h(t − a) ≈ h(t) − a ḣ(t)
     (first order), ḣ the time derivative of its noise-free reading. The age of a chip sampling on its
     own clock is a sawtooth a(t) = A (frac(ν t + φ) − ½) at the beat ν between the chip's clock and
-    the board's read-out (issue 11); a clock-rate drift makes it linear in time."""
+    the board's read-out (issue 11); a clock-rate drift makes it linear in time; a constant age and a
+    gyroscope's filter delay behind its accelerometer are constants."""
     return -age * h_dot
 
 

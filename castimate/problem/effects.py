@@ -32,11 +32,16 @@ form); one that does is removed by Newton steps on the CasADi expression
 (:mod:`castimate.problem.compensation`). Entries with ``sample_wise=False`` describe where or when a
 triad senses (sensing-element offsets, time offsets, sample ages); they are not undone sample by sample.
 
-Timing (issue 11): a triad's sample is a(t) old when the board reads it, so it reads u(t − a) ≈ u −
-a u̇. The constant part is ``time_offset`` (Δt = −a; per sensor, so the pair also expresses an
-accelerometer–gyroscope delay: ``gyroscope.time_offset − accelerometer.time_offset``); the chip
-clock's drift (a linear in time) and its sawtooth at the beat with the board's read-out are
-properties of the chip, shared by its accelerometer and gyroscope (:attr:`Effect.shared`).
+Timing (issue 11, item 4): a triad's sample is a(t) old when the board reads it, so it reads u(t − a)
+≈ u − a u̇ (:func:`castimate.models.effects.sample_age`), one term for every timing effect. The age is
+a property of the chip, shared by its accelerometer and gyroscope (:attr:`Effect.shared`): constant
+(``accelerometer.age``), drifting with the chip's clock rate (``clock_drift``) or a sawtooth at the
+beat between the chip's clock and the board's read-out (``clock_beat``); all relative to the
+reference triad's (``clock_beat`` apart, whose ν, φ differ per chip), since an age common to every
+chip is the motion's own time axis (a gauge). The gyroscope's filters add their own group delay on top
+of its accelerometer's (``gyroscope.delay``: it reads ω(t − a − d)); the accelerometers see ω and ω̇
+at their own instant, which makes d identifiable on the reference IMU too. The earlier per-sensor
+``time_offset`` (Δt = −a) expressed the same physics twice and is retired (:data:`RETIRED`).
 """
 
 from __future__ import annotations
@@ -172,18 +177,20 @@ EFFECTS: tuple[Effect, ...] = (
            relative=True, sample_wise=False,
            title="accelerometer sensing-element offsets (size effect): y and z elements relative to x, "
                  "relative to the reference triad's"),
-    Effect("time_offset", "accelerometer", GroupDef(("dt",), (0.0,), 1e-3, "s"),
-           lambda c, x: fx.time_offset(c, x.u_dot), kinds=(DYNAMIC,), needs=(RATE,), relative=True,
-           sample_wise=False,
-           title="accelerometer time offset (relative to the reference triad)"),
+    Effect("age", "accelerometer", GroupDef(("a",), (0.0,), 1e-3, "s"),
+           lambda c, x: fx.sample_age(c, x.u_dot), kinds=(DYNAMIC,), needs=(RATE,), relative=True,
+           sample_wise=False, shared=True,
+           title="chip sample age: the IMU's accelerometer and gyroscope read the motion a late "
+                 "(constant, relative to the reference triad's)"),
     _bias_drift("gyroscope", "rad/s", 1e-3),
     _temperature_bias("gyroscope", "rad/s", 1e-4),
     Effect("g_sensitivity", "gyroscope",
            GroupDef(("xx", "xy", "xz", "yx", "yy", "yz", "zx", "zy", "zz"), (0.0,) * 9, 1e-4, "rad/s per m/s^2"),
            lambda c, x: fx.g_sensitivity(c, x.f), needs=(SPECIFIC_FORCE,), title="gyroscope g-sensitivity"),
-    Effect("time_offset", "gyroscope", GroupDef(("dt",), (0.0,), 1e-3, "s"),
-           lambda c, x: fx.time_offset(c, x.u_dot), kinds=(DYNAMIC,), needs=(RATE,), sample_wise=False,
-           title="gyroscope time offset"),
+    Effect("delay", "gyroscope", GroupDef(("d",), (0.0,), 1e-3, "s"),
+           lambda c, x: fx.sample_age(c, x.u_dot), kinds=(DYNAMIC,), needs=(RATE,), sample_wise=False,
+           title="accelerometer-gyroscope delay: the gyroscope reads the motion d later than its own "
+                 "accelerometer (filter group delays)"),
     Effect("coupling", "gyroscope", GroupDef(("yx", "zx", "zy"), (0.0,) * 3, 1e-2, "-", limits=(-1.0, 1.0)),
            lambda c, x: fx.coupling(c, x.u), kinds=(DYNAMIC,),
            title="gyroscope cross-axis coupling: unit lower-triangular C in C K_g M_g Rbar (a general 3x3 matrix)"),
@@ -199,6 +206,16 @@ EFFECTS: tuple[Effect, ...] = (
                  "at the beat with the read-out; ν, φ from the implied age"),
 )
 BY_KEY = {e.key: e for e in EFFECTS}
+#: Effects retired from the library ("sensor.name"), with what replaces them: a problem file or a
+#: scenario that names one is refused with this message.
+RETIRED = {
+    "accelerometer.time_offset": "was retired: a chip's constant sample age is accelerometer.age (a = -dt, shared by "
+                                 "the IMU's accelerometer and gyroscope, relative to the reference triad's); the "
+                                 "gyroscope's extra age over its accelerometer is gyroscope.delay",
+    "gyroscope.time_offset": "was retired: the gyroscope's age beyond its own accelerometer's is gyroscope.delay "
+                             "(d = -dt of the gyroscope + dt of the accelerometer); the chip's age, shared by both "
+                             "sensors, is accelerometer.age",
+}
 
 
 def effects_for(sensor: str, kind: str) -> dict[str, Effect]:

@@ -484,8 +484,10 @@ def dynamic_measurements(motion: Motion, positions, T, b, rng: np.random.Generat
 
     Messy measurements, per sensor (``accelerometer``, ``gyroscope``):
 
-    - ``delay`` [s]: the sensor's group delay; every triad's sensor reads the motion at t − delay,
-      evaluated exactly where the motion is in closed form (``Motion.at``);
+    - ``delay`` [s]: the sensor's group delay, the same on every chip; every triad's sensor reads the
+      motion at t − delay, evaluated exactly where the motion is in closed form (``Motion.at``). In
+      the estimator's parameters it is ``gyroscope.delay`` = delay.gyroscope − delay.accelerometer on
+      every IMU (added to the per-chip truth of ``effects``); the common part is the motion's time (a gauge);
     - ``pink`` [m/s², rad/s]: σ of pink (1/f) noise added to the white (:func:`effects.pink_noise`);
     - ``adc``: (lsb [SI per count], bits): the reading quantised to counts and clipped at the
       converter's asymmetric rails (:func:`effects.adc_counts`), returned as counts × lsb.
@@ -498,9 +500,9 @@ def dynamic_measurements(motion: Motion, positions, T, b, rng: np.random.Generat
     (:mod:`castimate.simulate.effects`, the truth terms shared with the static simulator): the
     geometric ones simulated exactly rather than as the model's first-order terms
     (``accelerometer.axis_offsets``: axis i senses the specific force at r + δ_i;
-    ``<sensor>.time_offset``: the triad reads the true signal at t + Δt; the chip clocks
-    ``accelerometer.clock_beat``, ``accelerometer.clock_drift``: both sensors of the triad read the
-    true signal at t − a(t)), and the sample-wise ones
+    the chip's sample age ``accelerometer.age``, ``accelerometer.clock_beat``,
+    ``accelerometer.clock_drift``: both sensors of the triad read the true signal at t − a(t), the
+    gyroscope at t − a(t) − d with ``gyroscope.delay`` d, :func:`effects.sample_shift`), and the sample-wise ones
     that need no temperature or specific force at the gyroscope (drifts over the record, scale terms).
 
     ``jitter`` [s] (RMS): every chip's sampling instant jitters at random from sample to sample
@@ -557,7 +559,7 @@ def dynamic_measurements(motion: Motion, positions, T, b, rng: np.random.Generat
         if sat is not None and "gyroscope" in adc:
             raise ValueError("gyro saturation and a gyroscope adc both clip; give one")
         for k, n in enumerate(names):
-            dt = fx.time_offset(effects, n, "gyroscope", motion.t) - delay.get("gyroscope", 0.0)
+            dt = fx.sample_shift(effects, n, "gyroscope", motion.t) - delay.get("gyroscope", 0.0)
             u = motion.shifted_state(dt)[0] @ Tg[k].T
             y = u + bg[k] + fx.sample_terms(effects, n, "gyroscope", u, None, tau, zero) \
                 + sg[k] * rng.standard_normal((N, 3)) + fx.pink_noise(rng, N, pink.get("gyroscope", 0.0))

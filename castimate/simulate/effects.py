@@ -4,7 +4,7 @@ dynamic simulator.
 Written in numpy independently of :mod:`castimate.models.effects` and the registry on purpose:
 recovery tests then cross-check the estimator's symbolic model against physics it was not derived
 from. Where the model uses a first-order term, the truth here is exact (time offsets read the
-true signal at t + Δt; axis offsets read the specific force at the element's own position).
+true signal at its sample's own instant t − a; axis offsets read the specific force at the element's own position).
 
 Coefficients are keyed like the solver's groups, ``<triad>.<sensor>.<effect>``.
 """
@@ -26,12 +26,13 @@ REALISTIC_EFFECTS = {
     "gyroscope.temperature_bias": 1e-4,  # rad/s/K
     "gyroscope.g_sensitivity": 1e-4,  # rad/s per m/s^2
 }
-#: The same for the dynamic-only effects: sensing elements 0.3 mm apart inside a MEMS package, and
-#: sampling instants 0.5 ms apart between IMUs read in turn.
+#: The same for the dynamic-only effects: sensing elements 0.3 mm apart inside a MEMS package,
+#: sample ages 0.5 ms apart between IMUs read in turn, and gyroscope filters 0.5 ms slower or faster
+#: than their accelerometer's.
 REALISTIC_DYNAMIC_EFFECTS = {
     "accelerometer.axis_offsets": 3e-4,  # m
-    "accelerometer.time_offset": 5e-4,  # s
-    "gyroscope.time_offset": 5e-4,  # s
+    "accelerometer.age": 5e-4,  # s, the chip's (accelerometer and gyroscope)
+    "gyroscope.delay": 5e-4,  # s, the gyroscope's beyond its accelerometer's
     "gyroscope.coupling": 1e-2,  # -, the MIMU4444's off-diagonal terms reach 0.02 (issue 11)
     # chip clocks: the sample period of a chip sampling at about 1 kHz on its own clock (the
     # sawtooth's amplitude, see chip_clock), and an age drifting by 50 ppm of a 10 s session
@@ -40,7 +41,8 @@ REALISTIC_DYNAMIC_EFFECTS = {
 }
 #: Number of coefficients of each effect (the simulator's own table).
 SIZES = {"bias_drift": 6, "temperature_bias": 6, "temperature_gain": 6, "scale_nonlinearity": 3,
-         "g_sensitivity": 9, "axis_offsets": 6, "time_offset": 1, "coupling": 3, "clock_drift": 1}
+         "g_sensitivity": 9, "axis_offsets": 6, "age": 1, "delay": 1, "coupling": 3,
+         "clock_drift": 1}
 
 
 def random_coefficients(key: str, magnitude: float, rng: np.random.Generator) -> np.ndarray:
@@ -101,25 +103,28 @@ def chip_clock(period: float, rate: float, rng: np.random.Generator) -> np.ndarr
     return np.array([1 / f_c, f_c - rate * np.round(f_c / rate), rng.uniform()])
 
 
-def time_offset(values: dict, name: str, sensor: str, t: np.ndarray) -> np.ndarray | float:
-    """The triad's sampling delay Δt [s] at times t (it reads the signal at t + Δt), 0 if none: its
-    own ``time_offset`` minus the sample age of its chip's clock, shared by both sensors:
-    ``accelerometer.clock_beat`` (A, ν, φ) a sawtooth A (frac(ν t + φ) − ½),
+def sample_shift(values: dict, name: str, sensor: str, t: np.ndarray) -> np.ndarray | float:
+    """Δt [s] at times t such that the triad's ``sensor`` reads the true signal at t + Δt, 0 if none:
+    minus the age of its sample. The chip's age is shared by both sensors: ``accelerometer.age`` a
+    constant, ``accelerometer.clock_beat`` (A, ν, φ) a sawtooth A (frac(ν t + φ) − ½),
     ``accelerometer.clock_drift`` (a at the recording's end) linear in time, zero at its middle, and
-    ``accelerometer.jitter`` (N,) the chip's random age of every sample (timing jitter, :func:`jitter_ages`)."""
-    dt = float(np.ravel(values.get(f"{name}.{sensor}.time_offset", 0.0))[0])
+    ``accelerometer.jitter`` (N,) the chip's random age of every sample (timing jitter,
+    :func:`jitter_ages`); a gyroscope's sample is ``gyroscope.delay`` older still (its filters)."""
+    age = float(np.ravel(values.get(f"{name}.accelerometer.age", 0.0))[0])
+    if sensor == "gyroscope":
+        age += float(np.ravel(values.get(f"{name}.gyroscope.delay", 0.0))[0])
     beat, drift = values.get(f"{name}.accelerometer.clock_beat"), values.get(f"{name}.accelerometer.clock_drift")
     jitter = values.get(f"{name}.accelerometer.jitter")
     if beat is None and drift is None and jitter is None:
-        return dt
-    age = np.zeros(len(t)) if jitter is None else np.asarray(jitter, float).copy()
+        return -age
+    age = age + (np.zeros(len(t)) if jitter is None else np.asarray(jitter, float).copy())
     if beat is not None:
         A, nu, phi = np.ravel(beat)
         x = nu * t + phi
         age += A * (x - np.floor(x) - 0.5)
     if drift is not None:
         age += float(np.ravel(drift)[0]) * (t - (t[0] + t[-1]) / 2) / max((t[-1] - t[0]) / 2, 1e-9)
-    return dt - age
+    return -age
 
 
 def jitter_ages(rms: float, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -141,10 +146,10 @@ def sensed_specific_force(values: dict, name: str, t: np.ndarray, specific_force
                           T: np.ndarray, delay: float = 0.0) -> np.ndarray:
     """(N, 3) T f as the accelerometer triad senses it, exactly: each axis at its own sensing
     element (the y and z elements at position + δ_y, + δ_z, the axis offsets) and instant (t + Δt,
-    with the chip clock's age, :func:`time_offset`, and the sensor's ``delay`` [s], its filter's
+    Δt minus the chip's sample age, :func:`sample_shift`, and the sensor's ``delay`` [s], its filter's
     group delay: it reads the signal at t − delay).
     ``specific_force_at(r, dt)`` gives the true specific force (N, 3) at body position r at the times t + dt."""
-    dt = time_offset(values, name, "accelerometer", t) - delay
+    dt = sample_shift(values, name, "accelerometer", t) - delay
     y = specific_force_at(position, dt) @ T.T
     delta = values.get(f"{name}.accelerometer.axis_offsets")
     if delta is not None:

@@ -15,7 +15,7 @@ from ..io.atomic import write_atomic
 from ..io.results import write_json
 from ..io.units import STANDARD_GRAVITY
 from ..validation import Check, load_yaml, shown
-from ..problem.effects import BY_KEY
+from ..problem.effects import BY_KEY, RETIRED
 from .effects import REALISTIC_DYNAMIC_EFFECTS, REALISTIC_EFFECTS, chip_clock, random_coefficients, random_effects
 from .stamps import logged
 from .static import StaticTruthScale, pose_directions, random_static_truth, static_pose_means, static_time_series
@@ -126,6 +126,9 @@ def _seed(c: Check, s: dict) -> tuple[int, np.random.Generator]:
 def _effects(c: Check, s: dict, gyro: bool, realistic: dict[str, float] = REALISTIC_EFFECTS) -> dict[str, float]:
     """``effects``: effect key -> σ of its random coefficients, or ``realistic`` (the kind's table
     in castimate.simulate)."""
+    for k in s["effects"] if isinstance(s.get("effects"), dict) else ():
+        if k in RETIRED:
+            c.fail(f"effects.{k}", RETIRED[k])
     e = c.mapping(s.get("effects"), "effects", tuple(realistic))
     out = {}
     for k, v in e.items():
@@ -362,6 +365,12 @@ def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDra
                                               pink={k: v * draw.scale for k, v in pink.items()},
                                               adc={k: (lsb, adc["bits"]) for k, lsb in adc["lsb"].items()} if adc else None,
                                               jitter=jitter)
+    # the truth in the estimator's parameters: the sensors' common group delays make the gyroscope
+    # lag its accelerometer by their difference on every chip (dynamic_measurements, ``delay``)
+    truth_effects = dict(effects)
+    if gyro and delay["gyroscope"] != delay["accelerometer"]:
+        truth_effects.update({f"{n}.gyroscope.delay": np.ravel(effects.get(f"{n}.gyroscope.delay", 0.0))
+                              + (delay["gyroscope"] - delay["accelerometer"]) for n in names})
     rec = Recording(t=motion.t, acc=acc, gyro=gy, source="simulation")
     if adc:  # the file holds the counts, the problem declares their conversion and rails
         lsb = adc["lsb"]
@@ -403,7 +412,7 @@ def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDra
         "measurement": {"delay_s": delay, "pink_noise": {"accelerometer": pink["accelerometer"],
                                                          "gyroscope": float(pink["gyroscope"])},
                         "adc": {"bits": adc["bits"], "lsb": adc["lsb"], "rails_counts": rails} if adc else None},
-        "effects": effects,
+        "effects": truth_effects,
     })
     header = f"# Simulated from {path.name}; the truth is in truth.json.\n"
     write_atomic(out / "problem.yaml", header + yaml.safe_dump(problem, sort_keys=False))
