@@ -27,7 +27,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from mimu4444_sessions import RESULTS, solve  # noqa: E402
 
-from castimate.report.tables import in_plane_ratio  # noqa: E402
+from castimate.report.tables import in_plane_ratio, session_position_spread  # noqa: E402
 
 
 def row(i: int, run: dict, before: dict | None) -> dict:
@@ -78,11 +78,17 @@ def main() -> None:
     a = ap.parse_args()
     prior = RESULTS / "mimu4444_sessions.json"
     before = {r["session"]: r for r in json.loads(prior.read_text())["rows"]} if prior.exists() else {}
-    rows, c0, t0 = [], time.process_time(), time.perf_counter()
+    rows, runs, c0, t0 = [], [], time.process_time(), time.perf_counter()
     for i in a.sessions:
-        rows.append(row(i, solve(i, "delay", a.reuse, a.timeout), before.get(f"exp_{i}")))
+        runs.append(solve(i, "delay", a.reuse, a.timeout))
+        rows.append(row(i, runs[-1], before.get(f"exp_{i}")))
         print(json.dumps(rows[-1], default=float), flush=True)
-    md = table(rows) + (f"\n\nLoad average {os.getloadavg()[0]:.1f} at the end; this process {time.process_time() - c0:.0f} s "
+    spread = ""
+    if len(runs) > 1:
+        s, sd = session_position_spread([r["results"] for r in runs])
+        spread = (f"\n\nPositions (reference excluded) across these sessions: RMS of the standard deviation over the "
+                  f"sessions {s * 1e6:.1f} µm against an RMS reported σ of {sd * 1e6:.1f} µm ({s / sd:.2f} ×).")
+    md = table(rows) + spread + (f"\n\nLoad average {os.getloadavg()[0]:.1f} at the end; this process {time.process_time() - c0:.0f} s "
                         f"CPU, {time.perf_counter() - t0:.0f} s wall (the solves run in subprocesses).\n")
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "mimu4444_delay.json").write_text(json.dumps({"rows": rows}, indent=1, default=float) + "\n")
