@@ -306,6 +306,12 @@ def _reduce(M: _Map, values: np.ndarray) -> np.ndarray:
     return X if M.starts is None else np.add.reduceat(X, M.starts)
 
 
+def _outputs(fn: ca.Function, k: int) -> ca.Function:
+    """fn's first k outputs alone (an SX function keeps only the operations they need)."""
+    ins = [ca.SX.sym(f"i{i}", fn.sparsity_in(i)) for i in range(fn.n_in())]
+    return ca.Function(f"{fn.name()}{k}", ins, fn(*ins)[:k])
+
+
 class _StageFunctions:
     """One compiled function per evaluation mode of a staged block that does a stage group's
     whole share at once: the local function of its K instances (``map``), and the sums of their
@@ -338,6 +344,8 @@ class _StageFunctions:
             "res": (f.symbolic["res"], ("r",), {"r": 1}, [], []),
             "full": (f.symbolic["rgh"], ("r", "g", "h"), {"r": 1, "g": na, "h": P}, red_full, gs + hss + hsc),
             "info": (f.symbolic["gn"], ("h",), {"h": P}, [x for x in red_full if x[1] == "hcc"], hss + hsc),
+            "grad": (_outputs(f.symbolic["rgh"], 2), ("r", "g"), {"r": 1, "g": na}, [x for x in red_full if x[1] == "gc"],
+                     gs),
             "inner": (inner_fn, ("r", "g", "h", "hgn"), {"r": 1, "g": ns_act, "h": P_in, "hgn": P_in}, [],
                       [("g", M, True, ("G", d)) for d, M in inner_plan.gs.items()]
                       + [("h", M, True, ("B", k)) for k, M in inner_plan.hss.items()]
@@ -450,9 +458,9 @@ class _Parts:
     family the stage gradient G (R, m), the stage Hessian blocks B[o] (R - o, m, m) and the
     coupling Hsc (R, m, c)."""
 
-    def __init__(self, c, fams, cal: bool, gn: bool = False):
+    def __init__(self, c, fams, cal: bool, gn: bool = False, grad: bool = False):
         self.f = 0.0
-        self.gc = np.zeros(c) if cal else None
+        self.gc = np.zeros(c) if cal or grad else None
         self.hcc = np.zeros(c * c) if cal else None
         self.G = [np.zeros((f.R, f.m)) for f in fams]
         self.B = [[np.zeros((f.R - o, f.m, f.m)) for o in range(f.width)] for f in fams]
@@ -531,6 +539,9 @@ class Projection:
     Scaled variables throughout (x = value / scale); stage values Xs: one (R, m) array per family.
     """
 
+    shortcut = True  # accept the gradient at the Newton point (False: a full evaluation there, as a reference)
+    shortcut_dec = 1e-3  # the largest Newton decrement (relative to 1 + f) from which the Hessian is accepted one step early
+    shortcuts = 0  # reduced() evaluations accepted after one full evaluation and an objective check
     max_inner = 60  # Newton steps on the nuisance at one θ
     inner_tol = 1e-12  # Newton decrement (χ²/2 units) at which the nuisance counts as converged, relative to 1 + f
 
@@ -551,6 +562,9 @@ class Projection:
 
     def __init__(self, blocks, layout, fams, staged, hessian: str, jit: bool):
         self.layout, self.blocks = layout, blocks
+        # the Newton point's gradient is accepted with the exact Hessian only: Gauss-Newton steps
+        # on the nuisance converge linearly, and the tests' agreement with the full NLP suffers
+        self.shortcut = self.shortcut and hessian == "exact"
         n = self.n = layout.n_x
         self.fams = fams
         in_fam = np.zeros(n, bool)
@@ -600,7 +614,7 @@ class Projection:
         self.stage_fns = [u.stage_fns for u in self.units if u.stage_fns is not None]
         self.prior = layout.priors()
         self.data = None
-        self._cache, self._anchor, self._factors = None, None, None
+        self._cache, self._anchor, self._factors, self._pending = None, None, None, None
         self._reused: dict = {}  # _Parts reused by reduced() and marginal()
 
     # -- evaluation --------------------------------------------------------------------------------
@@ -649,7 +663,7 @@ class Projection:
         if reuse and self._reused.get(slot) is not None:
             parts = self._reused[slot].zero()
         else:
-            parts = _Parts(c, self.fams, mode in ("full", "info"), mode == "inner")
+            parts = _Parts(c, self.fams, mode in ("full", "info"), mode == "inner", mode == "grad")
             if reuse:
                 self._reused[slot] = parts
         w = np.concatenate([self.x_full(theta, Xs) * self.xscale, pf])
@@ -662,7 +676,7 @@ class Projection:
             W = b.w_idx
             if st is None:
                 K, J, base, fi, plan = len(W), 1, 0, None, u.plan
-                fn = {"full": f.rgh, "info": f.gn}.get(mode, f.res)
+                fn = {"full": f.rgh, "grad": f.rgh, "info": f.gn}.get(mode, f.res)
                 step = 1
             else:
                 fi, sb = st
@@ -682,7 +696,7 @@ class Projection:
                 if mode == "inner":
                     fn, plan = u.inner
                 else:
-                    fn, plan = {"res": f.res, "full": f.rgh, "info": f.gn}[mode], u.plan
+                    fn, plan = {"res": f.res, "full": f.rgh, "grad": f.rgh, "info": f.gn}[mode], u.plan
                 step = max(1, CHUNK // K)
             nc = f.n_cal
             if st is None:  # the whole block at once: its entries go through one map
@@ -705,7 +719,8 @@ class Projection:
             t = self.tpos[pi]
             s = self.xscale[pi] / ps
             np.add.at(parts.gc, t, pr * s if mode != "info" else 0.0)
-            np.add.at(parts.hcc, t * c + t, s * s)
+            if parts.hcc is not None:
+                np.add.at(parts.hcc, t * c + t, s * s)
         return parts
 
     def _scatter(self, parts, fn, outs, plan, mode, j0, j1, base, fi):
@@ -729,7 +744,7 @@ class Projection:
                 Vk = V.reshape(nJ, K, -1).sum(axis=1)
                 for d, M in plan.gs.items():
                     parts.G[fi][base + d + j0: base + d + j1][:, M.dest] += M(Vk)
-        if not h.shape[1]:
+        if not h.shape[1] or mode == "grad":
             return
         V = h.reshape(nJ, -1)
         if plan.hcc is not None and parts.hcc is not None:
@@ -772,8 +787,9 @@ class Projection:
         c = self.c
         S = parts.hcc.reshape(c, c).copy() if coupling else None
         g = parts.gc.copy() if coupling else None
-        dec, steps, factors = 0.0, [], []
+        dec, steps = 0.0, []
         prepared = []
+        self._pending = None
         for fi, fam in enumerate(self.fams):
             B = (parts.Bgn if gauss_newton else parts.B)[fi]
             G, B = parts.G[fi], [b.copy() for b in B] if (damping or fam.unit) else B
@@ -790,13 +806,49 @@ class Projection:
             F = _Factor(B)
             y = F.lower(G[:, :, None])
             dec += float(np.einsum("ijk,ijk->", y, y))
-            step = -F.upper(y)[:, :, 0]
+            step = -F.upper(y.copy())[:, :, 0]  # the band solve overwrites its right-hand side; y serves the coupling
             if Z is not None:
                 step = np.einsum("rmk,rk->rm", Z, step)
             steps.append(step)
             prepared.append((F, y, Z))
         if coupling and dec > limit:
+            self._pending = (parts, prepared)  # :meth:`couple` finishes this elimination
             return dec, steps, None, None
+        S, g = self._couple(parts, prepared, S, g, coupling)
+        return dec, steps, S, g
+
+    def recheck(self, grad: _Parts, Xs):
+        """At the Newton point Xs of the elimination that :meth:`eliminate` left at its limit, with
+        the gradient ``grad`` assembled there: (decrement, Newton steps) by the factors of that
+        elimination (its Hessian, one step earlier: the error is of the order of the step times
+        this gradient, which is at the tolerance). Families with unit-norm rows (a tangent basis
+        that moved with the step) return None."""
+        _, prepared = self._pending
+        if any(f.unit for f in self.fams):
+            return None
+        dec, steps, ys = 0.0, [], []
+        for (F, _, _), G in zip(prepared, grad.G):
+            y = F.lower(G[:, :, None].copy())
+            dec += float(np.einsum("ijk,ijk->", y, y))
+            steps.append(-F.upper(y.copy())[:, :, 0])
+            ys.append(y)
+        self._recheck = ys
+        return dec, steps
+
+    def couple(self, gc=None):
+        """(S, g) of the elimination that :meth:`eliminate` left at its limit (its factors kept);
+        with ``gc``, the reduced gradient from it and the stage gradients of :meth:`recheck`."""
+        parts, prepared = self._pending
+        self._pending = None
+        if gc is not None:
+            prepared = [(F, y, Z) for (F, _, Z), y in zip(prepared, self._recheck)]
+        c = self.c
+        return self._couple(parts, prepared, parts.hcc.reshape(c, c).copy(),
+                            (parts.gc if gc is None else gc).copy(), True)
+
+    def _couple(self, parts, prepared, S, g, coupling):
+        c = self.c
+        factors = []
         for fi, (F, y, Z) in enumerate(prepared):
             Y = None
             if coupling:
@@ -810,7 +862,7 @@ class Projection:
         if coupling:
             S = np.triu(S) + np.triu(S, 1).T  # dsyrk fills the upper triangle
         self._factors = factors
-        return dec, steps, S, g
+        return S, g
 
     def _move(self, Xs, steps, alpha, pf):
         out = []
@@ -893,12 +945,27 @@ class Projection:
                 Xs, _, _ = self.inner_solve(theta, Xs, pf, data)
                 continue
             if S is not None:
+                Xs = self._move(Xs, steps, 1.0, pf)  # the last Newton step (its decrement is below inner_tol)
                 break
             prev = (Xs, parts.f)
             Xs = self._move(Xs, steps, 1.0, pf)
+            # At the Newton point, the gradient alone (a quarter of a full evaluation): if its
+            # decrement is below the tolerance, the reduced objective and gradient come from it
+            # (with the factors of the step), and the Hessian from the previous point (the
+            # Schur complement one Newton step of the nuisance earlier: IPOPT's model, not its
+            # stopping test, sees the difference)
+            near = self.shortcut and dec <= self.shortcut_dec * (1.0 + abs(parts.f))
+            pg = self.assemble(theta, Xs, pf, data, "grad") if near else None
+            chk = self.recheck(pg, Xs) if near else None
+            if chk is not None and pg.f <= prev[1] and chk[0] <= self.inner_tol * (1.0 + abs(pg.f)):
+                dec, steps = chk
+                S, g = self.couple(pg.gc)
+                parts = pg
+                Xs = self._move(Xs, steps, 1.0, pf)
+                self.shortcuts += 1
+                break
         else:
             raise RuntimeError("the nuisance variables did not converge")
-        Xs = self._move(Xs, steps, 1.0, pf)  # the last Newton step (its decrement is below inner_tol)
         self._cache = {"key": key, "X": Xs, "phi": parts.f - 0.5 * dec, "g": g, "S": S, "data": data}
         self._anchor = (theta.copy(), Xs, self._factors)
         return self._cache["phi"], g, S
