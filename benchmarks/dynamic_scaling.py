@@ -372,7 +372,7 @@ def worker_castimate(d: dict, progress: Progress, hessian: str = "exact", cold: 
                      polish: bool = False, elimination: str = "motion") -> dict:
     """castimate's build and solve. The local functions are compiled to C and cached on disk
     (castimate.jit): ``cold`` starts from an empty cache, so the build includes gcc; otherwise a
-    10-sample problem of the same structure is built first (untimed), so that the timed build
+    32-sample problem of the same structure is built first (untimed), so that the timed build
     finds the compiled functions in the cache, as every build after the first one does.
     ``polish``: Gauss-Newton first, then the exact Hessian from its solution (both solvers built,
     both solves timed), which is what ``castimate solve`` does for arrays without gyroscopes."""
@@ -383,8 +383,11 @@ def worker_castimate(d: dict, progress: Progress, hessian: str = "exact", cold: 
     if cold:
         os.environ["CASTIMATE_CACHE_DIR"] = tempfile.mkdtemp(prefix="castimate_cold_cache_")
     else:
-        head = DynamicData(data.t[:10], {k: v[:10] for k, v in data.acc.items()}, data.acc_sigma,
-                           {k: v[:10] for k, v in data.gyro.items()}, data.gyro_sigma)
+        # long enough that the stage functions are compiled too (castimate.solver.elimination.MANY_STAGES)
+        from castimate.solver.elimination import MANY_STAGES
+        h = 2 * MANY_STAGES
+        head = DynamicData(data.t[:h], {k: v[:h] for k, v in data.acc.items()}, data.acc_sigma,
+                           {k: v[:h] for k, v in data.gyro.items()}, data.gyro_sigma)
         Solver(build_dynamic(config, head).lsq, SolverOptions(hessian=hessian, elimination=elimination))
         if polish:
             Solver(build_dynamic(config, head).lsq, SolverOptions(hessian="gauss_newton", elimination=elimination))
