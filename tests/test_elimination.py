@@ -192,3 +192,21 @@ def test_newton_point_shortcut_keeps_the_reduced_objective_and_gradient(kind):
     assert abs(f1 - f2) < 1e-12 * (1 + abs(f2))
     assert relative(g1, g2) < 1e-9
     assert relative(S1, S2) < 1e-2
+
+
+def test_stall_stops_after_iterations_that_do_not_move_x():
+    """IPOPT's iteration callback: 10 consecutive iterations that move x by at most 1e-12 relative
+    stop the solve; a larger move restarts the count (hand-made iterates)."""
+    from castimate.solver.ipopt import Stall
+    s = Stall(3, 0, 0)
+    x = np.array([1.0, -2.0, 3.0])
+    rest = [np.zeros(1), np.zeros(0), np.zeros(3), np.zeros(0), np.zeros(0)]
+    assert s.eval([x] + rest) == [0]
+    for _ in range(9):
+        assert s.eval([x + 1e-13] + rest) == [0] and not s.stalled
+    assert s.eval([x + 1e-6] + rest) == [0]  # moved: the count starts again
+    for _ in range(9):
+        assert s.eval([x + 1e-6] + rest) == [0]
+    assert s.eval([x + 1e-6 + 2e-12] + rest) == [1] and s.stalled
+    s.reset()
+    assert not s.stalled and s.eval([x] + rest) == [0]

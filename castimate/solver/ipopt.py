@@ -160,8 +160,10 @@ class Solver:
                                ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
         jac_g = ca.Function("nlp_jac_g", [x, p], [c, ca.jacobian(c, x)], ["x", "p"], ["g", "jac_g_x"])
         nlp = {"x": x, "p": p, "f": cbs[0](x, p), "g": c}
+        self.stall = Stall(n, n_c, p.numel())
         return ca.nlpsol("castimate", "ipopt", nlp, {**self.options.ipopt(), "hess_lag": hess_lag,
-                                                     "grad_f": grad_f, "jac_g": jac_g})
+                                                     "grad_f": grad_f, "jac_g": jac_g,
+                                                     "iteration_callback": self.stall})
 
     # -- numeric ---------------------------------------------------------------------------------
     def fixed_and_data(self, p_fixed, data) -> tuple[np.ndarray, np.ndarray | None]:
@@ -269,6 +271,7 @@ class Solver:
         else:  # IPOPT over the calibration variables
             sel = P.cal
             start = P.reset(x0, data)
+        self.stall.reset()
         sol = self.nlp(x0=start, p=pf, lbx=lbx[sel], ubx=ubx[sel], lbg=0, ubg=0,
                        lam_g0=0 if lam_g0 is None else lam_g0)
         wall = time.perf_counter() - t0
@@ -291,14 +294,17 @@ class Solver:
         cost = 0.5 * float(residual @ residual)
         lam = np.asarray(sol["lam_g"]).ravel()
         success, message = bool(st["success"]), str(st["return_status"])
+        if message == "User_Requested_Stop" and self.stall.stalled:
+            message = f"Stalled ({Stall.ITERATIONS} iterations that moved x by less than {Stall.RELATIVE:.0e})"
         violation = float(np.abs(np.asarray(sol["g"])).max(initial=0.0))
-        if not success and message in ("Search_Direction_Becomes_Too_Small", "Maximum_Iterations_Exceeded") \
+        if not success and (message == "Search_Direction_Becomes_Too_Small" or self.stall.stalled) \
                 and violation < 1e-9:
             # IPOPT stops here when round-off in stiff residuals (e.g. the process model's tiny σ_int)
             # keeps the gradient above its tolerance: the full NLP at estimated process-noise levels
             # sits at the optimum (steps of 1e-13) with its dual infeasibility at a floor of 1e-6,
-            # until max_iter. Converged if the constraints hold and a further Newton step could not
-            # change χ² by more than 1e-6 (Newton decrement with the Gauss-Newton Hessian).
+            # and went on to max_iter (6 s) before Stall stopped it. Converged if the constraints hold
+            # and a further Newton step could not change χ² by more than 1e-6 (Newton decrement with
+            # the Gauss-Newton Hessian).
             decrement = self.newton_decrement(x, lam, pf, data)
             if decrement < 1e-6:
                 success, message = True, f"Converged to machine precision (Newton decrement {decrement:.1e})"
@@ -321,6 +327,51 @@ class Solver:
     def newton_decrement(self, x, lam_g, p_fixed=None, data=None) -> float:
         """Twice the χ² decrease a full Gauss-Newton step would still achieve at x."""
         return uncertainty.newton_decrement(self, x, lam_g, p_fixed, data)
+
+
+class Stall(ca.Callback):
+    """IPOPT's iteration callback: stops the solve (User_Requested_Stop) once ITERATIONS
+    consecutive iterations moved no variable by more than RELATIVE (relative to max(1, |x|)). The
+    caller then decides convergence by the Newton decrement (:meth:`Solver.solve`)."""
+
+    ITERATIONS = 10
+    RELATIVE = 1e-12
+
+    def __init__(self, n: int, n_c: int, n_p: int):
+        ca.Callback.__init__(self)
+        self._sp = [ca.Sparsity.dense(n), ca.Sparsity.dense(1), ca.Sparsity.dense(n_c), ca.Sparsity.dense(n),
+                    ca.Sparsity.dense(n_c), ca.Sparsity.dense(n_p)]
+        self.reset()
+        self.construct("stall", {})
+
+    def reset(self):
+        self._last, self._count, self.stalled = None, 0, False
+
+    def get_n_in(self):
+        return len(self._sp)
+
+    def get_n_out(self):
+        return 1
+
+    def get_name_in(self, i):
+        return ca.nlpsol_out(i)
+
+    def get_name_out(self, i):
+        return "ret"
+
+    def get_sparsity_in(self, i):
+        return self._sp[i]
+
+    def eval(self, arg):
+        x = np.asarray(arg[0]).ravel()
+        if self._last is not None and np.abs(x - self._last).max(initial=0.0) <= \
+                self.RELATIVE * max(1.0, np.abs(x).max(initial=0.0)):
+            self._count += 1
+        else:
+            self._count = 0
+        self._last = x.copy()
+        self.stalled = self._count >= self.ITERATIONS
+        return [1 if self.stalled else 0]
 
 
 @contextlib.contextmanager
