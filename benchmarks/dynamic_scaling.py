@@ -223,7 +223,7 @@ class NumpyDynamicResidual:
         self.process_model = process_model and N > 1
         if self.process_model:
             dt = np.diff(d["t"])
-            s_s, s_i, s_w = sigmas.s * dt, sigmas.integration * dt, sigmas.omega_dot * dt
+            s_s, s_i, s_w = sigmas.s * dt, sigmas.omega * dt, sigmas.omega_dot * dt  # σ_int is MotionSigmas.omega
             a, b = mot[:-1], mot[1:]
             cols, vals = [], []
             for i in range(3):  # s rows: s_n, s_n+1

@@ -96,7 +96,10 @@ class Family:
         if np.isfinite(g.prior_std[g.free]).any():
             return f"{g.name}: a prior on its rows"
         if np.isfinite(g.lower[g.free]).any() or np.isfinite(g.upper[g.free]).any():
-            return f"{g.name}: bounds on its rows (the inner Newton steps are unconstrained)"
+            # the nuisance optimum m*(θ) would not be differentiable where a bound becomes active: the
+            # reduced problem would have no exact Hessian there (its Schur complement jumps with the
+            # active set), so bounded rows stay IPOPT's variables, whose bounds it handles exactly
+            return f"{g.name}: bounds on its rows (the reduced problem has no exact Hessian where a bound becomes active)"
         return None
 
 
