@@ -202,6 +202,22 @@ def motion_noise_setting(value: str) -> dict[str, dict[str, str]]:
     return {s: {k: value for k in NOISE_COMPONENTS} for s in ("accelerometer", "gyroscope")}
 
 
+#: the settings of ``uncertainty.residual_correlation`` (:class:`UncertaintySpec`)
+RESIDUAL_CORRELATION = ("auto", "none")
+
+
+@dataclass(frozen=True)
+class UncertaintySpec:
+    """How the reported σ's are computed (``uncertainty`` in a problem file).
+
+    ``residual_correlation``: ``auto`` (default) reports the HAC (Newey–West) sandwich σ's, honest
+    when the whitened residuals of a time series are correlated from sample to sample
+    (:mod:`castimate.solver.serial`; dynamic problems: independent rows keep their Fisher
+    information); ``none`` reports the Fisher σ's, which assume white residuals."""
+
+    residual_correlation: str = "auto"
+
+
 @dataclass(frozen=True)
 class ProblemSpec:
     path: Path
@@ -213,6 +229,7 @@ class ProblemSpec:
     noise: NoiseSpec
     solver: SolverOptions
     motion: MotionSpec | None = None
+    uncertainty: UncertaintySpec = field(default_factory=UncertaintySpec)
 
     @property
     def inputs(self) -> tuple:
@@ -233,7 +250,7 @@ def load_problem(path: str | Path) -> ProblemSpec:
 
 def parse_problem(raw: Any, path: Path, sha256: str = "") -> ProblemSpec:
     c = Check(path)
-    top = c.mapping(raw, "", ("kind", "data", "array", "model", "noise", "motion", "solver"),
+    top = c.mapping(raw, "", ("kind", "data", "array", "model", "noise", "motion", "solver", "uncertainty"),
                     required=("kind", "data", "array"))
     kind = c.choice(top["kind"], "kind", KINDS)
     if "motion" in top and kind != "dynamic_array":
@@ -268,7 +285,13 @@ def parse_problem(raw: Any, path: Path, sha256: str = "") -> ProblemSpec:
                                   "each gyroscope row; found auto")
     if kind == "dynamic_array" and data.segments == "rows":
         c.fail("data.segments", "a dynamic problem needs the raw time series, not one row per pose")
-    return ProblemSpec(path, sha256, kind, data, array, model, noise, solver, motion)
+    return ProblemSpec(path, sha256, kind, data, array, model, noise, solver, motion, _uncertainty(c, top.get("uncertainty")))
+
+
+def _uncertainty(c: Check, u) -> UncertaintySpec:
+    u = c.mapping(u, "uncertainty", ("residual_correlation",))
+    return UncertaintySpec(c.choice(u.get("residual_correlation", "auto"), "uncertainty.residual_correlation",
+                                    RESIDUAL_CORRELATION))
 
 
 def _path_text(c: Check, v, where: str, expected: str) -> str:

@@ -37,6 +37,7 @@ from ..prepare.masks import saturation_mask
 from ..prepare.plausibility import check_dynamic_information, check_uniform_sampling
 from ..problem.effects import BY_KEY, MOTION, RATE
 from ..solver.motion_noise import COMPONENTS, fit_noise, noise_sigma, stage_leverages
+from ..solver.serial import serial_covariance, std_by_group
 
 #: A sensor with more than this fraction of its samples masked as saturated is refused.
 MAX_MASKED = 0.5
@@ -197,6 +198,7 @@ class DynamicOutcome:
     nominal: dict  # name -> nominal position in the body frame
     variance: object = None  # solver.variance.VarianceComponents of the process noise, if estimated
     motion_noise: dict = None  # sensor -> the fitted τ of noise.motion_dependent (:func:`fit_motion_noise`)
+    serial: dict = None  # the reported σ's under serially correlated residuals (:func:`serial_uncertainty`)
 
     @property
     def positions(self) -> dict:
@@ -332,10 +334,55 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = quiet, max_restarts: int = 2
                                                              static_problem, log, max_restarts)
     data, sol, noise = fit_motion_noise(spec, problem, solver, sol, data, log)
     check_estimates(spec, sol.values, problem.config.names)
+    sol, serial = serial_uncertainty(spec, problem, solver, sol, data, log)
     cal, gcal = problem.calibration(sol.values), problem.gyro_calibration(sol.values)
     res_acc, res_gyro = measurement_residuals(problem, data, sol)
     return DynamicOutcome(spec, data, problem.config, problem, solver, sol, attempts, sat, cal, gcal, res_acc,
-                          res_gyro, nominal, variance, noise)
+                          res_gyro, nominal, variance, noise, serial)
+
+
+def serial_uncertainty(spec: ProblemSpec, problem, solver: Solver, sol: Solution, data: DynamicData,
+                       log: Log = quiet) -> tuple[Solution, dict | None]:
+    """The σ's under serially correlated residuals (``uncertainty.residual_correlation``): the HAC
+    covariance of :func:`castimate.solver.serial.serial_covariance` at the solution. With ``auto``
+    the solution's covariance and σ's become the HAC ones; with ``none`` they stay the Fisher ones.
+    Either way returns what results.json records: which σ's are reported, the residuals' lag-1
+    autocorrelation per triad and sensor, the bandwidth, the σ inflation and the Fisher σ's."""
+    hc = serial_covariance(solver, sol.x, None, problem.data_vector(data))
+    if hc is None:
+        return sol, None
+    hac = spec.uncertainty.residual_correlation == "auto"
+    names = {"accelerometer_sample": ("accelerometer", problem.config.names),
+             "gyroscope_sample": ("gyroscope", problem.gyro_triads)}
+    pooled: dict = {}
+    for (block, rank, _), a, b in zip(hc.channels, hc.products, hc.squares):
+        sensor, triads = names.get(block, (block, None))
+        key = (sensor, triads[rank] if triads is not None else "all")
+        pa, pb = pooled.get(key, (0.0, 0.0))
+        pooled[key] = (pa + a, pb + b)
+    rho: dict = {}
+    for (sensor, triad), (a, b) in pooled.items():
+        rho.setdefault(sensor, {})[triad] = float(a / b) if b > 0 else float("nan")
+    infl = hc.inflation
+    lay = solver.problem.layout
+    is_pos = np.isin(solver.theta, np.concatenate([lay.x_indices(f"{n}.position") for n in problem.config.names]))
+    rms = lambda v: float(np.sqrt(np.mean(v ** 2))) if v.size else float("nan")  # noqa: E731
+    info = {"reported": "hac" if hac else "fisher",
+            "residual_correlation": spec.uncertainty.residual_correlation,
+            "method": "Newey-West sandwich, Bartlett weights, Andrews (1991) AR(1) plug-in bandwidth; "
+                      "scores summed per sample over every channel",
+            "bandwidth_samples": hc.bandwidth, "lags": hc.lags, "samples": hc.samples,
+            "lag1_autocorrelation": rho,
+            "inflation": {"position_rms": rms(infl[is_pos]), "rms": rms(infl[np.isfinite(infl)]),
+                          "min": float(np.nanmin(infl)) if infl.size else float("nan"),
+                          "max": float(np.nanmax(infl)) if infl.size else float("nan")},
+            "fisher_std": sol.std, "hac_std": std_by_group(solver, hc.covariance)}
+    log(f"residual correlation: lag-1 autocorrelation {np.nanmedian(hc.rho):.2f} (median over channels), "
+        f"bandwidth {hc.bandwidth:.1f} samples, position σ × {info['inflation']['position_rms']:.2f} "
+        f"(RMS over positions); reported: {'HAC' if hac else 'Fisher'} σ's")
+    if hac:
+        sol = replace(sol, covariance=hc.covariance, std=info["hac_std"])
+    return sol, info
 
 
 def solve_dynamic(config: DynamicConfig, data: DynamicData, nominal: dict, options: SolverOptions | None = None,

@@ -38,8 +38,9 @@ def _saturation(spec, sat: dict) -> dict:
                         for k, v in sat.items()}}
 
 
-def _parameters(layout, sol, name: str) -> dict:
-    """The estimated or fixed parameter groups of one triad, with σ and units."""
+def _parameters(layout, sol, name: str, fisher: dict | None = None) -> dict:
+    """The estimated or fixed parameter groups of one triad, with σ and units (and the Fisher σ
+    as ``std_fisher`` when the reported σ's are others: ``fisher`` by group)."""
     params = {}
     for g in layout.groups:
         if g.nuisance or not g.name.startswith(name + "."):
@@ -48,6 +49,8 @@ def _parameters(layout, sol, name: str) -> dict:
         key = sensor if not group else group if sensor == "accelerometer" else f"{sensor}.{group}"
         params[key] = {"value": sol.values[g.name], "std": sol.std[g.name], "free": g.shaped(g.free),
                        "unit": g.unit, "components": list(g.components)}
+        if fisher is not None:
+            params[key]["std_fisher"] = fisher[g.name]
     return params
 
 
@@ -112,6 +115,8 @@ def dynamic_results(outcome) -> dict:
 
     sol, cfg, spec = outcome.solution, outcome.config, outcome.spec
     lay = outcome.problem.lsq.layout
+    serial = outcome.serial
+    fisher = serial["fisher_std"] if serial else None
     triads = {}
     for t in cfg.triads:
         T, b = outcome.calibration[t.name]
@@ -124,7 +129,9 @@ def dynamic_results(outcome) -> dict:
         if t.name in outcome.gyro_calibration:
             Tg, bg = outcome.gyro_calibration[t.name]
             entry["gyroscope"] = {"T": Tg, "b": bg}
-        entry["parameters"] = _parameters(lay, sol, t.name)
+        if fisher is not None:
+            entry["position_std_fisher"] = fisher[f"{t.name}.position"]
+        entry["parameters"] = _parameters(lay, sol, t.name, fisher)
         triads[t.name] = entry
     rms = lambda r: np.sqrt(np.nanmean(r ** 2, axis=0))  # noqa: E731
     return {
@@ -144,12 +151,22 @@ def dynamic_results(outcome) -> dict:
         "noise": {"accelerometer": outcome.data.acc_sigma, "gyroscope": outcome.data.gyro_sigma,
                   # σ² = σ₀² + σ_d² + (τ u̇)² + (κ|ω|)² per axis (castimate.solver.motion_noise)
                   **({"motion_dependent": outcome.motion_noise} if outcome.motion_noise else {})},
+        "uncertainty": _uncertainty(serial),
         "triads": triads,
         "residuals": {"chi2": sol.chi2, "dof": sol.dof, "chi2_per_dof": sol.chi2_per_dof,
                       "rms": {n: rms(r) for n, r in outcome.residual_acc.items()}, "rms_unit": "m/s^2",
                       "gyro_rms": {n: rms(r) for n, r in outcome.residual_gyro.items()}},
         **_effects(outcome.problem.config),
     }
+
+
+def _uncertainty(serial: dict | None) -> dict:
+    """Which σ's are reported ("std", "position_std"): ``hac``, the sandwich covariance under serially
+    correlated residuals (castimate.solver.serial), or ``fisher``, the inverse Fisher information
+    (white residuals; kept beside the others as "std_fisher", "position_std_fisher")."""
+    if not serial:
+        return {"reported": "fisher", "residual_correlation": "none (no time series)"}
+    return {k: v for k, v in serial.items() if k not in ("fisher_std", "hac_std")}
 
 
 def _motion_model(config, variance) -> dict:

@@ -478,7 +478,7 @@ def build_dynamic(config: DynamicConfig, data: DynamicData, start: dict | None =
                           + effect_inputs("accelerometer", config.names, k)
                           + ([(g, i) for i in (prev[n], nxt[n]) for g in (OMEGA_DOT, S)]
                              if fxs.need(effects, fxs.RATE) else []),
-                          np.zeros((len(k), 0)), valid=ok)]
+                          np.zeros((len(k), 0)), valid=ok, series=n)]
     if gyro_triads:
         k, n, ok = instances("gyro", gyro_triads)
         need_wd, need_f = _gyro_needs(fxs.acting_on(config.effects, "gyroscope"))
@@ -487,13 +487,13 @@ def build_dynamic(config: DynamicConfig, data: DynamicData, start: dict | None =
                                   + [(OMEGA, n)] + ([(OMEGA_DOT, n)] if need_wd else [])
                                   + ([(tuple(f"{t}.position" for t in gyro_triads), k), (S, n)] if need_f else [])
                                   + effect_inputs("gyroscope", gyro_triads, k),
-                                  np.zeros((len(k), 0)), valid=ok))
+                                  np.zeros((len(k), 0)), valid=ok, series=n))
     if config.process_model and N > 1:
         a, b = np.arange(N - 1), np.arange(1, N)
         blocks.append(FactorBlock("process_model", process_factor(config.motion.integration),
                                   [(OMEGA, a), (OMEGA_DOT, a), (S, a), (OMEGA, b), (OMEGA_DOT, b), (S, b)]
                                   + ([(OMEGA_DDOT, a), (OMEGA_DDOT, b)] if snap else []),
-                                  np.zeros((N - 1, 0))))
+                                  np.zeros((N - 1, 0)), series=a))
     problem = DynamicProblem(config, LeastSquaresProblem(Layout(groups), blocks), N, gyro_triads, rows, axes)
     for blk, d in zip(blocks, problem.block_data(data)):
         blk.data = d

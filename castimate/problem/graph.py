@@ -99,6 +99,10 @@ class FactorBlock:
         the others must make their residuals exactly zero (a masked sample with σ = inf; a masked
         axis with σ = MASKED_SIGMA): they keep a block's instances on a regular grid, which the solver
         exploits, and are left out of the reported residuals and degrees of freedom.
+    series
+        (N,) the sample of each instance when the block's residuals form time series (serially
+        correlated: the HAC covariance of :mod:`castimate.solver.serial` sums their scores per
+        sample over its lags); None: independent instances (Fisher information).
     """
 
     name: str
@@ -106,6 +110,7 @@ class FactorBlock:
     inputs: list[tuple[str | tuple[str, ...], np.ndarray | None]]
     data: np.ndarray
     valid: np.ndarray | None = None
+    series: np.ndarray | None = None
 
     @property
     def n(self) -> int:

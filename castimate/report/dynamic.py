@@ -20,6 +20,15 @@ REQUIRED_DYNAMIC_DETAILS = ("triads", "t", "omega", "omega_dot", "s", "residual_
 # The dynamic report (kind dynamic_array: Carlsson 2017 positions, Schopp 2016 poses)
 # ---------------------------------------------------------------------------------------------
 
+def sigma_source(results: dict) -> str:
+    """Which σ's the page shows (results.json ``uncertainty.reported``), in words."""
+    if (results.get("uncertainty") or {}).get("reported") == "hac":
+        return ("from the HAC (Newey–West) sandwich covariance, honest under residuals correlated from sample "
+                "to sample (uncertainty.residual_correlation: auto; the Fisher σ's are in results.json as "
+                "std_fisher)")
+    return "from the inverse Fisher information (white residuals assumed)"
+
+
 def format_mm(value: float, std: float | None) -> str:
     """A position in mm from metres: "value ± σ" with 3–4 decimals (σ to two significant digits
     where those fit); a component without σ (fixed) is the value alone with 4 decimals."""
@@ -246,6 +255,14 @@ def render_dynamic_report(results: dict, details: dict[str, np.ndarray]) -> str:
         rg = np.asarray(details["residual_gyro"], float)
         rows.append(("gyroscope residual RMS", f"{np.sqrt(np.nanmean(rg ** 2)) * DEG:.3g} deg/s "
                                                f"({len(details.get('gyro_triads', []))} triads, all axes)"))
+    u = results.get("uncertainty") or {}
+    if "lag1_autocorrelation" in u:
+        rho = [v for c in u["lag1_autocorrelation"].values() for v in c.values() if finite(v)]
+        span = f"{min(rho):.2f}–{max(rho):.2f}" if rho else "n/a"
+        rows.append(("reported σ's", f"{sigma_source(results)}; whitened residuals' lag-1 autocorrelation "
+                                     f"{span} per triad and sensor, bandwidth "
+                                     f"{u['bandwidth_samples']:.1f} samples, position σ × "
+                                     f"{u['inflation']['position_rms']:.2f} against the Fisher σ's (RMS)"))
     nom, est, sd = (np.asarray(details[k], float) for k in ("nominal_position", "position", "position_std"))
     rows.append(("positions", f"RMS distance estimated–nominal {figures.position_rms_um(nom, est, sd):.1f} µm "
                               f"over the {int(np.any(sd > 0, axis=1).sum())} estimated triad(s)"))
@@ -267,7 +284,7 @@ def render_dynamic_report(results: dict, details: dict[str, np.ndarray]) -> str:
     # --- positions
     add("<h2>Positions</h2>")
     add("<p>Triad positions in the body frame (origin at the reference triad), estimates with one standard "
-        "deviation from the inverse Fisher information; “fixed” components were not estimated.</p>")
+        f"deviation {sigma_source(results)}; “fixed” components were not estimated.</p>")
     add(_positions_table(results, names))
 
     # --- orientation

@@ -119,10 +119,11 @@ def position_spread(results: list[dict], sessions: list[str]) -> str:
     return "\n".join(lines)
 
 
-def session_position_spread(results: list[dict]) -> tuple[float, float]:
+def session_position_spread(results: list[dict], std: str = "position_std") -> tuple[float, float]:
     """(RMS over triads and components of the positions' standard deviation across sessions, RMS of the
-    reported σ's) [m], the reference triad (fixed at the origin) left out: σ's are honest when the two agree."""
+    reported σ's) [m], the reference triad (fixed at the origin) left out: σ's are honest when the two agree.
+    ``std``: which σ's (``position_std_fisher``: the Fisher σ's beside reported HAC ones)."""
     names = [n for n in results[0]["triads"] if np.any(results[0]["triads"][n]["position_std"])]
     est = np.array([[r["triads"][n]["position"] for n in names] for r in results])
-    sd = np.array([[r["triads"][n]["position_std"] for n in names] for r in results])
+    sd = np.array([[r["triads"][n][std] for n in names] for r in results])
     return float(np.sqrt(np.mean(np.var(est, axis=0, ddof=1)))), float(np.sqrt(np.mean(sd ** 2)))

@@ -1013,3 +1013,24 @@ class Projection:
             raise np.linalg.LinAlgError("the nuisance variables are not determined by the data") from None
         self._factors = None
         return S, (gr if g is not None else None), dec
+
+    def nuisance_map(self, x, pf, data):
+        """The marginal Fisher information S (c, c) of :meth:`marginal` and, per family,
+        D (R, m, c) = H_mm⁻¹ H_mc of the Fisher information (to first order dm = -D dθ; on the
+        tangent space of unit-norm rows), for the eliminated Jacobian J_c - J_m D of the HAC
+        covariance (:mod:`castimate.solver.serial`). D is as large as the coupling H_mc."""
+        th, Xs = self.split(x)
+        if self._anchor is not None:  # its factors live in the arrays reused here
+            self._anchor = (*self._anchor[:2], None)
+        parts = self.assemble(th, Xs, pf, data, "info", reuse=True)
+        parts.gc = np.zeros(self.c)
+        try:
+            _, _, S, _ = self.eliminate(parts, Xs, pf, coupling=True, curvature=False)
+        except np.linalg.LinAlgError:
+            raise np.linalg.LinAlgError("the nuisance variables are not determined by the data") from None
+        D = []
+        for F, Y, Z in self._factors:
+            Dk = F.upper(np.ascontiguousarray(Y.reshape(F.R, F.m, -1)))  # L^-T L^-1 H_mc
+            D.append(Dk if Z is None else np.einsum("rmk,rkc->rmc", Z, Dk))
+        self._factors = None
+        return S, D

@@ -1,0 +1,250 @@
+"""Honest σ's under serially correlated residuals: a HAC (heteroskedasticity and autocorrelation
+consistent) sandwich covariance of the reported parameters, the estimates unchanged.
+
+The Fisher covariance C = (Ĵᵀ Ĵ)⁻¹ (:func:`castimate.solver.uncertainty.covariance`) assumes white
+whitened residuals. When they are correlated in time (on the MIMU4444 sessions the lag-1
+autocorrelation is about 0.5 after every model), the least-squares estimate stays consistent but
+its covariance is the sandwich (Newey & West 1987; Andrews 1991, eq. 2.3)::
+
+    Cov_θ = C S̃ C,    S̃ = Σ_|l|<L (1 - |l|/L) Σ_t ĝ_t ĝ_{t+l}ᵀ   (Bartlett weights)
+
+with ĝ_t = Σ_{rows n of sample t} Ĵ_nᵀ e_n the score of sample t: e_n the whitened residual and
+Ĵ = J_θ - J_m D the Jacobian with the nuisance variables m (the motion, then any other nuisance
+calibration variable) eliminated, D = H_mm⁻¹ H_mθ, which the Schur complement onto θ already
+computes (:meth:`castimate.solver.elimination.Projection.nuisance_map`; linear in the samples).
+The constraints act through C, the covariance on their tangent space.
+
+The scores are summed over the channels of a sample before the lags are taken. Each sample's
+motion is fitted to that sample's rows, so Ĵ_tᵀ J_m,t = 0 sample by sample (independent samples)
+and the sum ĝ_t is unbiased, while per-channel score products miss the motion's leverage
+(-P_nm e_n e_m, up to 60 % of a row's variance gyro-free). The sum also keeps the correlation
+between channels at the same sample (vibration seen by every triad).
+
+Rows of instances that are not in a time series (priors, averaged static poses) are independent:
+they contribute their Fisher information Ĵ_nᵀ Ĵ_n.
+
+The bandwidth is Andrews' AR(1) plug-in (Andrews 1991, eqs. 6.2 and 6.4), from the lag-1
+autocorrelation ρ_a and innovation variance σ_a² of each channel's whitened residuals::
+
+    α(1) = Σ_a 4 ρ_a² σ_a⁴ / ((1 - ρ_a)⁶ (1 + ρ_a)²) / Σ_a σ_a⁴ / (1 - ρ_a)⁴,   S_T = 1.1447 (α(1) T)^(1/3)
+
+and L = round(S_T) (at least 1: white residuals give the Fisher information's empirical form).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from .uncertainty import covariance, factor, information
+
+ANDREWS_BARTLETT = 1.1447  # Andrews 1991, eq. 6.2: S_T = 1.1447 (α(1) T)^(1/3) for the Bartlett kernel
+RHO_LIMIT = 0.97  # |ρ| at which the AR(1) plug-in is clipped (its α diverges as ρ -> 1)
+ROW_CHUNK = 20000  # residual rows eliminated at a time (dense (rows, nθ) arrays)
+
+
+def bartlett(G: np.ndarray, L: int) -> np.ndarray:
+    """Σ_|l|<L (1 - |l|/L) Σ_t g_t g_{t+l}ᵀ of the rows g_t of G (T, k), in O(T k²).
+
+    Bartlett's triangle is a box convolved with itself: with the moving sums b_j = Σ_{t=j-L+1}^{j} g_t
+    (zeros outside the record), Σ_j b_j b_jᵀ = Σ_{t,s} (L - |t - s|)₊ g_t g_sᵀ."""
+    G = np.asarray(G, float)
+    L = max(1, int(L))
+    if L == 1:
+        return G.T @ G
+    c = np.vstack([np.zeros((1, G.shape[1])), np.cumsum(np.vstack([G, np.zeros((L - 1, G.shape[1]))]), axis=0)])
+    B = c[1:] - np.vstack([np.zeros((L, G.shape[1])), c[1:-L]])
+    return (B.T @ B) / L
+
+
+def lag1(E: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per column of E (T, channels), NaN where a channel has no reading: the lag-1 products
+    Σ e_t e_{t+1} and squares Σ e_t² over the pairs of consecutive readings, and the variance
+    (mean square). ρ = products / squares."""
+    E = np.asarray(E, float)
+    both = np.isfinite(E[1:]) & np.isfinite(E[:-1])
+    a, b = np.where(both, E[:-1], 0.0), np.where(both, E[1:], 0.0)
+    num = (a * b).sum(axis=0)
+    den = 0.5 * ((a * a).sum(axis=0) + (b * b).sum(axis=0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        var = np.nanmean(np.where(np.isfinite(E), E * E, np.nan), axis=0) if E.size else np.zeros(E.shape[1])
+    return num, den, var
+
+
+def andrews_bandwidth(rho: np.ndarray, var: np.ndarray, T: int) -> float:
+    """Andrews' (1991, eqs. 6.2, 6.4) AR(1) plug-in bandwidth S_T of the Bartlett kernel from the
+    channels' lag-1 autocorrelations ρ and variances (equal weights); innovation variance σ² = var (1 - ρ²)."""
+    rho = np.clip(np.asarray(rho, float), -RHO_LIMIT, RHO_LIMIT)
+    s4 = (np.asarray(var, float) * (1 - rho ** 2)) ** 2
+    ok = np.isfinite(rho) & np.isfinite(s4) & (s4 > 0)
+    if not ok.any() or T < 2:
+        return 1.0
+    rho, s4 = rho[ok], s4[ok]
+    alpha = float((4 * rho ** 2 * s4 / ((1 - rho) ** 6 * (1 + rho) ** 2)).sum() / (s4 / (1 - rho) ** 4).sum())
+    return ANDREWS_BARTLETT * (alpha * T) ** (1 / 3)
+
+
+@dataclass
+class SerialCovariance:
+    """The HAC covariance of the reported parameters and what it rests on."""
+
+    covariance: np.ndarray  # (nθ, nθ) physical units, Solver.theta order
+    fisher: np.ndarray  # the Fisher covariance (white residuals), same layout
+    bandwidth: float  # Andrews' S_T (samples)
+    lags: int  # L: Bartlett weights 1 - |l|/L for |l| < L
+    samples: int  # T, the length of the time series
+    channels: list = field(default_factory=list)  # (block name, rank within a sample, component) per channel
+    rho: np.ndarray = None  # lag-1 autocorrelation of each channel's whitened residuals
+    products: np.ndarray = None  # Σ e_t e_{t+1} per channel (to pool channels: ρ = Σ products / Σ squares)
+    squares: np.ndarray = None
+
+    @property
+    def inflation(self) -> np.ndarray:
+        """σ_HAC / σ_Fisher per reported parameter."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.sqrt(np.diag(self.covariance) / np.diag(self.fisher))
+
+
+def _elimination(solver, x, pf, d):
+    """A function mapping sparse Jacobian rows (layout order, scaled x) to the eliminated rows Ĵ
+    (rows, nθ): the nuisance variables (every variable outside ``solver.theta``) eliminated with the
+    Fisher information, their constraints included."""
+    theta, n = solver.theta, solver.n_x
+    P = solver.projection
+    G = solver.constraint_jacobian(x, pf).tocsc()
+    if P is None:
+        nu = np.setdiff1d(np.arange(n), theta)
+        F = information(solver, x, pf, d).tocsc()
+        on_t = np.asarray(abs(G[:, theta]).sum(axis=1)).ravel() > 0
+        G_n = G[~on_t][:, nu]
+        if not len(nu):
+            return lambda J: J[:, theta].toarray()
+        K = sp.bmat([[F[nu][:, nu], G_n.T], [G_n, None]], format="csc") if G_n.shape[0] else F[nu][:, nu]
+        rhs = np.zeros((K.shape[0], len(theta)))
+        rhs[: len(nu)] = F[nu][:, theta].toarray()
+        D = factor(K).solve(rhs)[: len(nu)]
+        return lambda J: J[:, theta].toarray() - J[:, nu] @ D
+    # the families by the projection's own elimination, then the other nuisance calibration variables
+    S, Ds = P.nuisance_map(x, pf, d)
+    fam_cols = [f.X.ravel() for f in P.fams]
+    Dm = [Dk.reshape(-1, P.c) for Dk in Ds]
+    t = P.tpos[theta]
+    nc = np.setdiff1d(np.arange(P.c), t)
+    D2 = None
+    if len(nc):
+        Gc = G[:, P.cal]
+        on_t = np.asarray(abs(Gc[:, t]).sum(axis=1)).ravel() > 0
+        on_n = np.asarray(abs(Gc[:, nc]).sum(axis=1)).ravel() > 0
+        G_n = Gc[on_n & ~on_t][:, nc].toarray()
+        k = G_n.shape[0]
+        K = np.zeros((len(nc) + k, len(nc) + k))
+        K[: len(nc), : len(nc)], K[len(nc):, : len(nc)], K[: len(nc), len(nc):] = S[np.ix_(nc, nc)], G_n, G_n.T
+        B = np.zeros((len(nc) + k, len(t)))
+        B[: len(nc)] = S[np.ix_(nc, t)]
+        D2 = np.linalg.solve(K, B)[: len(nc)]
+
+    def eliminate(J):
+        J1 = J[:, P.cal].toarray()
+        for cols, D in zip(fam_cols, Dm):
+            Jm = J[:, cols]
+            if Jm.nnz:
+                J1 -= Jm @ D
+        return J1[:, t] if D2 is None else J1[:, t] - J1[:, nc] @ D2
+
+    return eliminate
+
+
+def _rows(solver, x, pf, d):
+    """Per factor block (then the priors): (name, sparse whitened Jacobian rows (layout order, scaled x),
+    whitened residuals, the block's FactorBlock.series or None, rows per instance, valid rows)."""
+    n, scale = solver.n_x, solver.problem.layout.x_scale
+    xo = solver.nlp_order(x)
+    res = solver.assembly.local(xo, pf, d, "res")
+    jac = solver.assembly.local(xo, pf, d, "jac")
+    for b, Rb, Jb in zip(solver.blocks, res, jac):
+        N, f = b.block.n, b.f
+        Jl = Jb.reshape(N, len(f.act), f.m)
+        t, a = np.nonzero(b.w_idx[:, f.act] < n)
+        gi = b.w_idx[t, f.act[a]]
+        rows = np.concatenate([t * f.m + i for i in range(f.m)])
+        vals = np.concatenate([Jl[t, a, i] * scale[gi] for i in range(f.m)])
+        J = sp.csr_matrix((vals, (rows, np.tile(gi, f.m))), shape=(N * f.m, n))
+        valid = np.ones(N * f.m, bool) if b.block.valid is None else np.broadcast_to(
+            np.asarray(b.block.valid, bool).reshape(N, -1), (N, f.m)).ravel()
+        yield b.block.name, J, Rb.reshape(-1), getattr(b.block, "series", None), f.m, valid
+    pi, pm, ps = solver.prior
+    if len(pi):
+        w = np.asarray(x, float)[pi] * scale[pi]
+        J = sp.csr_matrix((scale[pi] / ps, (np.arange(len(pi)), pi)), shape=(len(pi), n))
+        yield "prior", J, (w - pm) / ps, None, 1, np.ones(len(pi), bool)
+
+
+def serial_covariance(solver, x, p_fixed=None, data=None, lags: int | None = None) -> SerialCovariance | None:
+    """The HAC covariance of ``solver.theta`` at scaled layout-order x (module docstring), or None
+    when no factor block is a time series (``FactorBlock.series``). ``lags``: a fixed L instead of
+    Andrews' plug-in (tests)."""
+    if not any(getattr(b.block, "series", None) is not None for b in solver.blocks):
+        return None
+    pf, d = solver.fixed_and_data(p_fixed, data)
+    x = np.asarray(x, float)
+    C_phys = covariance(solver, x, pf, d)
+    s = solver.problem.layout.x_scale[solver.theta]
+    C = C_phys / np.outer(s, s)
+    reduce = _elimination(solver, x, pf, d)
+    nt = len(solver.theta)
+    T = 1 + max(int(np.max(b.block.series)) for b in solver.blocks
+                if getattr(b.block, "series", None) is not None and len(b.block.series))
+    Gt = np.zeros((T, nt))  # per-sample scores
+    F_ind = np.zeros((nt, nt))  # Fisher information of the independent rows
+    channels, num, den, var = [], [], [], []
+    for name, J, e, series, m, valid in _rows(solver, x, pf, d):
+        e = np.where(valid, e, 0.0)
+        if series is not None:
+            series = np.asarray(series, int)
+            sample = np.repeat(series, m)
+            for r0 in range(0, J.shape[0], ROW_CHUNK):
+                r = slice(r0, min(J.shape[0], r0 + ROW_CHUNK))
+                Jh = reduce(J[r])
+                A = sp.csr_matrix((e[r], (sample[r], np.arange(r.stop - r.start))), shape=(T, r.stop - r.start))
+                Gt += A @ Jh
+            # channels: the k-th instance of a sample and its residual component
+            order = np.argsort(series, kind="stable")
+            first = np.searchsorted(series[order], series[order])
+            rank = np.empty(len(series), int)
+            rank[order] = np.arange(len(series)) - first
+            E = np.full((T, rank.max() + 1, m), np.nan)
+            ok = valid.reshape(-1, m)
+            E[series[:, None], rank[:, None], np.arange(m)[None, :]] = np.where(ok, e.reshape(-1, m), np.nan)
+            a, b_, v = lag1(E.reshape(T, -1))
+            channels += [(name, k, i) for k in range(E.shape[1]) for i in range(m)]
+            num.append(a), den.append(b_), var.append(v)
+        else:
+            for r0 in range(0, J.shape[0], ROW_CHUNK):
+                r = slice(r0, min(J.shape[0], r0 + ROW_CHUNK))
+                Jh = reduce(J[r])[valid[r]]
+                F_ind += Jh.T @ Jh
+    num, den, var = np.concatenate(num), np.concatenate(den), np.concatenate(var)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rho = num / den
+    S_T = andrews_bandwidth(rho, var, T)
+    L = max(1, round(S_T)) if lags is None else int(lags)
+    S = bartlett(Gt, L) + F_ind
+    cov = C @ S @ C
+    cov = 0.5 * (cov + cov.T) * np.outer(s, s)
+    return SerialCovariance(cov, C_phys, S_T, L, T, channels, rho, num, den)
+
+
+def std_by_group(solver, cov: np.ndarray) -> dict[str, np.ndarray]:
+    """σ per parameter group (zero where not free) from a covariance of ``solver.theta``, as in
+    :class:`castimate.problem.graph.Solution`'s ``std``."""
+    lay = solver.problem.layout
+    sd = np.full(solver.n_x, np.nan)
+    sd[solver.theta] = np.sqrt(np.clip(np.diag(cov), 0, None))
+    out = {}
+    for g in lay.groups:
+        v = np.zeros(g.free.shape)
+        v[g.free] = sd[lay.x_indices(g.name)]
+        out[g.name] = g.shaped(v)
+    return out
