@@ -86,8 +86,10 @@ def solve_noise_free(scenario: dict, source: str = "") -> Simulated:
     (``undetermined``) and their parameters get an infinite bound, where the pipeline would refuse."""
     with tempfile.TemporaryDirectory(prefix="castimate-crb-") as tmp:
         truth, spec = _simulate(scenario, source, Path(tmp), None, True)
-        # the bound of the declared σ's: no motion-dependent noise fitted to the exact readings
-        spec = replace(spec, noise=replace(spec.noise, motion_dependent=motion_noise_setting("none")))
+        # the bound of the declared σ's: no motion-dependent noise fitted to the exact readings, and
+        # the Fisher σ's (a sandwich of the exact readings' vanishing residuals would be zero)
+        spec = replace(spec, noise=replace(spec.noise, motion_dependent=motion_noise_setting("none")),
+                       uncertainty=replace(spec.uncertainty, residual_correlation="none"))
         kind = kind_of(spec)
         data = kind.load(spec)
         problem = kind.build(kind.configure(spec, data), data)
