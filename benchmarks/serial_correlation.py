@@ -113,6 +113,40 @@ def sessions(numbers: list[int], reuse: bool, timeout: float) -> dict:
     return out
 
 
+def decompose(i: int) -> dict:
+    """Session i (variant coupling) solved through the API, then the RMS position σ of: the Fisher
+    covariance; the per-sample scores at lag 0 only (correlation between channels at one sample);
+    the HAC as reported (Andrews' L); each channel on its own with the same L (no correlation
+    between channels) and at lag 0 (independent rows, the empirical Fisher)."""
+    from mimu4444_sessions import variant
+
+    from castimate.solver.serial import serial_covariance
+
+    spec = load_problem(variant(i, "coupling"))
+    t0 = time.perf_counter()
+    out = calibrate_dynamic(spec)
+    wall = time.perf_counter() - t0
+    solver, x = out.solver, out.solution.x
+    dv = out.problem.data_vector(out.data)
+    lay = solver.problem.layout
+    idx = np.concatenate([lay.x_indices(f"{n}.position") for n in spec.array.names])
+    sel = np.flatnonzero(np.isin(solver.theta, idx))
+    rms = lambda cov: float(np.sqrt(np.mean(np.diag(cov)[sel])))  # noqa: E731
+    hac = serial_covariance(solver, x, None, dv)
+    L = hac.lags
+    rows = {"Fisher": rms(hac.fisher),
+            "per sample, lag 0 (channels correlated at one sample)": rms(serial_covariance(solver, x, None, dv, lags=1).covariance),
+            f"per sample, Bartlett L = {L} (reported)": rms(hac.covariance),
+            f"per channel, Bartlett L = {L} (channels independent)":
+                rms(serial_covariance(solver, x, None, dv, lags=L, pooling="channel").covariance),
+            "per channel, lag 0 (independent rows)":
+                rms(serial_covariance(solver, x, None, dv, lags=1, pooling="channel").covariance)}
+    for k, v in rows.items():
+        print(f"exp_{i}: {k}: RMS position σ {v * 1e6:.1f} µm", flush=True)
+    return {"session": f"exp_{i}", "wall_s": wall, "lags": L, "rms_position_sigma_m": rows,
+            "rho_median": float(np.nanmedian(hac.rho))}
+
+
 def table(sim: dict, real: dict) -> str:
     lines = []
     if sim:
@@ -132,6 +166,11 @@ def table(sim: dict, real: dict) -> str:
             lines.append(f"| {name} | {s['chi2_per_dof']:.3f} | {span(rho.get('accelerometer'))} | "
                          f"{span(rho.get('gyroscope'))} | {s.get('bandwidth_samples') or float('nan'):.1f} | "
                          f"{(s.get('inflation') or {}).get('position_rms', float('nan')):.2f} |")
+        if real.get("decomposition"):
+            dec = real["decomposition"]
+            lines += ["", f"Where the inflation comes from ({dec['session']}, lag-1 ρ median {dec['rho_median']:.2f}):", "",
+                      "| covariance | RMS position σ [µm] |", "|---|---|"]
+            lines += [f"| {k} | {v * 1e6:.1f} |" for k, v in dec["rms_position_sigma_m"].items()]
         if "spread_m" in real:
             lines += ["", "| positions across the sessions | µm |", "|---|---|",
                       f"| session-to-session spread (RMS of the standard deviation) | {real['spread_m'] * 1e6:.1f} |",
@@ -146,6 +185,7 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=40, help="simulated runs with pink noise (half as many white)")
     ap.add_argument("--sessions", type=int, nargs="*", default=[])
     ap.add_argument("--reuse", action="store_true")
+    ap.add_argument("--decompose", type=int, default=0, help="a session to solve through the API and take its σ apart")
     ap.add_argument("--timeout", type=float, default=3600.0)
     a = ap.parse_args()
     t0, c0 = time.perf_counter(), time.process_time()
@@ -153,6 +193,10 @@ def main() -> None:
     if a.runs:
         sim = {"pink (1/f) as large as the white": simulated(a.runs, True), "white": simulated(max(1, a.runs // 2), False)}
     real = sessions(a.sessions, a.reuse, a.timeout) if a.sessions else {}
+    if a.decompose:
+        if not real and (RESULTS / "serial_correlation.json").exists():
+            real = json.loads((RESULTS / "serial_correlation.json").read_text()).get("real", {})
+        real["decomposition"] = decompose(a.decompose)
     load = os.getloadavg()[0]
     md = table(sim, real) + (f"\n\nWall {time.perf_counter() - t0:.0f} s, CPU (this process) {time.process_time() - c0:.0f} s, "
                              f"load average {load:.1f} at the end.\n")

@@ -313,7 +313,8 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = quiet, max_restarts: int = 2
             log("chip clocks: fitting without the sawtooth age to find the beats")
             pre = calibrate_dynamic(replace(spec, model=replace(spec.model, effects=tuple(
                 k for k in spec.model.effects if k != CLOCK_BEAT)), noise=replace(
-                spec.noise, motion_dependent=motion_noise_setting("none"))),
+                spec.noise, motion_dependent=motion_noise_setting("none")), uncertainty=replace(
+                spec.uncertainty, residual_correlation="none")),
                 log, max_restarts, loaded)
             beats = estimate_clocks(pre)
             log("  " + ", ".join(f"{n} {b.nu:+.4f} Hz" for n, b in beats.items()))
@@ -345,13 +346,15 @@ def serial_uncertainty(spec: ProblemSpec, problem, solver: Solver, sol: Solution
                        log: Log = quiet) -> tuple[Solution, dict | None]:
     """The σ's under serially correlated residuals (``uncertainty.residual_correlation``): the HAC
     covariance of :func:`castimate.solver.serial.serial_covariance` at the solution. With ``auto``
-    the solution's covariance and σ's become the HAC ones; with ``none`` they stay the Fisher ones.
-    Either way returns what results.json records: which σ's are reported, the residuals' lag-1
-    autocorrelation per triad and sensor, the bandwidth, the σ inflation and the Fisher σ's."""
+    the solution's covariance and σ's become the HAC ones; with ``none`` they stay the Fisher ones
+    (nothing computed).
+    Returns what results.json records: which σ's are reported and, with ``auto``, the residuals'
+    lag-1 autocorrelation per triad and sensor, the bandwidth, the σ inflation and the Fisher σ's."""
+    if spec.uncertainty.residual_correlation == "none":
+        return sol, {"reported": "fisher", "residual_correlation": "none"}
     hc = serial_covariance(solver, sol.x, None, problem.data_vector(data))
     if hc is None:
         return sol, None
-    hac = spec.uncertainty.residual_correlation == "auto"
     names = {"accelerometer_sample": ("accelerometer", problem.config.names),
              "gyroscope_sample": ("gyroscope", problem.gyro_triads)}
     pooled: dict = {}
@@ -367,7 +370,7 @@ def serial_uncertainty(spec: ProblemSpec, problem, solver: Solver, sol: Solution
     lay = solver.problem.layout
     is_pos = np.isin(solver.theta, np.concatenate([lay.x_indices(f"{n}.position") for n in problem.config.names]))
     rms = lambda v: float(np.sqrt(np.mean(v ** 2))) if v.size else float("nan")  # noqa: E731
-    info = {"reported": "hac" if hac else "fisher",
+    info = {"reported": "hac",
             "residual_correlation": spec.uncertainty.residual_correlation,
             "method": "Newey-West sandwich, Bartlett weights, Andrews (1991) AR(1) plug-in bandwidth; "
                       "scores summed per sample over every channel",
@@ -379,10 +382,8 @@ def serial_uncertainty(spec: ProblemSpec, problem, solver: Solver, sol: Solution
             "fisher_std": sol.std, "hac_std": std_by_group(solver, hc.covariance)}
     log(f"residual correlation: lag-1 autocorrelation {np.nanmedian(hc.rho):.2f} (median over channels), "
         f"bandwidth {hc.bandwidth:.1f} samples, position σ × {info['inflation']['position_rms']:.2f} "
-        f"(RMS over positions); reported: {'HAC' if hac else 'Fisher'} σ's")
-    if hac:
-        sol = replace(sol, covariance=hc.covariance, std=info["hac_std"])
-    return sol, info
+        f"(RMS over positions); reported: HAC σ's")
+    return replace(sol, covariance=hc.covariance, std=info["hac_std"]), info
 
 
 def solve_dynamic(config: DynamicConfig, data: DynamicData, nominal: dict, options: SolverOptions | None = None,

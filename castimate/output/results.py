@@ -116,7 +116,7 @@ def dynamic_results(outcome) -> dict:
     sol, cfg, spec = outcome.solution, outcome.config, outcome.spec
     lay = outcome.problem.lsq.layout
     serial = outcome.serial
-    fisher = serial["fisher_std"] if serial else None
+    fisher = serial.get("fisher_std") if serial else None
     triads = {}
     for t in cfg.triads:
         T, b = outcome.calibration[t.name]

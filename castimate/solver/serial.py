@@ -181,10 +181,14 @@ def _rows(solver, x, pf, d):
         yield "prior", J, (w - pm) / ps, None, 1, np.ones(len(pi), bool)
 
 
-def serial_covariance(solver, x, p_fixed=None, data=None, lags: int | None = None) -> SerialCovariance | None:
+def serial_covariance(solver, x, p_fixed=None, data=None, lags: int | None = None,
+                      pooling: str = "sample") -> SerialCovariance | None:
     """The HAC covariance of ``solver.theta`` at scaled layout-order x (module docstring), or None
     when no factor block is a time series (``FactorBlock.series``). ``lags``: a fixed L instead of
-    Andrews' plug-in (tests)."""
+    Andrews' plug-in (tests). ``pooling="channel"`` (with ``lags``; for comparison only): the
+    Bartlett sum of each channel's own scores, no correlation between channels."""
+    if pooling not in ("sample", "channel") or (pooling == "channel" and lags is None):
+        raise ValueError(f"pooling {pooling!r}: expected 'sample', or 'channel' with lags")
     if not any(getattr(b.block, "series", None) is not None for b in solver.blocks):
         return None
     pf, d = solver.fixed_and_data(p_fixed, data)
@@ -198,13 +202,14 @@ def serial_covariance(solver, x, p_fixed=None, data=None, lags: int | None = Non
                 if getattr(b.block, "series", None) is not None and len(b.block.series))
     Gt = np.zeros((T, nt))  # per-sample scores
     F_ind = np.zeros((nt, nt))  # Fisher information of the independent rows
+    S_channels = np.zeros((nt, nt))  # pooling="channel": the channels' own Bartlett sums
     channels, num, den, var = [], [], [], []
     for name, J, e, series, m, valid in _rows(solver, x, pf, d):
         e = np.where(valid, e, 0.0)
         if series is not None:
             series = np.asarray(series, int)
             sample = np.repeat(series, m)
-            for r0 in range(0, J.shape[0], ROW_CHUNK):
+            for r0 in range(0, J.shape[0] if pooling == "sample" else 0, ROW_CHUNK):
                 r = slice(r0, min(J.shape[0], r0 + ROW_CHUNK))
                 Jh = reduce(J[r])
                 A = sp.csr_matrix((e[r], (sample[r], np.arange(r.stop - r.start))), shape=(T, r.stop - r.start))
@@ -217,6 +222,14 @@ def serial_covariance(solver, x, p_fixed=None, data=None, lags: int | None = Non
             E = np.full((T, rank.max() + 1, m), np.nan)
             ok = valid.reshape(-1, m)
             E[series[:, None], rank[:, None], np.arange(m)[None, :]] = np.where(ok, e.reshape(-1, m), np.nan)
+            if pooling == "channel":
+                for k in range(E.shape[1]):
+                    for i in range(m):
+                        rows = np.flatnonzero(rank == k) * m + i
+                        Jh = reduce(J[rows]) * e[rows, None]
+                        Gc = np.zeros((T, nt))
+                        np.add.at(Gc, series[rows // m], Jh)
+                        S_channels += bartlett(Gc, lags)
             a, b_, v = lag1(E.reshape(T, -1))
             channels += [(name, k, i) for k in range(E.shape[1]) for i in range(m)]
             num.append(a), den.append(b_), var.append(v)
@@ -230,7 +243,7 @@ def serial_covariance(solver, x, p_fixed=None, data=None, lags: int | None = Non
         rho = num / den
     S_T = andrews_bandwidth(rho, var, T)
     L = max(1, round(S_T)) if lags is None else int(lags)
-    S = bartlett(Gt, L) + F_ind
+    S = (bartlett(Gt, L) if pooling == "sample" else S_channels) + F_ind
     cov = C @ S @ C
     cov = 0.5 * (cov + cov.T) * np.outer(s, s)
     return SerialCovariance(cov, C_phys, S_T, L, T, channels, rho, num, den)
