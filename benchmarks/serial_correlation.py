@@ -186,9 +186,16 @@ def main() -> None:
     ap.add_argument("--sessions", type=int, nargs="*", default=[])
     ap.add_argument("--reuse", action="store_true")
     ap.add_argument("--decompose", type=int, default=0, help="a session to solve through the API and take its σ apart")
+    ap.add_argument("--render", action="store_true", help="only rewrite the .md from the saved .json")
     ap.add_argument("--timeout", type=float, default=3600.0)
     a = ap.parse_args()
     t0, c0 = time.perf_counter(), time.process_time()
+    if a.render:  # the tables again from the saved results
+        doc = json.loads((RESULTS / "serial_correlation.json").read_text())
+        (RESULTS / "serial_correlation.md").write_text(
+            "# Honest σ's under serially correlated residuals (`python benchmarks/serial_correlation.py`)\n\n"
+            + table(doc["simulated"], doc["real"]) + "\n\n" + "\n".join(doc.get("timing", [])) + "\n")
+        return
     sim = {}
     if a.runs:
         sim = {"pink (1/f) as large as the white": simulated(a.runs, True), "white": simulated(max(1, a.runs // 2), False)}
@@ -202,11 +209,15 @@ def main() -> None:
                              f"load average {load:.1f} at the end.\n")
     RESULTS.mkdir(exist_ok=True)
     old = json.loads((RESULTS / "serial_correlation.json").read_text()) if (RESULTS / "serial_correlation.json").exists() else {}
-    doc = {"simulated": sim or old.get("simulated", {}), "real": real or old.get("real", {})}
+    what = ", ".join(k for k, v in (("simulated", sim), ("real sessions", a.sessions), ("decomposition", a.decompose)) if v)
+    timing = old.get("timing", []) + [f"{what}: wall {time.perf_counter() - t0:.0f} s, CPU (this process) "
+                                      f"{time.process_time() - c0:.0f} s, load average {load:.1f} at the end "
+                                      "(2 cores; the sessions solve in castimate subprocesses)."]
+    doc = {"simulated": sim or old.get("simulated", {}), "real": real or old.get("real", {}), "timing": timing}
     (RESULTS / "serial_correlation.json").write_text(json.dumps(doc, indent=1, default=float) + "\n")
     (RESULTS / "serial_correlation.md").write_text(
         "# Honest σ's under serially correlated residuals (`python benchmarks/serial_correlation.py`)\n\n"
-        + table(doc["simulated"], doc["real"]) + "\n")
+        + table(doc["simulated"], doc["real"]) + "\n\n" + "\n".join(timing) + "\n")
     print(md)
 
 
