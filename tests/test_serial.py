@@ -22,7 +22,7 @@ from castimate.simulate.dynamic import dynamic_measurements, smooth_random_motio
 from castimate.spec import load_problem
 
 from test_assembly import FIXED3, dynamic_case
-from test_elimination import dynamic_time_offsets
+from test_elimination import dynamic_sample_ages
 from test_validation import expect_error
 
 
@@ -143,7 +143,7 @@ def brute_force(solver, x, L):
 
 
 CASES = {"process_model": lambda: dynamic_case(40, True), "no_process_model": lambda: dynamic_case(40, False),
-         "banded_time_offsets": dynamic_time_offsets}
+         "banded_sample_ages": dynamic_sample_ages}
 
 
 @pytest.mark.parametrize("case", list(CASES))
