@@ -23,7 +23,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from castimate.simulate.montecarlo import diagnose_trials
+from castimate.simulate.diagnose_trials import diagnose_trials
 from castimate.simulate.effects import REALISTIC_DYNAMIC_EFFECTS, REALISTIC_EFFECTS
 
 ROOT = Path(__file__).resolve().parents[1]

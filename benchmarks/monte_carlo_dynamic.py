@@ -1,37 +1,36 @@
 #!/usr/bin/env python
-"""Monte Carlo of the dynamic array estimator on smooth motion no process model agrees with.
+"""Monte Carlo of the dynamic array estimator on smooth motion no process model agrees with, on
+``castimate montecarlo``'s engine.
 
-For each geometry one true array and one motion are simulated; every run draws new measurement
-noise and is solved by castimate's default dynamic path (``castimate.kinds.dynamic.solve_dynamic``
-with the default ``DynamicConfig``: the wiener3 process model with its noise levels estimated from
-the data, attempts and restarts as for a problem file), from the nominal positions (and identity
-orientations) and the motion start of ``initial_motion`` (ω from the gyroscopes, zero without).
+One scenario per geometry (``problems/montecarlo_<geometry>_*.yaml``): its seed fixes the true array
+and the motion, run k draws new measurement noise (noise seed k), and each run is simulated, read,
+built and solved through the dynamic kind's pipeline with the default settings (wiener3 process model,
+its levels estimated from the data by variance components, motion-dependent noise auto, restarts) on a
+2-worker Dask LocalCluster (``castimate.scale.montecarlo.run_montecarlo``; ``--workers 0``: the same
+tasks in this process).
 
-The motion is ``sinusoid_motion``: every axis of ω and of the origin's acceleration a sum of three
-sinusoids of 0.3-3 Hz, ω, ω̇ and ω̈ exact, the attitude integrated on a fine grid. No process model
-holds exactly on it (Euler's step misses ½ ω̈ Δt² at every sample).
+The motion (``trajectory: sinusoids``): every axis of ω and of the origin's acceleration a sum of three
+sinusoids of 0.3-3 Hz, ω, ω̇ and ω̈ exact, the attitude integrated on a fine grid; no process model
+holds exactly on it.
 
-Bounds: ``carlsson`` (gyro-aided): the Cramér-Rao bound of the measurement model with the motion
-free at every sample (``Solver.covariance`` at the truth, noise-free data, process model off) — the
-information the readings hold without any assumption on the motion; a smoothness prior that
-matches the motion can beat it. ``schopp`` (no gyroscopes: nothing is determined without a process
-model) is reported against the Fisher bound of the wiener3 model at the truth with the levels the
-first run estimated ("model CRB").
+The bound is named in each scenario (``montecarlo.bound``, written to the results):
 
-Geometries:
+- ``carlsson`` (32 IMUs with gyroscopes × 1000 samples at 100 Hz, ≤ 2000 °/s): ``measurements``, the
+  Cramér-Rao bound with the motion free at every sample, the information the readings hold without
+  any assumption on the motion (a smoothness prior that matches the motion can beat it);
+- ``schopp`` (5 accelerometer triads × 675 at 125 Hz, no gyroscopes, full poses free): nothing is
+  determined without a process model, so ``process_model``: its Fisher bound at the median of the
+  levels the runs estimated.
 
-- ``schopp``: 5 accelerometer triads (Schopp 2016, Table I) × 675 samples at 125 Hz, no gyroscopes;
-  positions and orientations (unit quaternions; 1° true misalignment) free; max‖ω‖ 10 rad/s,
-  max‖ω̇‖ ≤ 150 rad/s².
-- ``carlsson``: the 32-IMU board with gyroscopes × 1000 samples at 100 Hz; positions free,
-  intrinsics fixed; max‖ω‖ 2000 °/s, max‖ω̇‖ ≤ 40000 °/s² (no gyro saturation).
+Statistics pool the runs and the non-reference position components
+(``castimate.scale.stats.pooled_score``; standard errors from the bound's correlation).
 
-Acceptance (issue 11): carlsson RMSE ≤ 1.2 × CRB and std(err/σ_reported) ≤ 1.3; schopp RMSE ≤ 100 µm
-and std(err/σ_reported) ≤ 1.3. A run that raises (not converged, local minimum) is a failure and
-counted, not hidden.
+Acceptance (issue 11): carlsson RMSE ≤ 1.2 × bound and std(err/σ_reported) ≤ 1.3; schopp RMSE ≤ 100 µm
+and std(err/σ_reported) ≤ 1.3. A run that fails (not converged, local minimum, refused) is counted,
+not hidden.
 
-Run: ``PYTHONPATH=. python benchmarks/monte_carlo_dynamic.py [--runs 50]`` (about 20 minutes on 2
-cores). Writes ``benchmarks/results/monte_carlo_dynamic.json`` and ``.md``.
+Run: ``PYTHONPATH=. python benchmarks/monte_carlo_dynamic.py [--runs 50] [--workers 2]``. Writes
+``benchmarks/results/monte_carlo_dynamic.json`` and ``.md`` (``_partial`` with fewer runs or geometries).
 """
 
 from __future__ import annotations
@@ -43,177 +42,30 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import argparse  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
-import statistics  # noqa: E402
+import resource  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
-from dataclasses import replace  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import casadi as ca  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy  # noqa: E402
 
-from castimate.errors import InputError, NotConvergedError
-from castimate.kinds.dynamic import solve_dynamic
-from castimate.models.rotation import rotation_to_quaternion
-from castimate.problem.dynamic import OMEGA, OMEGA_DDOT, OMEGA_DOT, S, DynamicConfig, DynamicData, MotionSigmas, build_dynamic
-from castimate.problem.triads import GroupSetting, TriadConfig
-from castimate.simulate.dynamic import carlsson_geometry, dynamic_measurements, schopp_geometry, sinusoid_motion
-from castimate.solver.ipopt import Solver
+from castimate.scale.engine import dask_client  # noqa: E402
+from castimate.scale.montecarlo import MonteCarloStudy, run_montecarlo  # noqa: E402
+from castimate.scale.stats import pooled_score  # noqa: E402
 
-SEED = 2016
-GEOMETRIES = {
-    "schopp": {"samples": 675, "rate": 125.0, "max_omega": 10.0, "max_omega_dot": 150.0, "acc_sigma": 0.02,
-               "position_error": 1e-3, "orientation_error_deg": 1.0},
-    "carlsson": {"samples": 1000, "rate": 100.0, "max_omega": np.radians(2000.0), "max_omega_dot": np.radians(40000.0),
-                 "acc_sigma": 0.04, "gyro_sigma": np.radians(0.06), "position_error": 1e-3},
-}
-#: Issue 11's acceptance: carlsson RMSE/CRB, schopp RMSE [m], and std(err/σ_reported) for both.
-ACCEPT = {"carlsson": {"rmse_over_crb": 1.2, "z_std": 1.3}, "schopp": {"rmse_m": 100e-6, "z_std": 1.3}}
+ROOT = Path(__file__).resolve().parents[1]
+SCENARIOS = {"schopp": ROOT / "problems" / "montecarlo_schopp_5x675.yaml",
+             "carlsson": ROOT / "problems" / "montecarlo_carlsson_32x1000.yaml"}
+#: Issue 11's acceptance: carlsson RMSE/bound, schopp RMSE [m], and std(err/σ_reported) for both.
+ACCEPT = {"carlsson": {"rmse_over_crb": 1.2, "z_reported_std": 1.3}, "schopp": {"rmse": 100e-6, "z_reported_std": 1.3}}
 
 
-class Setup:
-    """One fixed truth (geometry, motion) with a config and a noise generator."""
-
-    def __init__(self, geometry: str, seed: int = SEED, n_samples: int | None = None, imus: list[int] | None = None):
-        p = GEOMETRIES[geometry]
-        self.geometry, self.p = geometry, p
-        N = n_samples or p["samples"]
-        g_rng, m_rng = np.random.default_rng([seed, 0]), np.random.default_rng([seed, 1])
-        self.seed = seed
-        if geometry == "carlsson":
-            names, nominal, true, R = carlsson_geometry(g_rng, p["position_error"], reference="imu1")
-            R_true = R
-        else:
-            names, nominal, true, R, R_true = schopp_geometry(g_rng, p["position_error"], p["orientation_error_deg"],
-                                                              reference="acc1")
-        idx = list(range(len(names))) if imus is None else imus
-        self.names = [names[i] for i in idx]
-        self.nominal = nominal[idx] - nominal[idx[0]]
-        self.true = true[idx] - true[idx[0]]
-        self.R = np.stack([R[n] for n in self.names])
-        self.R_true = np.stack([R_true[n] for n in self.names])
-        self.motion = sinusoid_motion(N, p["rate"], p["max_omega"], p["max_omega_dot"], m_rng)
-        self.gyro = geometry == "carlsson"
-        schopp = geometry == "schopp"
-        fixed = GroupSetting(free=(False,) * 3)
-        triads = tuple(TriadConfig(
-            n, self.R[i],
-            {"gain": fixed, "bias": fixed, "nonorthogonality": fixed,
-             "misalignment": GroupSetting(free=(schopp,) * (4 if schopp else 3))},
-            {"gain": fixed, "bias": fixed, "misalignment": fixed} if self.gyro else None,
-            self.nominal[i]) for i, n in enumerate(self.names))
-        # the defaults: wiener3 process model, levels estimated from the data
-        self.config = DynamicConfig(triads, self.names[0], "rotation" if schopp else "small_angle")
-
-    def data(self, rng: np.random.Generator | None) -> DynamicData:
-        """Measurements with fresh noise (rng), or noise-free (None)."""
-        p, K = self.p, len(self.names)
-        scale = 0.0 if rng is None else 1.0
-        rng = rng or np.random.default_rng(0)
-        gyro = {"T_g": self.R, "b_g": np.zeros((K, 3)), "sigma": scale * p["gyro_sigma"], "saturation": None} \
-            if self.gyro else None
-        acc, gy, _ = dynamic_measurements(self.motion, self.true, self.R_true, np.zeros((K, 3)), rng,
-                                          scale * p["acc_sigma"], gyro=gyro, names=self.names)
-        return DynamicData(self.motion.t, acc, {n: np.full(3, p["acc_sigma"]) for n in self.names},
-                           gy if self.gyro else {},
-                           {n: np.full(3, p["gyro_sigma"]) for n in self.names} if self.gyro else {})
-
-    def true_values(self) -> dict:
-        v = {f"{n}.position": self.true[i] for i, n in enumerate(self.names)}
-        if self.geometry == "schopp":  # T = R(q) Rbar: q of R_true Rbar^T
-            for i, n in enumerate(self.names):
-                v[f"{n}.accelerometer.misalignment"] = rotation_to_quaternion(self.R_true[i] @ self.R[i].T)
-        v.update({OMEGA: self.motion.omega, OMEGA_DOT: self.motion.omega_dot, S: self.motion.s,
-                  OMEGA_DDOT: self.motion.omega_ddot})
-        return v
-
-
-def bound(setup: Setup, config: DynamicConfig) -> tuple[np.ndarray, float]:
-    """Covariance of the non-reference positions at the truth with noise-free data (the problem of
-    ``config``), and the cost there."""
-    exact = setup.data(None)
-    problem = build_dynamic(config, exact)
-    solver = Solver(problem.lsq)
-    lay = problem.lsq.layout
-    pos_x = np.concatenate([lay.x_indices(f"{n}.position") for n in setup.names[1:]])
-    sel = np.searchsorted(solver.theta, pos_x)
-    x_true = lay.x0(setup.true_values())
-    r = solver.residuals(x_true)
-    return solver.covariance(x_true)[np.ix_(sel, sel)], 0.5 * float(r @ r)
-
-
-def monte_carlo(setup: Setup, runs: int, seed: int = SEED, log=print) -> dict:
-    """Solve ``runs`` noise realisations with the default path; errors against the bound."""
-    names = setup.names[1:]
-    truth = setup.true[1:].ravel()
-    nominal = {n: setup.nominal[i] for i, n in enumerate(setup.names)}
-    errors, z_rep, sds, times, levels, iters, fails = [], [], [], [], [], [], []
-    for k in range(runs):
-        data = setup.data(np.random.default_rng([seed, 7, k]))
-        t1 = time.perf_counter()
-        try:
-            problem, solver, sol, attempts, var = solve_dynamic(setup.config, data, nominal)
-        except (NotConvergedError, InputError) as e:
-            fails.append({"run": k, "message": str(e)})
-            log(f"   run {k}: FAILED: {e}")
-            continue
-        finally:
-            times.append(time.perf_counter() - t1)
-        e = np.concatenate([sol.values[f"{n}.position"] for n in names]) - truth
-        sd = np.concatenate([sol.std[f"{n}.position"] for n in names])
-        errors.append(e)
-        z_rep.append(e / sd)
-        sds.append(sd)
-        levels.append(var.levels if var is not None else {})
-        iters.append(var.iterations if var is not None else 0)
-        if len(attempts) > 1:
-            log(f"   run {k}: {len(attempts)} attempts: " + "; ".join(", ".join(a["issues"]) or a["message"]
-                                                                 for a in attempts))
-        if (k + 1) % 10 == 0:
-            log(f"   {k + 1}/{runs} runs, median solve {statistics.median(times):.2f} s, "
-                f"RMSE so far {np.sqrt(np.mean(np.array(errors) ** 2)) * 1e6:.2f} um")
-    E, Zr, SD = np.array(errors), np.array(z_rep), np.array(sds)
-    # the bound: motion free per sample (gyro-aided), or the default model at the first run's levels
-    if setup.gyro:
-        C, cost_true = bound(setup, replace(setup.config, process_model=False))
-        label = "CRB, motion free per sample"
-    else:
-        C, cost_true = bound(setup, replace(setup.config, motion=setup.config.motion.with_levels(levels[0])))
-        label = "model CRB (wiener3 at the first run's estimated levels)"
-    crb_var = np.diag(C)
-    crb = np.sqrt(crb_var)
-    rmse = float(np.sqrt(np.mean(E ** 2)))
-    crb_rms = float(np.sqrt(np.mean(crb_var)))
-    Z = E / crb
-    R_ok, P = max(len(errors), 1), len(crb)
-    rho = C / np.outer(crb, crb)
-    se_rmse = float(np.sqrt(np.trace(C @ C) / 2) / np.trace(C) / np.sqrt(R_ok))
-    se_z = float(np.sqrt(np.trace(rho @ rho) / 2) / P / np.sqrt(R_ok))
-    lv = {k: [float(x[k]) for x in levels] for k in (levels[0] if levels else {})}
-    out = {
-        "geometry": setup.geometry, "triads": len(setup.names), "samples": int(setup.motion.t.size),
-        "params": {k: float(v) for k, v in setup.p.items()}, "motion_binding": setup.motion.binding,
-        "max_omega_rad_s": float(np.linalg.norm(setup.motion.omega, axis=1).max()),
-        "max_omega_dot_rad_s2": float(np.linalg.norm(setup.motion.omega_dot, axis=1).max()),
-        "integration": setup.config.motion.integration, "units": setup.config.motion.units,
-        "estimated_levels": {k: {"median": float(np.median(v)), "min": float(min(v)), "max": float(max(v))}
-                             for k, v in lv.items()},
-        "variance_iterations_median": float(np.median(iters)) if iters else None,
-        "runs": runs, "successful_runs": len(errors), "failures": len(fails), "failed_runs": fails,
-        "solve_s_median": statistics.median(times), "solve_s_max": max(times),
-        "bound": label, "cost_at_truth_noise_free": cost_true, "n_position_components": P,
-        "rmse_m": rmse, "crb_rms_m": crb_rms, "rmse_over_crb": rmse / crb_rms, "rmse_over_crb_se": se_rmse,
-        "z_std_se": se_z, "z_crb_std": float(Z.std(ddof=1)), "z_crb_mean": float(Z.mean()),
-        "z_reported_std": float(Zr.std(ddof=1)), "z_reported_mean": float(Zr.mean()),
-        "reported_sigma_rms_m": float(np.sqrt(np.mean(SD ** 2))),
-        "reported_sigma_over_crb": {"median": float(np.median(SD / crb)), "min": float((SD / crb).min()),
-                                    "max": float((SD / crb).max())},
-    }
-    a = ACCEPT[setup.geometry]
-    out["accepted"] = bool(out["z_reported_std"] <= a["z_std"] and not fails and all(
-        out[k] <= v for k, v in a.items() if k != "z_std"))
-    return out
+def cpu_seconds() -> float:
+    """CPU time of this process and its reaped children (the LocalCluster's workers, once closed)."""
+    a, b = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return a.ru_utime + a.ru_stime + b.ru_utime + b.ru_stime
 
 
 def machine() -> dict:
@@ -227,20 +79,55 @@ def machine() -> dict:
             "loadavg_at_start": [round(x, 2) for x in os.getloadavg()]}
 
 
-COLUMNS = ["geometry", "runs (failed)", "RMSE [µm]", "bound [µm]", "RMSE/bound", "std(err/σ_reported)",
-           "mean(err/σ_reported)", "σ_reported RMS [µm]", "estimated levels (median)", "median solve [s]", "accepted"]
+def run_study(scenario: Path, runs: int, workers: int, log=print, bound: str | None = None) -> tuple[MonteCarloStudy, dict]:
+    """One study on a fresh cluster (workers 0: in this process), with its wall and CPU time and the load."""
+    t0, c0, load0 = time.perf_counter(), cpu_seconds(), os.getloadavg()[0]
+    if workers:
+        with dask_client(workers=workers) as client:
+            study = run_montecarlo(client, scenario, runs, log, bound)
+    else:
+        study = run_montecarlo(None, scenario, runs, log, bound)
+    return study, {"wall_s": time.perf_counter() - t0, "cpu_s": cpu_seconds() - c0, "workers": workers,
+                   "loadavg_1min": [round(load0, 2), round(os.getloadavg()[0], 2)]}
 
 
-def rows(results) -> list[list[str]]:
-    out = []
-    for r in results:
-        lv = ", ".join(f"{k} {v['median']:.4g} {r['units'][k]}" for k, v in r["estimated_levels"].items())
-        out.append([f"{r['geometry']} {r['triads']}×{r['samples']}", f"{r['runs']} ({r['failures']})",
-                    f"{r['rmse_m'] * 1e6:.2f}", f"{r['crb_rms_m'] * 1e6:.2f}",
-                    f"{r['rmse_over_crb']:.3f} ± {r['rmse_over_crb_se']:.3f}", f"{r['z_reported_std']:.3f}",
-                    f"{r['z_reported_mean']:+.3f}", f"{r['reported_sigma_rms_m'] * 1e6:.2f}", lv,
-                    f"{r['solve_s_median']:.1f}", "yes" if r["accepted"] else "NO"])
+def summary(study: MonteCarloStudy, timing: dict, select=lambda lab: ".position[" in lab) -> dict:
+    """Pooled statistics of the position components, failures, the estimated levels and the times."""
+    sc = study.score
+    labels = [lab for lab in sc.labels if select(lab)]
+    out = {"scenario": Path(study.scenario).name, "runs": study.runs, "successful_runs": len(sc.errors),
+           "failures": study.failures(), "failed_runs": [{"run": r.name, "message": r.error} for r in study.results
+                                                           if not r.ok],
+           "bound": study.bound_document(), **pooled_score(sc, labels, study.bound.correlation)}
+    ok = [r for r in study.results if r.ok]
+    levels = [r.value.motion for r in ok if r.value.motion and r.value.motion.get("process_model")]
+    if levels:
+        out["estimated_levels_median"] = {k: float(np.median([m["levels"][k] for m in levels]))
+                                          for k in levels[0]["levels"]}
+        out["integration"] = levels[0]["integration"]
+    out["chi2_per_dof_median"] = float(np.median([r.value.chi2_per_dof for r in ok])) if ok else float("nan")
+    out["run_wall_s_median"] = float(np.median([r.wall_s for r in study.results]))
+    out["run_cpu_s_median"] = float(np.nanmedian([r.cpu_s for r in study.results]))
+    out["run_cpu_s_total"] = float(np.nansum([r.cpu_s for r in study.results]))
+    out.update(timing)
     return out
+
+
+def accepted(geometry: str, r: dict) -> bool:
+    return bool(r["successful_runs"] == r["runs"] and all(r.get(k, np.inf) <= v for k, v in ACCEPT[geometry].items()))
+
+
+COLUMNS = ["geometry", "runs (failed)", "RMSE [µm]", "bound [µm]", "RMSE/bound", "std(err/σ)", "mean(err/σ)",
+           "σ RMS [µm]", "estimated levels (median)", "run CPU median [s]", "accepted"]
+
+
+def row(name: str, r: dict) -> list[str]:
+    f = lambda k, s=1e6, fmt=".2f": format(r[k] * s, fmt) if k in r else "–"  # noqa: E731
+    lv = ", ".join(f"{k} {v:.4g}" for k, v in r.get("estimated_levels_median", {}).items())
+    return [name, f"{r['runs']} ({r['runs'] - r['successful_runs']})", f("rmse"), f("crb_rms"),
+            f"{r['rmse_over_crb']:.3f} ± {r['rmse_over_crb_se']:.3f}" if "rmse" in r else "–",
+            f("z_reported_std", 1, ".3f"), f("z_reported_mean", 1, "+.3f"), f("reported_sigma_rms"), lv,
+            f"{r['run_cpu_s_median']:.1f}", {True: "yes", False: "no"}.get(r.get("accepted"), "–")]
 
 
 def text_table(cols, rs) -> str:
@@ -249,26 +136,30 @@ def text_table(cols, rs) -> str:
     return "\n".join([line(cols), line(["-" * x for x in w]), *map(line, rs)])
 
 
-def markdown(results, info, total) -> str:
-    row = lambda cells: "| " + " | ".join(cells) + " |"  # noqa: E731
-    out = ["# Dynamic array Monte Carlo on smooth motion: default settings", "",
-           f"Generated by `PYTHONPATH=. python benchmarks/monte_carlo_dynamic.py` (seed {SEED}, {total:.0f} s). "
-           "One fixed true geometry and one `sinusoid_motion` per geometry (sums of 0.3-3 Hz sinusoids, not "
-           "consistent with any process model), new noise every run, each solved by the default path "
-           "(`solve_dynamic`: wiener3 process model, levels estimated from the data by variance components, "
-           "restarts). Bound: gyro-aided, the CRB with the motion free per sample; gyro-free, the wiener3 "
-           "model's Fisher bound at the first run's estimated levels. RMSE pooled over runs and non-reference "
-           "position components (± its standard error for Gaussian errors with the bound's covariance). "
-           "Failures (not converged, local minimum) are counted and excluded from the statistics.", "",
-           row(COLUMNS), "|" + "---|" * len(COLUMNS), *map(row, rows(results)), ""]
-    for r in results:
-        p = r["params"]
-        out.append(f"- {r['geometry']}: {r['samples']} samples at {p['rate']:g} Hz, max‖ω‖ "
-                   f"{r['max_omega_rad_s']:.3g} rad/s, max‖ω̇‖ {r['max_omega_dot_rad_s2']:.4g} rad/s² "
-                   f"(bound reached: {r['motion_binding']}); bound: {r['bound']}; std(err/σ_bound) "
-                   f"{r['z_crb_std']:.3f}; reported σ / bound median {r['reported_sigma_over_crb']['median']:.2f}; "
-                   f"variance-component iterations (median) {r['variance_iterations_median']}; "
-                   f"failed runs: {r['failed_runs'] or 'none'}.")
+def md_table(cols, rs) -> list[str]:
+    r = lambda cells: "| " + " | ".join(cells) + " |"  # noqa: E731
+    return [r(cols), "|" + "---|" * len(cols), *map(r, rs)]
+
+
+def markdown(results: dict, info: dict, total: float, cpu: float) -> str:
+    out = ["# Dynamic array Monte Carlo on smooth motion: default settings, castimate montecarlo's engine", "",
+           f"Generated by `PYTHONPATH=. python benchmarks/monte_carlo_dynamic.py` ({total:.0f} s wall, {cpu:.0f} s "
+           "CPU with the workers). One scenario per geometry (its seed fixes the truth and one `sinusoids` motion: "
+           "sums of 0.3-3 Hz sinusoids, consistent with no process model), new noise every run, each simulated and "
+           "solved by the dynamic kind's pipeline with the default settings (wiener3 process model with its levels "
+           "estimated, motion-dependent noise auto, restarts). RMSE pooled over runs and non-reference position "
+           "components (± its standard error for Gaussian errors with the bound's covariance); error/σ with the σ "
+           "each run reported. Failed runs are counted and excluded from the statistics.", "",
+           *md_table(COLUMNS, [row(g, r) for g, r in results.items()]), ""]
+    for g, r in results.items():
+        out.append(f"- {g} (`problems/{r['scenario']}`): bound `{r['bound']['name']}`: {r['bound']['definition']}"
+                   + (f" (levels {r['bound']['process_noise_levels']['levels']})"
+                      if "process_noise_levels" in r["bound"] else "")
+                   + f"; std(err/σ_bound) {r.get('z_crb_std', float('nan')):.3f}; reported σ / bound median "
+                     f"{r.get('reported_sigma_over_crb_median', float('nan')):.2f}; χ²/dof median "
+                     f"{r['chi2_per_dof_median']:.3f}; {r['wall_s']:.0f} s wall, {r['cpu_s']:.0f} s CPU, "
+                     f"{r['workers']} workers, 1-min load {r['loadavg_1min'][0]} → {r['loadavg_1min'][1]}; "
+                     f"failed runs: {r['failed_runs'] or 'none'}.")
     out += ["", "Acceptance (issue 11): " + "; ".join(f"{g}: " + ", ".join(f"{k} ≤ {v:g}" for k, v in a.items())
                                                        for g, a in ACCEPT.items()), "",
             "Machine: " + ", ".join(f"{k} {v}" for k, v in info.items()), ""]
@@ -279,34 +170,32 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--runs", type=int, default=50)
     ap.add_argument("--geometries", default="schopp,carlsson")
-    ap.add_argument("--seed", type=int, default=SEED)
+    ap.add_argument("--workers", type=int, default=2, help="Dask workers (0: in this process)")
     ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "results")
     args = ap.parse_args(argv)
     info = machine()
-    t_start = time.perf_counter()
-    results = []
+    t_start, c_start = time.perf_counter(), cpu_seconds()
+    results = {}
     for g in [x.strip() for x in args.geometries.split(",") if x.strip()]:
-        setup = Setup(g, args.seed)
-        print(f"== {g}: {len(setup.names)} triads x {setup.motion.t.size} samples, {args.runs} runs", flush=True)
-        r = monte_carlo(setup, args.runs, args.seed, log=lambda m: print(m, flush=True))
-        results.append(r)
-        print(f"   RMSE {r['rmse_m'] * 1e6:.3f} um, bound {r['crb_rms_m'] * 1e6:.3f} um, "
-              f"ratio {r['rmse_over_crb']:.3f}, std(err/sigma_reported) {r['z_reported_std']:.3f}, "
-              f"failures {r['failures']}, accepted {r['accepted']}", flush=True)
-    total = time.perf_counter() - t_start
+        print(f"== {g}: {SCENARIOS[g].name}, {args.runs} runs", flush=True)
+        study, timing = run_study(SCENARIOS[g], args.runs, args.workers, lambda m: print("  ", m, flush=True))
+        r = summary(study, timing)
+        r["accepted"] = accepted(g, r)
+        results[g] = r
+        print(text_table(COLUMNS, [row(g, r)]), flush=True)
+    total, cpu = time.perf_counter() - t_start, cpu_seconds() - c_start
     print()
-    print(text_table(COLUMNS, rows(results)))
-    print(f"total time {total:.1f} s")
+    print(text_table(COLUMNS, [row(g, r) for g, r in results.items()]))
+    print(f"total {total:.1f} s wall, {cpu:.1f} s CPU")
     args.out.mkdir(parents=True, exist_ok=True)
-    default = args.runs >= 50 and args.seed == SEED and len(results) == len(GEOMETRIES)
-    stem = "monte_carlo_dynamic" if default else "monte_carlo_dynamic_partial"
+    stem = "monte_carlo_dynamic" if args.runs >= 50 and len(results) == len(SCENARIOS) else "monte_carlo_dynamic_partial"
     (args.out / f"{stem}.json").write_text(json.dumps({"benchmark": "monte_carlo_dynamic", "machine": info,
-                                                       "seed": args.seed, "total_s": total, "accept": ACCEPT,
+                                                       "total_s": total, "cpu_s": cpu, "accept": ACCEPT,
                                                        "results": results}, indent=2, default=float) + "\n")
-    (args.out / f"{stem}.md").write_text(markdown(results, info, total))
+    (args.out / f"{stem}.md").write_text(markdown(results, info, total, cpu))
     print(f"wrote {args.out / (stem + '.json')} and {args.out / (stem + '.md')}")
-    return 0 if all(r["accepted"] for r in results) else 1
+    return 0 if all(r["accepted"] for r in results.values()) else 1
 
 
-if __name__ == "__main__":
+if __name__ == "__main__":  # Dask's worker processes import this file: run only as a script
     sys.exit(main())

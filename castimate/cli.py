@@ -192,23 +192,24 @@ def cmd_montecarlo(args) -> int:
     from .output.tables import csv_text
     from .report.scale import montecarlo_figure, render_montecarlo
     from .scale.engine import check_workers, dask_client
-    from .scale.montecarlo import check_runs, load_scenario, run_montecarlo
+    from .scale.montecarlo import check_runs, load_scenario, run_montecarlo, study_settings
     from .scale.stats import montecarlo_table
 
     out = Path(args.output)
     check_runs(args.runs)
     check_workers(args.workers)
-    load_scenario(args.scenario)
+    study_settings(load_scenario(args.scenario), args.scenario, args.bound)
     names = ("montecarlo.json", "parameters.csv", "runs.csv", "montecarlo.html", "montecarlo.png")
     with StagedOutput(out, names=names, inputs=(args.scenario,)) as stage:
         with dask_client(args.scheduler, args.workers) as client:
-            study = run_montecarlo(client, args.scenario, args.runs, _log)
+            study = run_montecarlo(client, args.scenario, args.runs, _log, args.bound)
         rows = montecarlo_table(study.score, study.bound.truth)
         runs = [{"run": r.name, "status": "ok" if r.ok else "failed", "chi2_per_dof": r.value.chi2_per_dof if r.ok
                  else None, "wall_s": r.wall_s, "message": r.error} for r in study.results]
         sc = study.score
         write_json(stage / names[0], {"format": "castimate.montecarlo/1", "scenario": study.scenario, "runs": study.runs,
-                                      "solved": len(sc.errors), "failures": study.failures(), "parameters": rows})
+                                      "solved": len(sc.errors), "failures": study.failures(),
+                                      "bound": study.bound_document(), "parameters": rows})
         write_atomic(stage / names[1], csv_text(rows))
         write_atomic(stage / names[2], csv_text(runs))
         write_atomic(stage / names[3], render_montecarlo(study, names[4]))
@@ -350,6 +351,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("scenario", help="scenario file (as for castimate simulate)")
     s.add_argument("--runs", type=int, required=True, help="number of noise realisations (at least 2)")
     s.add_argument("-o", "--output", required=True, help="output directory (created if missing)")
+    s.add_argument("--bound", default=None, help="the bound to score against, instead of the scenario's "
+                   "montecarlo.bound: problem (default; the noise-free session as simulated), measurements (dynamic: "
+                   "the motion free at every sample) or process_model (dynamic: the process model at the runs' "
+                   "median estimated levels)")
     _scale_options(s)
     s.set_defaults(func=cmd_montecarlo)
     s = verb("plan", "the Cramér-Rao bound of every parameter for a planned protocol, against its duration",

@@ -10,7 +10,7 @@ import yaml
 
 from castimate.cli import main
 from castimate.kinds.diagnose import Session, candidates, score_test
-from castimate.simulate.montecarlo import diagnose_trials
+from castimate.simulate.diagnose_trials import diagnose_trials
 from castimate.problem.effects import BY_KEY
 from castimate.spec import load_problem
 from castimate.simulate.scenarios import simulate_scenario

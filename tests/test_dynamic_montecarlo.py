@@ -5,7 +5,7 @@ Schopp array (5 accelerometer triads, 300 samples at 125 Hz, orientations free, 
 weak random walks) are simulated once each; RUNS noise realisations are solved with one Solver
 (data as NLP parameters). The CRB is ``Solver.covariance`` at the truth with noise-free data
 (euler-consistent motion, so the truth has cost ≈ 0). The full-size version is
-``benchmarks/monte_carlo_dynamic.py``.
+``benchmarks/monte_carlo_dynamic.py`` (on castimate montecarlo's engine, smooth non-Euler motion).
 
 Bands: for Gaussian errors e ~ N(0, C) over P position components and R runs, the pooled ratio
 sqrt(mean e²) / sqrt(mean diag C) has standard error sqrt(tr C² / 2) / (tr C · sqrt(R)), and the

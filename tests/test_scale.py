@@ -423,3 +423,109 @@ def test_errors_over_sigma_by_hand():
     z = errors_over_sigma(results, truth)
     assert sorted(z) == ["a.accelerometer.gain[x]", "a.accelerometer.gain[y]"]
     assert z["a.accelerometer.gain[x]"] == pytest.approx(2.0) and z["a.accelerometer.gain[y]"] == pytest.approx(-2.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# Named bounds and the estimator's settings of a study (montecarlo: {bound, problem})
+# ---------------------------------------------------------------------------------------------
+
+def test_merged_by_hand():
+    from castimate.scale.montecarlo import merged
+    doc = {"model": {"misalignment": "small_angle", "gyroscope": {"bias": "free"}}, "noise": {"accelerometer": 0.04}}
+    out = merged(doc, {"model": {"gyroscope": {"gain": "free"}}, "motion": {"process_model": False}})
+    assert out == {"model": {"misalignment": "small_angle", "gyroscope": {"bias": "free", "gain": "free"}},
+                   "noise": {"accelerometer": 0.04}, "motion": {"process_model": False}}
+    assert doc["model"]["gyroscope"] == {"bias": "free"}  # the input is left alone
+
+
+def test_bound_problems_by_hand():
+    from castimate.scale.montecarlo import StudySettings, bound_problem
+    over = {"model": {"gyroscope": {"bias": "fixed"}}}
+    assert bound_problem(StudySettings("problem", over)) == over
+    assert bound_problem(StudySettings("measurements", over)) == {**over, "motion": {"process_model": False}}
+    pm = StudySettings("process_model", over)
+    assert bound_problem(pm, {"integration": "wiener3", "levels": {"s": 2.0, "omega_dot": 400.0}}) == {
+        **over, "motion": {"process_noise": "fixed", "density_s": 2.0, "density_omega": 400.0}}
+    assert bound_problem(pm, {"integration": "euler", "levels": {"s": 1.0, "omega": 0.1, "omega_dot": 5.0}})[
+        "motion"] == {"process_noise": "fixed", "sigma_s": 1.0, "sigma_integration": 0.1, "sigma_omega_dot": 5.0}
+
+
+def test_median_levels_by_hand():
+    from castimate.scale.montecarlo import Simulated, median_levels
+    runs = [Simulated({}, {}, 1.0, motion={"process_model": True, "integration": "wiener3",
+                                           "levels": {"s": s, "omega_dot": w}}) for s, w in ((1, 10), (3, 30), (2, 50))]
+    assert median_levels(runs, "S") == {"integration": "wiener3", "levels": {"s": 2.0, "omega_dot": 30.0}, "runs": 3}
+    off = [Simulated({}, {}, 1.0, motion={"process_model": False, "integration": "wiener3", "levels": {}})]
+    with pytest.raises(InputError, match="montecarlo.bound: process_model needs the process model"):
+        median_levels(off, "S")
+
+
+@pytest.mark.parametrize("section, bound, where, message", [
+    ({"bound": "crb"}, None, "montecarlo.bound", "expected one of"),
+    ({}, "motion_free", "--bound", "expected one of"),
+    ({"runs": 3}, None, "montecarlo.runs", "unknown key"),
+    ({"problem": [1]}, None, "montecarlo.problem", "expected a mapping"),
+    ({"problem": {"kind": "static_array"}}, None, "montecarlo.problem.kind", "simulation's own"),
+    ({"problem": {"data": {"path": "x.csv"}}}, None, "montecarlo.problem.data", "simulation's own"),
+])
+def test_study_settings_errors(section, bound, where, message):
+    from castimate.scale.montecarlo import study_settings
+    with pytest.raises(InputError, match=f"{where}: .*{message}"):
+        study_settings({**DYNAMIC, "montecarlo": section}, "S.yaml", bound)
+
+
+def test_a_motion_bound_of_a_static_scenario_is_refused():
+    from castimate.scale.montecarlo import study_settings
+    for b in ("measurements", "process_model"):
+        with pytest.raises(InputError, match=f"montecarlo.bound: {b} changes the motion model: it is for kind "
+                                             "dynamic_array"):
+            study_settings({**STATIC, "montecarlo": {"bound": b}}, "S.yaml")
+
+
+def test_the_process_model_bound_is_below_the_measurements_bound(tmp_path):
+    """With the process model on, the same noise-free session bounded with the motion free per
+    sample (measurements) and with the process model at the runs' levels (process_model): the
+    process model only adds information, so no position's bound may rise, and it must fall where
+    the motion is poorly determined (a 1 s twist). Run in this process (client None)."""
+    sc = {**DYNAMIC, "motion": {"process_model": True}}
+    meas = run_montecarlo(None, write(tmp_path / "m.yaml", {**sc, "montecarlo": {"bound": "measurements"}}), 2,
+                          lambda m: None)
+    pm = run_montecarlo(None, write(tmp_path / "p.yaml", {**sc, "montecarlo": {"bound": "process_model"}}), 2,
+                        lambda m: None)
+    assert meas.failures() == {} and pm.failures() == {}
+    assert meas.bound_document()["name"] == "measurements" and "process_noise_levels" not in meas.bound_document()
+    doc = pm.bound_document()
+    assert doc["name"] == "process_model" and doc["process_noise_levels"]["integration"] == "wiener3"
+    # the bound's levels are the runs' median
+    lv = [r.value.motion["levels"] for r in pm.results]
+    assert doc["process_noise_levels"]["levels"] == pytest.approx({k: np.median([x[k] for x in lv]) for k in lv[0]})
+    pos = [lab for lab in meas.score.labels if ".position[" in lab]
+    m = np.array([meas.bound.estimates[lab].std for lab in pos])
+    p = np.array([pm.bound.estimates[lab].std for lab in pos])
+    assert len(pos) == 9 and np.all(p <= m * (1 + 1e-6)), (p / m)
+    assert np.median(p / m) < 0.95, p / m
+    # the same runs (same noise seeds, same estimator) whichever bound scores them
+    assert np.allclose(meas.score.errors, pm.score.errors)
+
+
+def test_the_study_problem_is_what_the_runs_solve(tmp_path):
+    """montecarlo.problem is merged into every run's problem: fixing the gyroscope biases removes
+    them from the estimates (and the bound); a key the problem file does not know names the section."""
+    on = run_montecarlo(None, write(tmp_path / "a.yaml", DYNAMIC), 2, lambda m: None)
+    bias = lambda labels: [lab for lab in labels if ".gyroscope.bias[" in lab]  # noqa: E731
+    assert len(bias(on.results[0].value.estimates)) == 12 and len(bias(on.bound.estimates)) == 12
+    off = run_montecarlo(None, write(tmp_path / "b.yaml", {**DYNAMIC, "montecarlo": {"problem": {
+        "model": {"gyroscope": {"bias": "fixed"}}}}}), 2, lambda m: None)
+    assert len(off.score.labels) == 9 and not bias(off.results[0].value.estimates) and not bias(off.bound.estimates)
+    bad = write(tmp_path / "c.yaml", {**DYNAMIC, "montecarlo": {"problem": {"model": {"gyroscope": {"bogus": "free"}}}}})
+    with pytest.raises(InputError, match=r"c\.yaml: .*montecarlo\.problem \(model\.gyroscope\.bogus\): unknown key"):
+        run_montecarlo(None, bad, 2, lambda m: None)
+
+
+def test_in_process_tasks_are_guarded_like_the_cluster_ones():
+    from castimate.scale.engine import run_tasks
+    lines = []
+    out = run_tasks(None, lambda x: 1 / x, [("a", (2,)), ("b", (0,))], lines.append)
+    assert out[0].ok and out[0].value == 0.5 and out[0].cpu_s >= 0
+    assert not out[1].ok and out[1].error.startswith("internal error: ZeroDivisionError")
+    assert lines[0].startswith("[1/2] a: ok") and "FAILED" in lines[1]

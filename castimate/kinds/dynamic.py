@@ -113,6 +113,14 @@ def dynamic_config(spec: ProblemSpec, full: Recording, log: Log) -> DynamicConfi
                          spec.model.effects)
 
 
+#: The problem-file key (motion section) of each process-model level (MotionSigmas' components), per
+#: integration: the inverse of :func:`motion_sigmas`.
+MOTION_LEVEL_KEYS = {
+    **{i: {"s": "density_s", "omega_dot": "density_omega"} for i in ("wiener3", "wiener2")},
+    **{i: {"s": "sigma_s", "omega_dot": "sigma_omega_dot", "omega": "sigma_integration"} for i in ("trapezoid", "euler")},
+}
+
+
 def motion_sigmas(spec: ProblemSpec) -> MotionSigmas:
     """The process model of a problem file's motion section (its levels start the estimate under
     ``process_noise: auto``)."""

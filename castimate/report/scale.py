@@ -141,7 +141,8 @@ def render_montecarlo(study: MonteCarloStudy, figure_file: str) -> str:
     failures = study.failures()
     out.append(kv([("scenario", f"<code>{escape(study.scenario)}</code>"), ("runs", str(study.runs)),
                    ("failed runs", ", ".join(f"{k}: {v}" for k, v in failures.items()) or "none"),
-                   ("CRB", "σ's of the noise-free session's solution (the same truth, the scenario's noise)")]))
+                   ("CRB", f"{escape(study.settings.bound)}: {escape(study.bound_document()['definition'])} (the same "
+                           "truth, the scenario's noise)")]))
     out.append(f'<figure><img alt="Monte Carlo scores" src="{escape(figure_file)}"><figcaption>RMSE over the CRB '
                "and the std of error/σ per parameter (1 for an efficient estimator with honest σ's), and the "
                "pooled error/σ.</figcaption></figure>")

@@ -32,20 +32,22 @@ class TaskResult:
     value: Any
     error: str
     wall_s: float
+    cpu_s: float = float("nan")  # CPU time of the task's process while it ran
 
 
 def guarded(fn: Callable, name: str, *args) -> TaskResult:
     """Run ``fn(*args)`` on a worker, turning any exception into a failed TaskResult: one task's
     bad input or non-convergence never reaches the others (or the client as an exception)."""
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
-        return TaskResult(name, True, fn(*args), "", time.perf_counter() - t0)
+        value = fn(*args)
+        return TaskResult(name, True, value, "", time.perf_counter() - t0, time.process_time() - c0)
     except CastimateError as e:
-        return TaskResult(name, False, None, str(e), time.perf_counter() - t0)
+        return TaskResult(name, False, None, str(e), time.perf_counter() - t0, time.process_time() - c0)
     except Exception as e:  # noqa: BLE001 - a bug on one input must not stop the batch
         where = traceback.extract_tb(e.__traceback__)[-1]
         return TaskResult(name, False, None, f"internal error: {type(e).__name__}: {e} (at {os.path.basename(where.filename)}:"
-                                             f"{where.lineno})", time.perf_counter() - t0)
+                                             f"{where.lineno})", time.perf_counter() - t0, time.process_time() - c0)
 
 
 def check_workers(workers: int | None) -> int | None:
@@ -83,12 +85,28 @@ def dask_client(scheduler: str | None = None, workers: int | None = None, proces
         yield client
 
 
+def _state(r: TaskResult, describe: Callable[[Any], str]) -> str:
+    return f"ok ({r.wall_s:.1f} s){(' ' + describe(r.value)) if describe(r.value) else ''}" if r.ok \
+        else f"FAILED: {r.error}"
+
+
 def run_tasks(client, fn: Callable, tasks: Sequence[tuple[str, tuple]], log: Log, describe: Callable[[Any], str] =
               lambda v: "", log_failures: bool = True) -> list[TaskResult]:
     """Map ``fn`` over ``tasks`` (name, arguments) on the client's cluster; log one line per task as
     it completes (``log_failures=False``: only the successes, for callers that turn a failure into
     their own error); return the results in the order of ``tasks``. A task whose worker died (or
-    that could not run at all) is a failed result like any other."""
+    that could not run at all) is a failed result like any other.
+
+    ``client`` None: the in-process mode, the same tasks run one after the other in this process
+    (no Dask needed; for tests and for studies small enough not to need workers)."""
+    if client is None:
+        out = []
+        for done, (name, args) in enumerate(tasks, 1):
+            r = guarded(fn, name, *args)
+            out.append(r)
+            if r.ok or log_failures:
+                log(f"[{done}/{len(tasks)}] {name}: {_state(r, describe)}")
+        return out
     from distributed import as_completed
 
     futures = {client.submit(guarded, fn, name, *args, key=f"castimate-{i}-{name}-{time.time_ns()}",
@@ -101,8 +119,6 @@ def run_tasks(client, fn: Callable, tasks: Sequence[tuple[str, tuple]], log: Log
         except Exception as e:  # noqa: BLE001 - the worker died or the task could not be run
             r = TaskResult(name, False, None, f"the task failed on the cluster: {type(e).__name__}: {e}", float("nan"))
         out[i] = r
-        state = f"ok ({r.wall_s:.1f} s){(' ' + describe(r.value)) if describe(r.value) else ''}" if r.ok \
-            else f"FAILED: {r.error}"
         if r.ok or log_failures:
-            log(f"[{done}/{len(tasks)}] {name}: {state}")
+            log(f"[{done}/{len(tasks)}] {name}: {_state(r, describe)}")
     return out  # type: ignore[return-value]

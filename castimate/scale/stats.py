@@ -14,7 +14,6 @@ import numpy as np
 
 from ..problem.effects import BY_KEY
 from ..problem.triads import SENSOR_GROUPS
-from ..simulate.montecarlo import MonteCarloResult
 
 
 @dataclass(frozen=True)
@@ -139,6 +138,26 @@ def sampling_band(runs: int, k: float = 3.0) -> float:
     return k / np.sqrt(2 * max(runs, 1))
 
 
+@dataclass
+class MonteCarloResult:
+    """Per calibration parameter (columns) and successful run (rows)."""
+
+    labels: list[str]
+    errors: np.ndarray  # estimate - truth, physical units
+    z: np.ndarray  # error / reported σ of that run
+    crb: np.ndarray  # the bound's σ (Cramér-Rao bound of the study's named bound)
+    failures: int  # runs that did not converge or were refused (excluded)
+    sigma: np.ndarray | None = None  # the σ each run reported (same shape as errors)
+
+    @property
+    def z_std(self) -> np.ndarray:
+        return self.z.std(axis=0, ddof=1)
+
+    @property
+    def rmse_over_crb(self) -> np.ndarray:
+        return np.sqrt((self.errors ** 2).mean(axis=0)) / self.crb
+
+
 def score_runs(truth: dict[str, float], crb: dict[str, float], runs: list[dict[str, Estimate]],
                failures: int) -> MonteCarloResult:
     """Errors, error/σ and the CRB of every parameter the truth, the bound and every run share."""
@@ -147,7 +166,50 @@ def score_runs(truth: dict[str, float], crb: dict[str, float], runs: list[dict[s
     sig = np.array([[r[lab].std for lab in labels] for r in runs]).reshape(len(runs), len(labels))
     with np.errstate(divide="ignore", invalid="ignore"):
         z = errors / sig
-    return MonteCarloResult(labels, errors, z, np.array([crb[lab] for lab in labels]), failures)
+    return MonteCarloResult(labels, errors, z, np.array([crb[lab] for lab in labels]), failures, sig)
+
+
+def pooled_score(sc: MonteCarloResult, select: list[str] | None = None,
+                 correlation: tuple[list[str], np.ndarray] | None = None) -> dict:
+    """Statistics pooled over the runs and the parameters ``select`` (default all) of a study, with
+    their standard errors for Gaussian errors e ~ N(0, C), C the bound's covariance (``correlation``:
+    labels and the bound's correlation matrix ρ; None: independent parameters).
+
+    Over P parameters and R runs, the pooled ratio sqrt(mean e²) / sqrt(mean diag C) has standard
+    error sqrt(tr C² / 2) / (tr C sqrt(R)); the pooled std of e / σ_bound has sqrt(tr ρ² / 2) / (P sqrt(R))
+    and the pooled mean sqrt(Σρ) / (P sqrt(R)). Without correlation both first are 1/sqrt(2RP)."""
+    cols = [j for j, lab in enumerate(sc.labels) if select is None or lab in select]
+    labels = [sc.labels[j] for j in cols]
+    E, Z, crb = sc.errors[:, cols], sc.z[:, cols], sc.crb[cols]
+    R, P = E.shape
+    if correlation is not None:
+        idx = {lab: i for i, lab in enumerate(correlation[0])}
+        missing = [lab for lab in labels if lab not in idx]
+        if missing:
+            raise ValueError(f"the bound's correlation lacks {missing[:3]}")
+        k = [idx[lab] for lab in labels]
+        rho = np.asarray(correlation[1], float)[np.ix_(k, k)]
+    else:
+        rho = np.eye(P)
+    C = rho * np.outer(crb, crb)
+    out = {"parameters": P, "runs": R, "crb_rms": float(np.sqrt(np.mean(crb ** 2)))}
+    if R == 0:
+        return out
+    rmse = float(np.sqrt(np.mean(E ** 2)))
+    Zc = E / crb
+    out.update({
+        "rmse": rmse, "rmse_over_crb": rmse / out["crb_rms"],
+        "rmse_over_crb_se": float(np.sqrt(np.trace(C @ C) / 2) / np.trace(C) / np.sqrt(R)),
+        "z_crb_std": float(Zc.std(ddof=1)) if Zc.size > 1 else float("nan"), "z_crb_mean": float(Zc.mean()),
+        "z_std_se": float(np.sqrt(np.trace(rho @ rho) / 2) / P / np.sqrt(R)),
+        "z_mean_se": float(np.sqrt(max(rho.sum(), 0.0)) / P / np.sqrt(R)),
+        "z_reported_std": float(Z.std(ddof=1)) if Z.size > 1 else float("nan"), "z_reported_mean": float(Z.mean()),
+    })
+    if sc.sigma is not None:
+        S = sc.sigma[:, cols]
+        out["reported_sigma_rms"] = float(np.sqrt(np.mean(S ** 2)))
+        out["reported_sigma_over_crb_median"] = float(np.median(S / crb))
+    return out
 
 
 def montecarlo_table(sc: MonteCarloResult, truth: dict[str, float]) -> list[dict]:
