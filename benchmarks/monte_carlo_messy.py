@@ -11,7 +11,7 @@ row        simulated (besides white noise, smooth motion)        estimator's mat
 =========  ====================================================  ===========================================
 clean      nothing                                               none
 rails      int16 counts, both rails at 700 °/s (~5 % samples)    none (both rails masked from the ADC range)
-delay      gyroscopes 1 ms behind the accelerometers            gyroscope.time_offset of every triad
+delay      gyroscopes 1 ms behind the accelerometers            gyroscope.delay (or time_offset) per triad
 pink       pink (1/f) noise as large as the white               none
 clocks     per-chip sawtooth sample ages (~1 kHz chip clocks)   accelerometer.clock_beat
 coupling   general 3x3 gyroscope matrices (σ 0.01)              gyroscope gain, misalignment, coupling;
@@ -47,12 +47,17 @@ import yaml  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from monte_carlo_dynamic import COLUMNS, machine, md_table, row, run_study, summary, text_table  # noqa: E402
 
+from castimate.problem.effects import BY_KEY  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
+#: The accelerometer-gyroscope delay's parameter: gyroscope.delay where the registry has it, else the
+#: per-sensor gyroscope.time_offset of every triad (which, absolute per triad, expresses it as well).
+DELAY = "delay" if "gyroscope.delay" in BY_KEY else "time_offset"
 SCENARIO = ROOT / "problems" / "montecarlo_messy_8x1000.yaml"
 #: The messy ingredients: the scenario keys that simulate each, and the estimator's effects that match it.
 INGREDIENTS = {
     "rails": {"scenario": ("adc",), "model": {}},
-    "delay": {"scenario": ("delay",), "model": {"gyroscope": {"time_offset": "free"}}},
+    "delay": {"scenario": ("delay",), "model": {"gyroscope": {DELAY: "free"}}},
     "pink": {"scenario": ("noise.pink",), "model": {}},
     "clocks": {"scenario": ("effects",), "model": {"accelerometer": {"clock_beat": "free"}}},
     "coupling": {"scenario": ("gyroscope_matrix",),
