@@ -11,7 +11,7 @@ row        simulated (besides white noise, smooth motion)        estimator's mat
 =========  ====================================================  ===========================================
 clean      nothing                                               none
 rails      int16 counts, both rails at 700 °/s (~5 % samples)    none (both rails masked from the ADC range)
-delay      gyroscopes 1 ms behind the accelerometers            gyroscope.delay (or time_offset) per triad
+delay      gyroscopes 1 ms behind the accelerometers            gyroscope.delay of every triad
 pink       pink (1/f) noise as large as the white               none
 clocks     per-chip sawtooth sample ages (~1 kHz chip clocks)   accelerometer.clock_beat
 coupling   general 3x3 gyroscope matrices (σ 0.01)              gyroscope gain, misalignment, coupling;
@@ -50,8 +50,8 @@ from monte_carlo_dynamic import COLUMNS, machine, md_table, row, run_study, summ
 from castimate.problem.effects import BY_KEY  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-#: The accelerometer-gyroscope delay's parameter: gyroscope.delay where the registry has it, else the
-#: per-sensor gyroscope.time_offset of every triad (which, absolute per triad, expresses it as well).
+#: The accelerometer-gyroscope delay's parameter: gyroscope.delay (before it, the rows were run with the
+#: per-sensor gyroscope.time_offset of every triad, which, absolute per triad, expressed it as well).
 DELAY = "delay" if "gyroscope.delay" in BY_KEY else "time_offset"
 SCENARIO = ROOT / "problems" / "montecarlo_messy_8x1000.yaml"
 #: The messy ingredients: the scenario keys that simulate each, and the estimator's effects that match it.
