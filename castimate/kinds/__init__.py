@@ -43,22 +43,55 @@ def quiet(msg: str) -> None:
 class CrossValidation:
     """Prediction error on held-out data: fit on the other folds, fix the calibration (and
     geometry), estimate only the held-out nuisance variables (pose directions or motion), and take
-    the residual."""
+    the residual.
+
+    A fold whose fit or prediction did not converge is left out of the RMS and named in ``failed``;
+    ``fold_ss`` and ``fold_n`` (per fold: the sum of squared whitened held-out residuals and their
+    count, NaN and 0 for a failed fold) let two models be compared on the folds both predicted
+    (:meth:`rms_over`)."""
 
     folds: int
     rms: float  # whitened residual RMS, all sensors (1 for a perfect model and honest σ)
     rms_acc: float  # m/s^2
     rms_gyro: float  # rad/s, nan without gyroscopes
+    fold_ss: tuple[float, ...] = ()
+    fold_n: tuple[int, ...] = ()
+    failed: tuple[str, ...] = ()  # "fold k of K: what did not converge"
 
     @classmethod
-    def from_parts(cls, white: list, acc: list, gyro: list, folds: int) -> "CrossValidation":
-        """RMS over the held-out residual parts (NaN entries, i.e. masked samples, left out)."""
-        def rms(parts):
+    def from_parts(cls, white: list, acc: list, gyro: list, folds: int, fold_of: list[int] | None = None,
+                   failed: tuple[str, ...] = ()) -> "CrossValidation":
+        """RMS over the held-out residual parts (NaN entries, i.e. masked samples, left out).
+        ``fold_of``: the fold of each part of ``white``; ``failed``: the folds that did not converge."""
+        def finite(parts):
             x = np.concatenate([np.ravel(p) for p in parts]) if parts else np.array([])
-            x = x[np.isfinite(x)]
+            return x[np.isfinite(x)]
+
+        def rms(parts):
+            x = finite(parts)
             return float(np.sqrt(np.mean(x ** 2))) if x.size else float("nan")
 
-        return cls(folds, rms(white), rms(acc), rms(gyro))
+        ss, n = (), ()
+        if fold_of is not None:
+            per = [finite([w for w, f in zip(white, fold_of) if f == k]) for k in range(folds)]
+            ss = tuple(float(x @ x) if x.size else float("nan") for x in per)
+            n = tuple(int(x.size) for x in per)
+        return cls(folds, rms(white), rms(acc), rms(gyro), ss, n, tuple(failed))
+
+    @property
+    def predicted(self) -> np.ndarray:
+        """(folds,) whether each fold was fitted and predicted (all, without per-fold figures)."""
+        if not self.fold_n:
+            return np.full(self.folds, not self.failed)
+        return np.array([k > 0 and np.isfinite(s) for s, k in zip(self.fold_ss, self.fold_n)])
+
+    def rms_over(self, folds: np.ndarray) -> float:
+        """Whitened held-out RMS over the folds marked in ``folds`` (all predicted folds: :attr:`rms`)."""
+        folds = np.asarray(folds, bool)
+        if not self.fold_n or folds.all() and self.predicted.all():
+            return self.rms
+        n = sum(k for k, f in zip(self.fold_n, folds) if f)
+        return float(np.sqrt(sum(s for s, f in zip(self.fold_ss, folds) if f) / n)) if n else float("nan")
 
 
 class Kind(Protocol):
@@ -105,7 +138,11 @@ class Kind(Protocol):
         """Whether the data log a temperature (temperature effects can be informed)."""
 
     def cross_validate(self, spec: ProblemSpec, data: Any, folds: int) -> CrossValidation:
-        """K-fold prediction error of ``spec``'s model on these data."""
+        """K-fold prediction error of ``spec``'s model on these data.
+
+        A kind whose ``warm_start`` is true also takes ``start=`` (values of a fit of the whole
+        session) in ``calibrate`` and ``cross_validate``: the fits start there instead of from the
+        nominal values (diagnose's refits)."""
 
     def residuals(self, outcome: Any) -> tuple[np.ndarray, Residuals]:
         """Times (pose mid-times or samples) and the residuals with their σ per sensor and triad."""

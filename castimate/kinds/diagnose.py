@@ -28,6 +28,8 @@ orchestration live here; :mod:`castimate.report.diagnose` writes the report.
 
 from __future__ import annotations
 
+import contextlib
+import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -91,9 +93,15 @@ class Model:
 
 class Session:
     """A session read once through its kind's pipeline (:class:`castimate.kinds.Kind`), fitted
-    with any set of effects."""
+    with any set of effects.
 
-    def __init__(self, spec: ProblemSpec, log: Log = quiet):
+    ``warm`` (kinds with ``warm_start``: dynamic sessions): every refit starts from the fit it
+    extends (its parameters and motion; the new effect's parameters at their neutral value), and
+    every cross-validation fold's fit and prediction from the whole session's fit of the same
+    model. The optima are the same as from the nominal start (the reference path, ``warm=False``),
+    found without the search from zero motion that a real session's refits kept needing."""
+
+    def __init__(self, spec: ProblemSpec, log: Log = quiet, warm: bool = True):
         if spec.data.static_range is not None:
             raise InputError(spec.path, "data.static", "diagnose runs on a static or a dynamic problem, not a joint one")
         # The search compares models by their χ² and held-out error under the same σ's: the effects are
@@ -103,10 +111,19 @@ class Session:
         self.spec = replace(spec, noise=replace(spec.noise, motion_dependent=motion_noise_setting("none")))
         self.data = self.kind.load(spec, log)
         self.clocks: dict[str, Beat] = {}  # the chip clocks found by find_clocks (dynamic sessions)
+        self.warm = warm and getattr(self.kind, "warm_start", False)
+        self.log = log
+        self.clock = Stopwatch()  # fits, cross-validation, score tests
 
-    def fit(self, effects=()) -> Model:
-        s = with_effects(self.spec, effects)
-        return Model(s.model.effects, self.kind.calibrate(s, self.data, quick=True))
+    def fit(self, effects=(), start: Model | None = None, spec: ProblemSpec | None = None,
+            stage: str = "fits") -> Model:
+        """The model with ``effects`` added to the declared ones (of ``spec``, default: the
+        declared problem under white noise), started from ``start``'s fit when warm; its time is
+        counted under ``stage``."""
+        s = with_effects(spec or self.spec, effects)
+        kw = {"start": start.outcome} if self.warm and start is not None else {}
+        with self.clock(stage):
+            return Model(s.model.effects, self.kind.calibrate(s, self.data, _indent(self.log), quick=True, **kw))
 
     def augmented(self, model: Model, effects) -> Solver:
         """The Gauss-Newton solver of the model with ``effects`` added (same session regressors)."""
@@ -127,16 +144,27 @@ class Session:
             self.data = replace(self.data, regressors=self.data.regressors.with_beats(
                 {n: (b.nu, b.phi) for n, b in self.clocks.items()}))
 
-    def cross_validate(self, effects, folds: int = FOLDS) -> CrossValidation:
-        return self.kind.cross_validate(with_effects(self.spec, effects), self.data, folds)
+    def cross_validate(self, effects, folds: int = FOLDS, start: Model | None = None) -> CrossValidation:
+        """K-fold prediction error of the model with ``effects``; ``start``: its fit to the whole
+        session (warm sessions start every fold there)."""
+        spec = with_effects(self.spec, effects)
+        with self.clock("cross-validation"):
+            if not self.warm:
+                return self.kind.cross_validate(spec, self.data, folds)
+            return self.kind.cross_validate(spec, self.data, folds, start=None if start is None else start.outcome,
+                                            log=_indent(self.log))
 
     def residuals(self, outcome) -> tuple[np.ndarray, Residuals]:
         return self.kind.residuals(outcome)
 
 
-def open_session(spec: ProblemSpec, log: Log = quiet) -> Session:
+def open_session(spec: ProblemSpec, log: Log = quiet, warm: bool = True) -> Session:
     """Read a problem's data once, for fitting any of its model variants."""
-    return Session(spec, log)
+    return Session(spec, log, warm)
+
+
+def _indent(log: Log) -> Log:
+    return lambda m: log("    " + m)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -252,8 +280,8 @@ class Refit:
     chi2_after: float
     F: float
     p: float
-    cv_before: CrossValidation
-    cv_after: CrossValidation
+    cv_before: CrossValidation | None  # None: not needed (the likelihood-ratio test rejected first)
+    cv_after: CrossValidation | None
     delta_bic: float  # on the refit's residual scale; negative favours the effect
     accepted: bool
     reason: str
@@ -265,6 +293,23 @@ class Round:
     tests: list[ScoreTest]
     refits: list[Refit]
     level: float  # per-test significance level α/m
+    times: dict = field(default_factory=dict)  # stage -> (wall s, CPU s): score tests, refits, cross-validation
+
+
+class Stopwatch:
+    """Wall and CPU time (this process) per stage, summed over its uses."""
+
+    def __init__(self):
+        self.times: dict[str, tuple[float, float]] = {}
+
+    @contextlib.contextmanager
+    def __call__(self, stage: str):
+        w, c = time.perf_counter(), time.process_time()
+        try:
+            yield
+        finally:
+            w0, c0 = self.times.get(stage, (0.0, 0.0))
+            self.times[stage] = (w0 + time.perf_counter() - w, c0 + time.process_time() - c)
 
 
 def candidates(session: Session, model: Model) -> list[Effect]:
@@ -304,9 +349,13 @@ def score_test(session: Session, model: Model, effect: Effect) -> ScoreTest:
 
 
 def confirm(session: Session, model: Model, test: ScoreTest, level: float) -> Refit:
-    """Refit with the candidate and apply the likelihood-ratio F test and cross-validation."""
+    """Refit with the candidate and apply the likelihood-ratio F test and cross-validation.
+
+    The held-out errors are compared on the folds both models predicted: a fold whose fit or
+    prediction did not converge is left out of both, and the reason says which (no fold in common:
+    the candidate is not confirmed)."""
     try:
-        new = session.fit(model.effects + (test.effect,))
+        new = session.fit(model.effects + (test.effect,), start=model)
     except CastimateError as e:  # not identifiable after all, or no convergence: the candidate is not confirmed
         nan = CrossValidation(0, np.nan, np.nan, np.nan)
         return Refit(test.effect, test.k, model.chi2, np.nan, np.nan, np.nan, model.cv or nan, nan, np.nan, False,
@@ -314,22 +363,30 @@ def confirm(session: Session, model: Model, test: ScoreTest, level: float) -> Re
     k = new.outcome.problem.lsq.layout.n_x - model.outcome.problem.lsq.layout.n_x
     F = (model.chi2 - new.chi2) / k / new.s2
     p = float(stats.f.sf(F, k, new.dof))
-    model.cv = model.cv or session.cross_validate(model.effects)
-    try:
-        new.cv = session.cross_validate(new.effects)
-    except CastimateError as e:  # a fold cannot determine it (or did not converge): not confirmed
-        nan = CrossValidation(0, np.nan, np.nan, np.nan)
-        return Refit(test.effect, k, model.chi2, new.chi2, F, p, model.cv, nan, np.nan, False,
-                     f"the cross-validation failed: {e}", new)
     n = len(new.outcome.solution.residual)
     dbic = (new.chi2 - model.chi2) / new.s2 + k * np.log(n)
-    if p >= level:
-        accepted, reason = False, f"likelihood-ratio p = {p:.2g} ≥ {level:.2g}"
-    elif new.cv.rms > model.cv.rms:
-        accepted, reason = False, f"held-out error grew ({model.cv.rms:.4g} → {new.cv.rms:.4g})"
+    if p >= level:  # the held-out error is not needed to reject
+        return Refit(test.effect, k, model.chi2, new.chi2, F, p, model.cv, None, float(dbic), False,
+                     f"likelihood-ratio p = {p:.2g} ≥ {level:.2g}", new)
+    model.cv = model.cv or session.cross_validate(model.effects, start=model)
+    try:
+        new.cv = session.cross_validate(new.effects, start=new)
+    except CastimateError as e:  # a fold cannot determine it: not confirmed
+        nan = CrossValidation(0, np.nan, np.nan, np.nan)
+        return Refit(test.effect, k, model.chi2, new.chi2, F, p, model.cv, nan, float(dbic), False,
+                     f"the cross-validation failed: {e}", new)
+    both = model.cv.predicted & new.cv.predicted
+    cv0, cv1 = model.cv.rms_over(both), new.cv.rms_over(both)
+    failed = "; ".join([f"without {test.effect}, {f}" for f in model.cv.failed]
+                       + [f"with {test.effect}, {f}" for f in new.cv.failed])
+    compared = f" (on the {int(both.sum())} of {len(both)} folds both models predicted; {failed})" if failed else ""
+    if not both.any():
+        accepted, reason = False, f"no cross-validation fold was predicted by both models: {failed}"
+    elif cv1 > cv0:
+        accepted, reason = False, f"held-out error grew ({cv0:.4g} → {cv1:.4g}){compared}"
     else:
         accepted, reason = True, f"likelihood-ratio p = {p:.2g} < {level:.2g}; held-out error " \
-                                 f"{model.cv.rms:.4g} → {new.cv.rms:.4g}"
+                                 f"{cv0:.4g} → {cv1:.4g}{compared}"
     return Refit(test.effect, k, model.chi2, new.chi2, F, p, model.cv, new.cv, float(dbic), accepted, reason, new)
 
 
@@ -348,6 +405,7 @@ class Diagnosis:
     timing_before: list[TimingTrace] = field(default_factory=list)  # dynamic sessions
     timing_after: list[TimingTrace] = field(default_factory=list)
     final: Model | None = None  # ``after`` refitted with the declared motion-dependent noise model, if any
+    times: dict = field(default_factory=dict)  # stage -> (wall s, CPU s), and "total"
 
     @property
     def spec(self) -> ProblemSpec:
@@ -359,10 +417,19 @@ class Diagnosis:
         return [f.effect for r in self.rounds for f in r.refits if f.accepted]
 
 
+def _since(clock: Stopwatch, mark: dict) -> dict:
+    return {k: (w - mark.get(k, (0.0, 0.0))[0], c - mark.get(k, (0.0, 0.0))[1]) for k, (w, c) in clock.times.items()
+            if (w, c) != mark.get(k)}
+
+
 def diagnose(spec: ProblemSpec, log: Log = quiet, alpha: float = ALPHA, session: Session | None = None,
-             max_rounds: int = len(EFFECTS)) -> Diagnosis:
-    """Fit, test, confirm and add effects until nothing significant is left (module docstring)."""
-    session = session or open_session(spec, log)
+             max_rounds: int = len(EFFECTS), warm: bool = True) -> Diagnosis:
+    """Fit, test, confirm and add effects until nothing significant is left (module docstring).
+    ``warm``: refits and cross-validation folds start from the fit they extend (:class:`Session`);
+    ``warm=False`` is the reference path, every fit from the nominal start."""
+    w0, c0 = time.perf_counter(), time.process_time()
+    session = session or open_session(spec, log, warm)
+    clock = session.clock
     log("fitting the declared model")
     model = before = session.fit()
     log(f"  χ²/dof = {model.s2:.3g} ({model.dof} dof)")
@@ -371,32 +438,37 @@ def diagnose(spec: ProblemSpec, log: Log = quiet, alpha: float = ALPHA, session:
         cands = candidates(session, model)
         if not cands:
             break
+        mark = dict(clock.times)
         level = alpha / len(cands)
-        tests = sorted((score_test(session, model, e) for e in cands), key=lambda t: -t.z)
+        with clock("score tests"):
+            tests = sorted((score_test(session, model, e) for e in cands), key=lambda t: -t.z)
         for t in tests:
             log(f"  score test {t.effect}: F = {t.F:.3g} (k = {t.k}), p = {t.p:.2g}" + (f" [{t.note}]" if t.note else ""))
         refits = []
         for t in [t for t in tests if t.p < level][:CONFIRM]:
             log(f"  refitting with {t.effect}")
             r = confirm(session, model, t, level)
-            log(f"    {'added' if r.accepted else 'rejected'}: {r.reason}")
+            log(f"    {'added' if r.accepted else 'rejected'}: {r.reason}"
+                + (f" (χ²/dof {model.s2:.4g} → {r.model.s2:.4g})" if r.model is not None else ""))
             refits.append(r)
             if r.accepted:
                 break
-        rounds.append(Round(tests, refits, level))
+        rounds.append(Round(tests, refits, level, _since(clock, mark)))
+        log("  round " + f"{len(rounds)}: " + ", ".join(f"{k} {w:.0f} s ({c:.0f} s CPU)" for k, (w, c) in rounds[-1].times.items()))
         accepted = [r for r in refits if r.accepted]
         if not accepted:
             break
         model = accepted[0].model
     if model is before:
-        before.cv = before.cv or session.cross_validate(before.effects)
+        before.cv = before.cv or session.cross_validate(before.effects, start=before)
     analyse = lambda m: analyse_residuals(*session.residuals(m.outcome), m.dof)  # noqa: E731
     timing = (lambda m: timing_traces(m.outcome)) if session.kind.sampled else (lambda m: [])  # noqa: E731
     final = model
     if session.declared.noise.motion_noise:
         log("fitting the refined model with the declared motion-dependent noise model")
-        final = Model(model.effects, session.kind.calibrate(with_effects(session.declared, model.effects), session.data,
-                                                             log, quick=True))
+        final = session.fit(model.effects, start=model, spec=session.declared, stage="noise model")
         log(f"  χ²/dof = {final.s2:.3g}")
+    times = dict(clock.times)
+    times["total"] = (time.perf_counter() - w0, time.process_time() - c0)
     return Diagnosis(session, before, model, rounds, analyse(before), analyse(model), timing(before), timing(model),
-                     final)
+                     final, times)

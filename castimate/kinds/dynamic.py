@@ -309,10 +309,12 @@ def check_information(spec: ProblemSpec, data: DynamicData, nominal: dict[str, n
 
 
 def calibrate_dynamic(spec: ProblemSpec, log: Log = quiet, max_restarts: int = 2,
-                      loaded: DynamicInput | None = None) -> DynamicOutcome:
+                      loaded: DynamicInput | None = None, start: dict | None = None) -> DynamicOutcome:
     """Run a dynamic array calibration end to end. Raises InputError or NotConvergedError.
 
-    ``loaded`` reuses a session already read with :func:`load_dynamic`. With the chip-clock sawtooth
+    ``loaded`` reuses a session already read with :func:`load_dynamic`. ``start``: values (group
+    name -> physical values, the motion's rows matching the data's samples) of a related fit to
+    start from, e.g. the model without one effect (:func:`solve_dynamic`). With the chip-clock sawtooth
     included (``accelerometer.clock_beat``) and its beats not yet known, the model without it is
     fitted first and the beats found from its implied sample ages (:func:`estimate_clocks`)."""
     if CLOCK_BEAT in spec.model.effects:
@@ -340,7 +342,7 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = quiet, max_restarts: int = 2
         return DynamicOutcome(spec, data, config, problem, solver, sol, attempts, sat, cal, gcal, res_acc, res_gyro,
                               nominal)
     problem, solver, sol, attempts, variance = solve_dynamic(config, data, nominal, spec.solver, spec.path,
-                                                             static_problem, log, max_restarts)
+                                                             static_problem, log, max_restarts, start)
     data, sol, noise = fit_motion_noise(spec, problem, solver, sol, data, log)
     check_estimates(spec, sol.values, problem.config.names)
     sol, serial = serial_uncertainty(spec, problem, solver, sol, data, log)
@@ -395,31 +397,51 @@ def serial_uncertainty(spec: ProblemSpec, problem, solver: Solver, sol: Solution
 
 
 def solve_dynamic(config: DynamicConfig, data: DynamicData, nominal: dict, options: SolverOptions | None = None,
-                  path="problem", static_problem=None, log: Log = quiet, max_restarts: int = 2):
+                  path="problem", static_problem=None, log: Log = quiet, max_restarts: int = 2,
+                  start: dict | None = None):
     """The default solve path of a dynamic problem: attempts from the nominal poses (Gauss-Newton
     first without gyroscopes, then the exact Hessian), restarts out of Schopp's local minima, then
     the process-noise levels re-estimated from the data (:func:`estimate_process_noise`, when
     ``config.motion.estimate``). Returns (problem, solver, solution, attempts, variance components
     or None). Raises InputError (undetermined directions) or NotConvergedError; ``path`` names the
-    problem in those messages."""
+    problem in those messages.
+
+    ``start`` (values of a related fit, motion included; groups it lacks at their initial values):
+    the first attempt starts there with the exact Hessian, a second one there with Gauss-Newton
+    steps first; only if both fail do the attempts from the nominal poses follow (all reported in
+    the attempts)."""
     options = options or SolverOptions()
     attempts, best = [], None
     start_values: dict = {}
     diverged = False
-    for attempt in range(max_restarts + 1):
-        problem = build_joint(static_problem, config, data) if static_problem else build_dynamic(config, data)
-        lay = problem.lsq.layout
-        has_gyro = bool(problem.gyro_triads)
-        log(f"attempt {attempt + 1}: {lay.n_x} variables, {'gyro-aided start' if has_gyro else 'zero angular motion'}"
-            + (", poses from the previous attempt" if start_values else ", nominal poses"))
-        x0 = lay.x0(start_values) if start_values else None
+    warm = 2 if start else 0  # attempts from ``start``
+    # one problem for every attempt; its two solvers (Gauss-Newton, the options' Hessian) built once
+    problem = build_joint(static_problem, config, data) if static_problem else build_dynamic(config, data)
+    lay = problem.lsq.layout
+    has_gyro = bool(problem.gyro_triads)
+    solvers: dict[str, Solver] = {}
+
+    def solver_of(hessian: str) -> Solver:
+        if hessian not in solvers:
+            solvers[hessian] = Solver(problem.lsq, replace(options, hessian=hessian))
+        return solvers[hessian]
+
+    for attempt in range(max_restarts + 1 + warm):
+        from_start = attempt < warm
+        if attempt == warm and warm:  # the warm starts failed: from the nominal poses
+            start_values, diverged = {}, False
+        log(f"attempt {attempt + 1}: {lay.n_x} variables, " + (
+            "from the previous fit" + (", Gauss-Newton first" if attempt else "") if from_start else
+            ("gyro-aided start" if has_gyro else "zero angular motion")
+            + (", poses from the previous attempt" if start_values else ", nominal poses")))
+        x0 = lay.x0(start) if from_start else lay.x0(start_values) if start_values else None
         determined = sign_determined(config, data, problem.gyro_triads)
         lam, first = None, None
         # Gauss-Newton steps first: robust from zero motion (the exact Hessian is indefinite there).
         # After a diverged attempt the other path is tried: the exact Hessian from the start.
-        gauss_newton_first = not has_gyro and options.hessian == "exact" and not diverged
-        gn = Solver(problem.lsq, replace(options, hessian="gauss_newton")) \
-            if attempt == 0 or gauss_newton_first else None
+        gauss_newton_first = (attempt == 1) if from_start else \
+            not has_gyro and options.hessian == "exact" and not diverged
+        gn = solver_of("gauss_newton") if attempt == 0 or gauss_newton_first else None
         if gauss_newton_first:
             first = gn.solve(x0)
             log(f"  Gauss-Newton: {first.message} in {first.iterations} iterations, {first.wall_s:.2f} s")
@@ -431,7 +453,7 @@ def solve_dynamic(config: DynamicConfig, data: DynamicData, nominal: dict, optio
             if bad:
                 raise InputError(path, "model", f"the data cannot determine {len(bad)} direction(s): "
                                  f"{'; '.join(bad[:3])}; fix these parameters, give them priors, or enable the process model")
-        solver = Solver(problem.lsq, options)
+        solver = solver_of(options.hessian)
         sol = solver.solve(x0, lam_g0=lam)
         if not sol.success and first is not None and first.success and \
                 solver.newton_decrement(first.x, first.lam_g) < 1e-6:
@@ -441,7 +463,8 @@ def solve_dynamic(config: DynamicConfig, data: DynamicData, nominal: dict, optio
         issues = minimum_checks(config, sol.values, nominal, data.t, determined)
         attempts.append({"attempt": attempt + 1, "success": sol.success, "message": sol.message,
                          "iterations": sol.iterations, "cost": sol.cost, "issues": issues,
-                         "start": "previous poses" if start_values else "nominal poses"})
+                         "start": "previous fit" if from_start else "previous poses" if start_values
+                         else "nominal poses"})
         log(f"  {sol.message} in {sol.iterations} iterations, {sol.wall_s:.2f} s, cost {sol.cost:.6g}, "
             f"χ²/dof {sol.chi2_per_dof:.6g}"
             + (f"; found: {'; '.join(issues)}" if issues else ""))
@@ -726,6 +749,7 @@ class DynamicKind:
 
     name = "dynamic_array"
     sampled = True
+    warm_start = True  # calibrate and cross_validate take start= (kinds.Kind.cross_validate)
 
     def load(self, spec: ProblemSpec, log: Log = quiet) -> DynamicInput:
         return load_dynamic(spec, log)
@@ -745,8 +769,10 @@ class DynamicKind:
         """Nothing before the solve: at zero angular motion nothing about the geometry is observable,
         so :func:`calibrate_dynamic` checks at the first Gauss-Newton solution."""
 
-    def calibrate(self, spec: ProblemSpec, data: DynamicInput, log: Log = quiet, quick: bool = False) -> DynamicOutcome:
-        return calibrate_dynamic(spec, log, loaded=data)
+    def calibrate(self, spec: ProblemSpec, data: DynamicInput, log: Log = quiet, quick: bool = False,
+                  start: DynamicOutcome | None = None) -> DynamicOutcome:
+        """``start``: a fit of the same samples (another model of the session) to start from."""
+        return calibrate_dynamic(spec, log, loaded=data, start=None if start is None else start.solution.values)
 
     def nuisance_only(self, config: DynamicInputs) -> DynamicInputs:
         """Intrinsics and positions fixed at their start values: the array's per-sample ML motion
@@ -777,25 +803,45 @@ class DynamicKind:
     def has_temperature(self, data: DynamicInput) -> bool:
         return bool(data.data.temp)
 
-    def cross_validate(self, spec: ProblemSpec, data: DynamicInput, folds: int) -> CrossValidation:
-        """K-fold over contiguous blocks of samples."""
+    def cross_validate(self, spec: ProblemSpec, data: DynamicInput, folds: int, start: DynamicOutcome | None = None,
+                       log: Log = quiet) -> CrossValidation:
+        """K-fold over contiguous blocks of samples: fit the model on the other blocks, fix its
+        calibration, estimate the held-out block's motion alone and take its residual.
+
+        ``start``: a fit of ``spec``'s model to the whole session; each fold's fit starts from its
+        parameters and its motion on the training samples, each prediction from its motion on the
+        held-out ones (the same optima, without the search from the nominal poses). A fold whose fit
+        or prediction does not converge is left out and named in ``CrossValidation.failed``."""
         d = data.data
         fold = np.arange(d.n) * folds // d.n
-        white, acc, gyro = [], [], []
+        per_sample = [] if start is None else [g.name for g in start.problem.lsq.layout.groups
+                                               if g.nuisance and g.matrix and g.rows == start.data.n]
+        rows = lambda idx: None if start is None else {  # noqa: E731
+            **start.solution.values, **{k: start.solution.values[k][idx] for k in per_sample}}
+        white, acc, gyro, fold_of, failed = [], [], [], [], []
         for k in range(folds):
             train, test = np.flatnonzero(fold != k), np.flatnonzero(fold == k)
-            fitted = calibrate_dynamic(spec, loaded=replace(data, data=d.take(train)))
+            try:
+                fitted = calibrate_dynamic(spec, loaded=replace(data, data=d.take(train)), start=rows(train))
+            except NotConvergedError as e:
+                failed.append(f"fold {k + 1} of {folds}: the fit did not converge: {e}")
+                log(f"    cross-validation {failed[-1]}")
+                continue
             part = d.take(test)
             held = build_dynamic(fixed_config(fitted.problem.config, fitted.solution.values), part)
-            hs = Solver(held.lsq, replace(spec.solver, hessian="gauss_newton")).solve()
+            x0 = None if start is None else held.lsq.layout.x0(rows(test))
+            hs = Solver(held.lsq, replace(spec.solver, hessian="gauss_newton")).solve(x0)
             if not hs.success:
-                raise NotConvergedError(f"prediction of fold {k + 1} of {folds} did not converge: {hs.message}")
+                failed.append(f"fold {k + 1} of {folds}: the prediction did not converge: {hs.message}")
+                log(f"    cross-validation {failed[-1]}")
+                continue
             ra, rg = measurement_residuals(held, part, hs)
             for r, sig, out in ((ra, part.acc_sigma, acc), (rg, part.gyro_sigma, gyro)):
                 for n, e in r.items():
                     out.append(e)
                     white.append(e / sig[n])
-        return CrossValidation.from_parts(white, acc, gyro, folds)
+                    fold_of.append(k)
+        return CrossValidation.from_parts(white, acc, gyro, folds, fold_of, tuple(failed))
 
     def residuals(self, outcome: DynamicOutcome) -> tuple[np.ndarray, Residuals]:
         """Sample times and the residuals (NaN where masked) with their σ per sensor and triad."""

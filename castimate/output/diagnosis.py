@@ -19,7 +19,12 @@ FORMAT = "castimate.diagnosis/1"
 def _cv(cv: CrossValidation | None) -> dict | None:
     return None if cv is None else {"folds": cv.folds, "rms_whitened": cv.rms, "rms_accelerometer": cv.rms_acc,
                                     "rms_gyroscope": cv.rms_gyro, "units": {"rms_accelerometer": "m/s^2",
-                                                                           "rms_gyroscope": "rad/s"}}
+                                                                           "rms_gyroscope": "rad/s"},
+                                    "failed_folds": list(cv.failed)}
+
+
+def _times(times: dict) -> dict:
+    return {k: {"wall_s": w, "cpu_s": c} for k, (w, c) in times.items()}
 
 
 def _model(m: Model) -> dict:
@@ -63,7 +68,9 @@ def diagnosis_document(d: Diagnosis) -> dict:
                             for t in r.tests],
             "refits": [{"effect": f.effect, "k": f.k, "chi2_before": f.chi2_before, "chi2_after": f.chi2_after,
                         "F": f.F, "p": f.p, "delta_bic": f.delta_bic, "accepted": f.accepted, "reason": f.reason,
+                        "chi2_per_dof_after": f.model.s2 if f.model is not None else None,
                         "cv_before": _cv(f.cv_before), "cv_after": _cv(f.cv_after)} for f in r.refits],
+            "times": _times(r.times),
         })
 
     def timing(traces):
@@ -78,7 +85,7 @@ def diagnosis_document(d: Diagnosis) -> dict:
             "added": d.added, "before": _model(d.before), "after": _model(d.after), "rounds": rounds,
             "residuals_before": analysis(d.residuals_before), "residuals_after": analysis(d.residuals_after),
             "timing_before": timing(d.timing_before), "timing_after": timing(d.timing_after),
-            "parameter_changes": parameter_changes(d),
+            "parameter_changes": parameter_changes(d), "times": _times(d.times),
             **({"with_motion_noise": {**_model(d.final), "motion_dependent": d.final.outcome.motion_noise}}
                if d.final is not None and d.final is not d.after else {})}
 

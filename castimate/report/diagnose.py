@@ -112,7 +112,8 @@ def render_diagnosis(d: Diagnosis) -> str:
             add(_table(["refit with", "χ² before", "χ² after", "F", "p", "ΔBIC", "held-out before", "held-out after",
                         "decision"],
                        [[escape(f.effect), _g(f.chi2_before, 6), _g(f.chi2_after, 6), _g(f.F, 4), _g(f.p, 2),
-                         _g(f.delta_bic, 4), _g(f.cv_before.rms, 4), _g(f.cv_after.rms, 4),
+                         _g(f.delta_bic, 4), _g(f.cv_before.rms if f.cv_before else np.nan, 4),
+                         _g(f.cv_after.rms if f.cv_after else np.nan, 4),
                          ("<span class='ok'>added</span>: " if f.accepted else "<span class='bad'>rejected</span>: ")
                          + escape(f.reason)] for f in r.refits]))
 

@@ -1,0 +1,106 @@
+"""Diagnose's warm path on a dynamic session (every refit and cross-validation fold started from the
+fit it extends) against the reference path (every fit from the nominal start): the same decisions,
+and statistics that agree to a small fraction of their own sampling spread. A cross-validation fold
+that does not converge is reported and left out of both models' held-out errors."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from castimate.errors import NotConvergedError
+from castimate.kinds import dynamic
+from castimate.kinds.diagnose import Session, confirm, diagnose, score_test
+from castimate.output.diagnosis import diagnosis_document
+from castimate.problem.effects import BY_KEY
+from castimate.simulate.scenarios import simulate_scenario
+from castimate.spec import load_problem
+
+ROOT = Path(__file__).resolve().parents[1]
+EFFECT = "accelerometer.time_offset"
+#: Agreement asked of the two paths, as a fraction of each statistic's own sampling standard deviation.
+SHARE = 1e-3
+
+
+@pytest.fixture(scope="module")
+def spec(tmp_path_factory):
+    """A small Carlsson-board session (4 IMUs x 300 samples) with sub-millisecond accelerometer time offsets."""
+    tmp = tmp_path_factory.mktemp("warm")
+    raw = yaml.safe_load((ROOT / "problems" / f"sim_dynamic_effect_{EFFECT.replace('.', '_')}.yaml").read_text())
+    raw.update(seed=5, imus=4, samples=300)
+    (tmp / "s.yaml").write_text(yaml.safe_dump(raw))
+    return load_problem(simulate_scenario(tmp / "s.yaml", tmp)["problem"])
+
+
+def _chi2_tol(dof: int) -> float:
+    return SHARE * np.sqrt(2.0 * dof)  # χ²'s sampling σ
+
+
+def _lm_tol(lm: float, k: int) -> float:
+    return SHARE * np.sqrt(2.0 * (k + 2.0 * max(lm, 0.0)))  # σ of a noncentral χ²(k, λ ≈ LM)
+
+
+def _cv_tol(cv) -> float:
+    return SHARE * cv.rms / np.sqrt(2.0 * sum(cv.fold_n))  # σ of an RMS of n standard residuals
+
+
+def test_warm_path_gives_the_reference_decisions_and_statistics(spec):
+    fast = diagnose(spec, max_rounds=2)
+    ref = diagnose(spec, max_rounds=2, warm=False)
+    assert fast.added == ref.added and fast.added[0] == EFFECT, (fast.added, ref.added)
+    assert len(fast.rounds) == len(ref.rounds)
+    for rf, rr in zip(fast.rounds, ref.rounds):
+        assert [t.effect for t in rf.tests] == [t.effect for t in rr.tests]
+        for a, b in zip(rf.tests, rr.tests):
+            assert (np.isnan(a.lm) and np.isnan(b.lm)) or abs(a.lm - b.lm) <= _lm_tol(b.lm, b.k), (a, b)
+        assert [(f.effect, f.accepted) for f in rf.refits] == [(f.effect, f.accepted) for f in rr.refits]
+        for a, b in zip(rf.refits, rr.refits):
+            assert abs(a.chi2_after - b.chi2_after) <= _chi2_tol(b.model.dof), (a.chi2_after, b.chi2_after)
+            for ca, cb in ((a.cv_before, b.cv_before), (a.cv_after, b.cv_after)):
+                if cb is not None:
+                    assert not ca.failed and not cb.failed
+                    assert abs(ca.rms - cb.rms) <= _cv_tol(cb), (ca.rms, cb.rms)
+    assert abs(fast.after.chi2 - ref.after.chi2) <= _chi2_tol(ref.after.dof)
+    # the warm refits start at the fit they extend: no attempt from the nominal poses
+    for r in fast.rounds:
+        for f in r.refits:
+            assert [a["start"] for a in f.model.outcome.attempts] == ["previous fit"]
+    doc = diagnosis_document(fast)
+    assert doc["times"]["total"]["wall_s"] > 0 and "cross-validation" in doc["rounds"][0]["times"]
+
+
+def test_an_unconverged_cross_validation_fold_is_reported(spec, monkeypatch):
+    session = Session(spec)
+    model = session.fit()
+    test = score_test(session, model, BY_KEY[EFFECT])
+    n = session.data.data.n
+    held = session.data.data.t[np.arange(n) * 5 // n == 2]  # the third block of samples
+    calibrate = dynamic.calibrate_dynamic
+
+    def failing(spec_, *args, loaded=None, **kw):
+        if loaded is not None and loaded.data.n < n and EFFECT in spec_.model.effects \
+                and not np.isin(held, loaded.data.t).any():
+            raise NotConvergedError("simulated: IPOPT stopped at the iteration limit")
+        return calibrate(spec_, *args, loaded=loaded, **kw)
+
+    monkeypatch.setattr(dynamic, "calibrate_dynamic", failing)
+    r = confirm(session, model, test, level=0.01)
+    assert not model.cv.failed
+    assert len(r.cv_after.failed) == 1 and r.cv_after.failed[0].startswith("fold 3 of 5: the fit did not converge")
+    assert "iteration limit" in r.cv_after.failed[0]
+    assert list(r.cv_after.predicted) == [True, True, False, True, True]
+    both = r.cv_after.predicted
+    # the held-out errors are compared on the four folds both models predicted, and the reason says so
+    assert "on the 4 of 5 folds both models predicted" in r.reason and "fold 3 of 5" in r.reason
+    assert r.cv_after.rms == pytest.approx(r.cv_after.rms_over(both))
+    assert model.cv.rms_over(both) != pytest.approx(model.cv.rms)
+    assert r.accepted == (r.p < 0.01 and r.cv_after.rms_over(both) <= model.cv.rms_over(both))
+
+    # no fold predicted by the candidate: not confirmed, whatever the likelihood ratio says
+    monkeypatch.setattr(dynamic, "calibrate_dynamic", lambda spec_, *a, loaded=None, **kw:
+                        (_ for _ in ()).throw(NotConvergedError("simulated"))
+                        if loaded is not None and loaded.data.n < n else calibrate(spec_, *a, loaded=loaded, **kw))
+    r = confirm(session, model, test, level=0.01)
+    assert not r.accepted and r.reason.startswith("no cross-validation fold was predicted by both models")
+    assert len(r.cv_after.failed) == 5
