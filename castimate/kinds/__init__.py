@@ -98,6 +98,7 @@ class Kind(Protocol):
     """One kind of problem (``spec.kind``): how its data are read, modelled, solved and checked."""
 
     name: str  # the spec.kind it serves
+    warm_start: bool  # calibrate and cross_validate start from ``start`` (else they ignore it)
     sampled: bool  # the data are a time series (windows of samples), not a set of poses
 
     def load(self, spec: ProblemSpec, log: Log = quiet) -> Any:
@@ -114,7 +115,7 @@ class Kind(Protocol):
     def check(self, spec: ProblemSpec, problem: Any, solver: Any, data: Any) -> None:
         """Raise InputError if the data cannot determine the problem (before solving)."""
 
-    def calibrate(self, spec: ProblemSpec, data: Any, log: Log = quiet, quick: bool = False) -> Any:
+    def calibrate(self, spec: ProblemSpec, data: Any, log: Log = quiet, quick: bool = False, start: Any = None) -> Any:
         """Configure, build, check and solve: the kind's outcome. Raises InputError or
         NotConvergedError. ``quick``: only the fit, without the figures of merit that need extra
         solves (static: the single-triad consistency of Nilsson's sec. IV)."""
@@ -137,12 +138,13 @@ class Kind(Protocol):
     def has_temperature(self, data: Any) -> bool:
         """Whether the data log a temperature (temperature effects can be informed)."""
 
-    def cross_validate(self, spec: ProblemSpec, data: Any, folds: int) -> CrossValidation:
+    def cross_validate(self, spec: ProblemSpec, data: Any, folds: int, start: Any = None,
+                       log: Log = quiet) -> CrossValidation:
         """K-fold prediction error of ``spec``'s model on these data.
 
-        A kind whose ``warm_start`` is true also takes ``start=`` (values of a fit of the whole
-        session) in ``calibrate`` and ``cross_validate``: the fits start there instead of from the
-        nominal values (diagnose's refits)."""
+        ``start`` (here and in ``calibrate``): an outcome of the same session to start the fits
+        from instead of the nominal values (diagnose's refits); a kind whose ``warm_start`` is false
+        ignores it. ``log`` names the folds that did not converge."""
 
     def residuals(self, outcome: Any) -> tuple[np.ndarray, Residuals]:
         """Times (pose mid-times or samples) and the residuals with their σ per sensor and triad."""

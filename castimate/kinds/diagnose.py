@@ -149,10 +149,8 @@ class Session:
         session (warm sessions start every fold there)."""
         spec = with_effects(self.spec, effects)
         with self.clock("cross-validation"):
-            if not self.warm:
-                return self.kind.cross_validate(spec, self.data, folds)
-            return self.kind.cross_validate(spec, self.data, folds, start=None if start is None else start.outcome,
-                                            log=_indent(self.log))
+            return self.kind.cross_validate(spec, self.data, folds, start=start.outcome if self.warm and start
+                                            else None, log=_indent(self.log))
 
     def residuals(self, outcome) -> tuple[np.ndarray, Residuals]:
         return self.kind.residuals(outcome)

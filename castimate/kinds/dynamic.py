@@ -749,7 +749,7 @@ class DynamicKind:
 
     name = "dynamic_array"
     sampled = True
-    warm_start = True  # calibrate and cross_validate take start= (kinds.Kind.cross_validate)
+    warm_start = True  # calibrate and cross_validate start from start= (kinds.Kind.cross_validate)
 
     def load(self, spec: ProblemSpec, log: Log = quiet) -> DynamicInput:
         return load_dynamic(spec, log)

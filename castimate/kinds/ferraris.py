@@ -69,6 +69,7 @@ class FerrarisKind(StaticKind):
 
     name = "ferraris"
     sampled = False
+    warm_start = False
 
     def load(self, spec: ProblemSpec, log: Log = quiet) -> FerrarisData:
         return load_ferraris(spec, log)
@@ -85,14 +86,15 @@ class FerrarisKind(StaticKind):
                           data.turn_angle, data.gyro_sigma[t.name], t.R_nominal)
         return build_ferraris(config, data.averages, np.array(list(FACES.values()), float), turns)
 
-    def calibrate(self, spec: ProblemSpec, data: FerrarisData, log: Log = quiet, quick: bool = False) -> StaticOutcome:
+    def calibrate(self, spec: ProblemSpec, data: FerrarisData, log: Log = quiet, quick: bool = False,
+                  start: StaticOutcome | None = None) -> StaticOutcome:
         config, notes = session_config(spec, data)
         return solve_static(spec, data, self.build(config, data), notes, log, consistency=False)
 
     def window(self, spec: ProblemSpec, data, start: int, n: int):
         raise InputError(spec.path, "kind", "the Ferraris protocol needs all six faces and three turns; it has no window")
 
-    def cross_validate(self, spec: ProblemSpec, data, folds: int):
+    def cross_validate(self, spec: ProblemSpec, data, folds: int, start=None, log: Log = quiet):
         raise InputError(spec.path, "kind", "diagnose tests the effect library on static_array and dynamic_array "
                                             "problems, found ferraris")
 

@@ -454,6 +454,7 @@ class StaticKind:
 
     name = "static_array"
     sampled = False
+    warm_start = False  # its fits from the nominal values are fast: start= is ignored
 
     def load(self, spec: ProblemSpec, log: Log = quiet) -> StaticData:
         return load_static(spec, log)
@@ -472,7 +473,8 @@ class StaticKind:
     def check(self, spec: ProblemSpec, problem: StaticProblem, solver: Solver, data: StaticData) -> None:
         check_identifiable(spec.path, problem, solver, data.averages)
 
-    def calibrate(self, spec: ProblemSpec, data: StaticData, log: Log = quiet, quick: bool = False) -> StaticOutcome:
+    def calibrate(self, spec: ProblemSpec, data: StaticData, log: Log = quiet, quick: bool = False,
+                  start: StaticOutcome | None = None) -> StaticOutcome:
         return calibrate_static(spec, log, data, consistency=not quick)
 
     def nuisance_only(self, config: StaticConfig) -> StaticConfig:
@@ -500,7 +502,8 @@ class StaticKind:
     def has_temperature(self, data: StaticData) -> bool:
         return bool(data.averages.temp_mean)
 
-    def cross_validate(self, spec: ProblemSpec, data: StaticData, folds: int) -> CrossValidation:
+    def cross_validate(self, spec: ProblemSpec, data: StaticData, folds: int, start: StaticOutcome | None = None,
+                       log: Log = quiet) -> CrossValidation:
         """K-fold over the poses, interleaved in time so that each fold spans the session."""
         avg = data.averages
         config = self.configure(spec, data)
