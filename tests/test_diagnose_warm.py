@@ -18,14 +18,14 @@ from castimate.simulate.scenarios import simulate_scenario
 from castimate.spec import load_problem
 
 ROOT = Path(__file__).resolve().parents[1]
-EFFECT = "accelerometer.time_offset"
+EFFECT = "accelerometer.age"
 #: Agreement asked of the two paths, as a fraction of each statistic's own sampling standard deviation.
 SHARE = 1e-3
 
 
 @pytest.fixture(scope="module")
 def spec(tmp_path_factory):
-    """A small Carlsson-board session (4 IMUs x 300 samples) with sub-millisecond accelerometer time offsets."""
+    """A small Carlsson-board session (4 IMUs x 300 samples) with sub-millisecond chip sample ages."""
     tmp = tmp_path_factory.mktemp("warm")
     raw = yaml.safe_load((ROOT / "problems" / f"sim_dynamic_effect_{EFFECT.replace('.', '_')}.yaml").read_text())
     raw.update(seed=5, imus=4, samples=300)
@@ -48,7 +48,7 @@ def _cv_tol(cv) -> float:
 def test_warm_path_gives_the_reference_decisions_and_statistics(spec):
     fast = diagnose(spec, max_rounds=2)
     ref = diagnose(spec, max_rounds=2, warm=False)
-    assert fast.added == ref.added and fast.added[0] == EFFECT, (fast.added, ref.added)
+    assert fast.added == ref.added and EFFECT in fast.added, (fast.added, ref.added)
     assert len(fast.rounds) == len(ref.rounds)
     for rf, rr in zip(fast.rounds, ref.rounds):
         assert [t.effect for t in rf.tests] == [t.effect for t in rr.tests]
