@@ -92,8 +92,8 @@ def session_row(i: int, runs: dict) -> dict:
            "chi2_noise": rc["residuals"]["chi2_per_dof"],
            "ratio_white": in_plane_ratio(runs["white"]["results"]) if "white" in runs else np.nan, "ratio": in_plane_ratio(rc),
            "beats_Hz": {n: b["frequency_Hz"] for n, b in beats.items()},
-           "noise": {s: {k: v["value"] for k, v in comps.items()} for s, comps in noise.items() if s != "rounds"},
-           "noise_rounds": noise.get("rounds"), "wall_s": {k: r["wall_s"] for k, r in runs.items()}}
+           "noise": {s: {k: v["value"] for k, v in comps.items()} for s, comps in noise.items() if isinstance(comps, dict)},
+           "noise_rounds": noise.get("rounds"), "noise_converged": noise.get("converged"), "wall_s": {k: r["wall_s"] for k, r in runs.items()}}
     if "coupling" in runs:
         cc = runs["coupling"]["chi2_per_dof_log"]
         row.update({"chi2_coupling": cc[0], "chi2_coupling_clocks": cc[1] if len(cc) > 1 else np.nan,

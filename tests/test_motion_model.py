@@ -19,7 +19,7 @@ from castimate.problem.graph import SolverOptions
 from castimate.problem.triads import GroupSetting, TriadConfig
 from castimate.simulate.dynamic import Motion, dynamic_measurements, sinusoid_motion
 from castimate.solver.ipopt import Solver
-from castimate.solver.variance import block_rows, redundancies, selected_inverse
+from castimate.solver.variance import block_rows, hat_diagonal, redundancies, selected_inverse
 
 from test_assembly import dynamic_case
 
@@ -123,6 +123,16 @@ def test_redundancies_match_the_dense_hat_matrix(integration):
     red = redundancies(J, G, stages, comps)
     for k, rows in comps.items():
         assert red[k] == pytest.approx(rows.size - h[rows.ravel()].sum(), rel=1e-8, abs=1e-8)
+    # the merged machinery's leverages row by row (measurement and process rows; the noise model's
+    # redundancies 1 − h), in chunks smaller than the problem
+    import castimate.solver.variance as var
+    chunk, var.CHUNK = var.CHUNK, 37
+    try:
+        assert np.allclose(hat_diagonal(J, G, stages), h, rtol=1e-6, atol=1e-7)
+        some = np.array([5, 0, len(h) - 1, 17])
+        assert np.allclose(hat_diagonal(J, G, stages, some), h[some], rtol=1e-6, atol=1e-7)
+    finally:
+        var.CHUNK = chunk
 
 
 def test_redundancies_with_rows_reading_both_neighbours():
@@ -157,6 +167,26 @@ def test_redundancies_with_rows_reading_both_neighbours():
                        {k: np.array(v) for k, v in comps.items()})
     for k, r in comps.items():
         assert red[k] == pytest.approx(len(r) - h[r].sum(), rel=1e-9, abs=1e-9)
+    assert np.allclose(hat_diagonal(sp.csr_matrix(J), sp.csr_matrix((0, J.shape[1])), stages), h, atol=1e-10)
+
+
+def test_hat_diagonal_with_a_stage_no_row_reads():
+    """A stage variable no row reads (a sample whose every reading is masked) is undetermined: the
+    Hessian is singular there, the ridge keeps the sweep defined and the other rows' leverages equal
+    the hat matrix of the determined part."""
+    rng = np.random.default_rng(8)
+    N, m, c = 6, 2, 2
+    stages = np.arange(N * m).reshape(N, m)
+    J = np.zeros((4 * N, N * m + c))
+    for n in range(N):
+        J[4 * n:4 * n + 4, stages[n]] = rng.normal(size=(4, m))
+        J[4 * n:4 * n + 4, N * m:] = rng.normal(size=(4, c))
+    J[4 * 3:4 * 3 + 4, stages[3, 1]] = 0.0  # the second state of stage 3 unread
+    keep = np.ones(J.shape[1], bool)
+    keep[stages[3, 1]] = False
+    Jd = J[:, keep]
+    h = np.einsum("ri,ij,rj->r", Jd, np.linalg.inv(Jd.T @ Jd), Jd)
+    assert np.allclose(hat_diagonal(sp.csr_matrix(J), sp.csr_matrix((0, J.shape[1])), stages), h, atol=1e-8)
 
 
 def test_known_process_noise_recovered():

@@ -229,6 +229,37 @@ def test_dynamic_report_figure_titles(dynamic_solved, dynamic_report):
     assert 'alt="Estimated motion of the body frame' in dynamic_report
 
 
+def test_dynamic_report_whitens_with_the_noise_models_per_sample_sigmas(dynamic_solved, dynamic_report, tmp_path):
+    """With a motion-dependent noise model fitted (chips jittering by 100 µs), details.npz carries
+    every reading's σ_n and the report's whitened residuals are r/σ_n sample by sample, and say so;
+    without one (the white fixture) they are r/σ₀ and say that."""
+    (tmp_path / "s.yaml").write_text(
+        "kind: dynamic_array\nseed: 5\ngeometry: carlsson\nimus: 6\nsamples: 500\nrate: 62.5\nmax_omega: 1000\n"
+        "max_omega_dot: 20000\neuler_consistent: false\nmotion: {process_model: false}\nnoise: {jitter: 1.0e-4}\n")
+    assert main(["simulate", str(tmp_path / "s.yaml"), "-o", str(tmp_path / "sim")]) == 0
+    assert main(["solve", str(tmp_path / "sim" / "problem.yaml"), "-o", str(tmp_path / "out"), "-q"]) == 0
+    assert main(["report", str(tmp_path / "out")]) == 0
+    html = (tmp_path / "out" / "report.html").read_text()
+    doc = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert doc["noise"]["motion_dependent"]["accelerometer"]["jitter"]["value"] > 0
+    with np.load(tmp_path / "out" / "details.npz") as z:
+        ra, s0, sn = z["residual_acc"], z["acc_sigma"], z["acc_sigma_sample"]
+        rg, gn, z_gyro_sigma = z["residual_gyro"], z["gyro_sigma_sample"], z["gyro_sigma"]
+    assert sn.shape == ra.shape and np.all(sn >= s0[:, None, :] * (1 - 1e-12))
+    per_sample = np.sqrt(np.nanmean((ra / sn) ** 2))
+    static = np.sqrt(np.nanmean((ra / s0[:, None, :]) ** 2))
+    # the gyroscopes' σ's of the noise model describe their residual (below 1 by the share the motion
+    # absorbs), σ₀ does not
+    g_sample, g_static = (np.sqrt(np.nanmean((rg / s) ** 2)) for s in (gn, z_gyro_sigma[:, None, :]))
+    assert 0.7 < g_sample < 1.05 and g_static > 1.5 * g_sample, (g_sample, g_static)
+    assert per_sample < static
+    assert f'alt="Accelerometer residuals over time: RMS of residual/σ {per_sample:.3f}"' in html
+    assert f"RMS of residual/σ {np.sqrt(np.nanmean((rg / gn) ** 2)):.3f}" in html
+    assert html.count("per-sample σ_n of the motion-dependent noise model") == 2  # the summary and the caption
+    assert "σ_n" not in dynamic_report and dynamic_report.count("static segments’ σ₀") + \
+        dynamic_report.count("static segments' σ₀") == 2
+
+
 def test_dynamic_report_quaternion_orientation(dynamic_solved):
     """An estimated misalignment quaternion (Schopp 2016) is shown as a rotation in degrees."""
     from castimate.report.dynamic import _orientation_table, _other_parameters

@@ -31,12 +31,12 @@ from ..prepare.poses import average_poses
 from ..prepare.detect import detect_static
 from ..problem.graph import Solution
 from ..solver.ipopt import Solver
-from ..solver.variance import block_rows, estimate_levels
+from ..solver.variance import block_rows, estimate_levels, hat_diagonal
 from ..problem.graph import SolverOptions
 from ..prepare.masks import saturation_mask
 from ..prepare.plausibility import check_dynamic_information, check_uniform_sampling
 from ..problem.effects import BY_KEY, MOTION, RATE
-from ..solver.motion_noise import COMPONENTS, fit_noise, noise_sigma, stage_leverages
+from ..solver.motion_noise import COMPONENTS, fit_noise, noise_sigma, relaxed_fixed_point
 from ..solver.serial import serial_covariance, std_by_group
 
 #: A sensor with more than this fraction of its samples masked as saturated is refused.
@@ -495,6 +495,13 @@ def solve_dynamic(config: DynamicConfig, data: DynamicData, nominal: dict, optio
     return problem, solver, sol, attempts, variance
 
 
+def motion_stages(lay, n: int) -> np.ndarray:
+    """(n, m) the x indices of the free motion states, sample by sample: the stages of the variance
+    components' hat diagonal (:func:`castimate.solver.variance.hat_diagonal`)."""
+    return np.hstack([lay.w_index(g.name)[:, g.free[0]] for g in lay.groups
+                      if g.nuisance and g.matrix and g.rows == n and g.name.startswith("motion.")])
+
+
 def estimate_process_noise(problem, data: DynamicData, solver: Solver, sol: Solution, options: SolverOptions,
                            static_problem, nominal: dict, log: Log = quiet):
     """Process-noise levels of the motion model from the data: variance components of the process
@@ -503,9 +510,7 @@ def estimate_process_noise(problem, data: DynamicData, solver: Solver, sol: Solu
     at the estimated levels."""
     config = problem.config
     comps = config.motion.components
-    lay = problem.lsq.layout
-    stages = np.hstack([lay.w_index(g.name)[:, g.free[0]] for g in lay.groups
-                        if g.nuisance and g.matrix and g.rows == data.n and g.name.startswith("motion.")])
+    stages = motion_stages(problem.lsq.layout, data.n)
 
     def rows(slv):
         idx = block_rows(slv, "process_model")
@@ -538,10 +543,10 @@ def estimate_process_noise(problem, data: DynamicData, solver: Solver, sol: Solu
 
 
 #: noise.motion_dependent: auto keeps a component where the likelihood-ratio test rejects zero at
-#: MOTION_NOISE_ALPHA; the outer iteration stops when no reading's σ changes by more than
-#: MOTION_NOISE_TOL (relative; a small component may still move more, it hardly weighs), after at
-#: most MOTION_NOISE_ROUNDS weighted refits.
-MOTION_NOISE_ALPHA, MOTION_NOISE_TOL, MOTION_NOISE_ROUNDS = 0.01, 0.01, 6
+#: MOTION_NOISE_ALPHA; the outer iteration has converged when the components estimated from the last
+#: weighted refit change no reading's σ by more than MOTION_NOISE_TOL (relative; a small component
+#: may still move more, it hardly weighs), and stops unconverged after MOTION_NOISE_ROUNDS weighted refits.
+MOTION_NOISE_ALPHA, MOTION_NOISE_TOL, MOTION_NOISE_ROUNDS = 0.01, 0.01, 12
 SENSORS = (("accelerometer", "acc"), ("gyroscope", "gyro"))
 
 
@@ -565,25 +570,41 @@ def with_motion_noise(data: DynamicData, params: dict[str, dict[str, float]], re
     return replace(data, sigma_sample=sample)
 
 
+def _sigma_change(data: DynamicData, regressors: tuple[dict, dict], new: dict, old: dict) -> float:
+    """The largest relative change of any reading's σ from the parameters ``old`` to ``new``."""
+    return max(float(np.nanmax(np.abs(noise_sigma(base[n], new[s], g) / noise_sigma(base[n], old[s], g) - 1)))
+               for (s, kind), reg in zip(SENSORS, regressors)
+               for base in [data.acc_sigma if kind == "acc" else data.gyro_sigma] for n, g in reg.items())
+
+
 def fit_motion_noise(spec: ProblemSpec, problem, solver: Solver, sol: Solution, data: DynamicData, log: Log
                      ) -> tuple[DynamicData, Solution, dict]:
     """The motion-dependent noise model of ``noise.motion_dependent`` (:mod:`castimate.solver.motion_noise`):
-    alternately its components by maximum likelihood from the residuals and their redundancy, and
-    the weighted fit with the σ's they give (warm-started, no rebuild), until they settle. Returns
-    the data with the per-sample σ's, the solution of the last weighted fit and, per sensor and
-    component, the parameter, its σ and its likelihood-ratio test (plus the number of rounds)."""
+    alternately its components from the residuals and their redundancy (the variance components of
+    :mod:`castimate.solver.variance`), and the weighted fit with the σ's they give (warm-started, no
+    rebuild), until the components estimated from a refit no longer change any σ by more than
+    MOTION_NOISE_TOL. Each round moves the parameters towards the new estimate in log-space by the
+    secant relaxation of :func:`castimate.solver.motion_noise.relaxation` (damping a 2-cycle,
+    extrapolating a slow monotone approach). Returns the data with the per-sample σ's, the solution
+    of the last weighted fit and, per sensor and component, the parameter, its σ and its
+    likelihood-ratio test, plus the number of weighted refits (``rounds``), whether the iteration
+    converged and its status line."""
     setting = spec.noise.motion_dependent
     if spec.solver.method == "bcd" or not spec.noise.motion_noise:
         return data, sol, {}
     params = {s: {k: (0.0 if isinstance(v, str) else float(v)) for k, v in c.items()} for s, c in setting.items()}
     estimated = any(v in ("auto", "free") for c in setting.values() for v in c.values())
+    stages = motion_stages(problem.lsq.layout, data.n)
     fits: dict = {}
-    rounds = 0
-    for round_ in range(1, MOTION_NOISE_ROUNDS + 2):
-        regressors = noise_regressors(problem, sol.values, data)
-        new = {s: dict(c) for s, c in params.items()}
+    state = {"data": data, "sol": sol, "regressors": None}
+
+    def propose(params):
+        data, sol = state["data"], state["sol"]
+        regressors = state["regressors"] = noise_regressors(problem, sol.values, data)
+        proposal = {s: dict(c) for s, c in params.items()}
         if estimated:
-            h = problem.per_triad(stage_leverages(solver, sol.x, (OMEGA, OMEGA_DOT, S), problem.data_vector(data)))
+            J, G = solver.jacobians(sol.x, data=problem.data_vector(data))
+            h = problem.per_triad(hat_diagonal(J, G, stages, np.arange(solver.n_data_residuals)))
             res = measurement_residuals(problem, data, sol)
             for i, (sensor, kind) in enumerate(SENSORS):
                 names = list(res[i])
@@ -595,27 +616,25 @@ def fit_motion_noise(spec: ProblemSpec, problem, solver: Solver, sol: Solution, 
                                 {k: [regressors[i][n][k] for n in names] for k in comps}, comps,
                                 params[sensor], MOTION_NOISE_ALPHA)
                 fits[sensor] = fit
-                new[sensor].update({k: f.value for k, f in fit.items()})
-        settled = all(np.nanmax(np.abs(noise_sigma(base[n], new[s], g) / noise_sigma(base[n], params[s], g) - 1))
-                      <= MOTION_NOISE_TOL for (s, kind), reg in zip(SENSORS, regressors)
-                      for base in [data.acc_sigma if kind == "acc" else data.gyro_sigma] for n, g in reg.items())
-        if (round_ > 1 and settled) or round_ > MOTION_NOISE_ROUNDS or \
-                (round_ == 1 and not any(v for c in new.values() for v in c.values())):
-            break
-        params, rounds = new, round_
-        log(f"motion-dependent noise, round {round_}: " + "; ".join(
-            f"{s}: " + ", ".join(f"{k} {v:.3g}" for k, v in c.items() if v) for s, c in params.items()
-            if any(c.values())))
-        data = with_motion_noise(data, params, regressors)
-        prev = sol
-        sol = solver.solve(sol.x, data=problem.data_vector(data), lam_g0=sol.lam_g)
+                proposal[sensor].update({k: f.value for k, f in fit.items()})
+        return proposal, _sigma_change(data, regressors, proposal, params)
+
+    def refit(params):
+        data = state["data"] = with_motion_noise(state["data"], params, state["regressors"])
+        prev = state["sol"]
+        sol = state["sol"] = solver.solve(prev.x, data=problem.data_vector(data), lam_g0=prev.lam_g)
         log(f"  weighted refit: {sol.message} in {sol.iterations} iterations, {sol.wall_s:.2f} s, "
             f"χ²/dof {sol.chi2_per_dof:.4g}")
         if not sol.success:
             raise NotConvergedError(f"{spec.path}: the refit with the motion-dependent noise model did not converge: "
                                     f"{sol.message} (χ²/dof before {prev.chi2_per_dof:.4g})")
+
+    outer = relaxed_fixed_point(propose, refit, params, lambda s, k: setting[s][k] in ("auto", "free"),
+                                MOTION_NOISE_TOL, MOTION_NOISE_ROUNDS, log)
+    data, sol, params = state["data"], state["sol"], outer.params
+    log(f"  motion-dependent noise: {outer.status}")
     units = {k: u for k, (_, u) in COMPONENTS.items()}
-    out = {"rounds": rounds}
+    out = {"rounds": outer.rounds, "converged": outer.converged, "status": outer.status}
     for sensor, c in params.items():
         out[sensor] = {}
         for k, v in c.items():

@@ -54,6 +54,12 @@ def write_dynamic_details(path: Path, outcome) -> None:
         g = list(outcome.residual_gyro)
         arrays["gyro_triads"] = np.array(g)
         arrays["residual_gyro"] = np.stack([outcome.residual_gyro[n] for n in g])
+        arrays["gyro_sigma"] = np.stack([outcome.data.gyro_sigma[n] for n in g])
+    # the motion-dependent noise model's σ of every reading (castimate.solver.motion_noise), where fitted
+    if outcome.data.sigma_sample.get("acc"):
+        arrays["acc_sigma_sample"] = np.stack([outcome.data.sigma("acc", n) for n in names])  # (K, N, 3) m/s^2
+    if outcome.residual_gyro and outcome.data.sigma_sample.get("gyro"):
+        arrays["gyro_sigma_sample"] = np.stack([outcome.data.sigma("gyro", n) for n in g])  # (G, N, 3) rad/s
     buf = io.BytesIO()
     np.savez_compressed(buf, **arrays)
     write_atomic(path, buf.getvalue())
@@ -69,7 +75,8 @@ DETAILS_SHAPES = {
     "dynamic_array": {"triads": ("M",), "t": ("N",), "omega": ("N", 3), "omega_dot": ("N", 3), "s": ("N", 3),
                       "residual_acc": ("M", "N", 3), "acc_sigma": ("M", 3), "position": ("M", 3),
                       "position_std": ("M", 3), "nominal_position": ("M", 3), "gyro_triads": ("G",),
-                      "residual_gyro": ("G", "N", 3)},
+                      "residual_gyro": ("G", "N", 3), "gyro_sigma": ("G", 3), "acc_sigma_sample": ("M", "N", 3),
+                      "gyro_sigma_sample": ("G", "N", 3)},
 }
 DETAILS_SHAPES["ferraris"] = DETAILS_SHAPES["static_array"]  # the six faces are its poses
 #: Arrays of text (triad names); all others are numbers.

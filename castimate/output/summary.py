@@ -59,9 +59,11 @@ def dynamic_summary(outcome) -> str:
             f"{k} {v['masked']} ({v['low']} / {v['high']}" + (f", {v['adjacent']} adjacent" if v["adjacent"] else "")
             + f"; {v['axes']})" for k, v in masked.items()))
     for sensor, comps in (outcome.motion_noise or {}).items():
-        if sensor != "rounds" and any(c["value"] for c in comps.values()):
+        if isinstance(comps, dict) and any(c["value"] for c in comps.values()):
             lines.append(f"  motion-dependent noise, {sensor}: " + ", ".join(
                 f"{k} {c['value']:.3g}±{c['std']:.2g} {c['unit']}" for k, c in comps.items() if c["value"]))
+    if (outcome.motion_noise or {}).get("status"):
+        lines.append(f"  motion-dependent noise: {outcome.motion_noise['status']}")
     lines.append("  position [mm] (body frame, origin at the reference triad)  estimate ± σ   | nominal")
     for n in outcome.config.names:
         r, s = outcome.positions[n]

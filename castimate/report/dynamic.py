@@ -204,6 +204,20 @@ def _other_parameters(results: dict) -> dict:
     return {**results, "triads": triads}
 
 
+def residual_sigmas(details: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray | None, str]:
+    """The σ's the report whitens the residuals with: the motion-dependent noise model's σ_n of every
+    reading where it was fitted (``acc_sigma_sample`` (K, N, 3), ``gyro_sigma_sample``), else the
+    static segments' σ₀ per triad and axis (K, 3); with the sentence that says which."""
+    if "acc_sigma_sample" in details:
+        return (np.asarray(details["acc_sigma_sample"], float),
+                np.asarray(details["gyro_sigma_sample"], float) if "gyro_sigma_sample" in details else
+                np.asarray(details["gyro_sigma"], float) if "gyro_sigma" in details else None,
+                "residual/σ_n with the per-sample σ_n of the motion-dependent noise model")
+    return (np.asarray(details["acc_sigma"], float),
+            np.asarray(details["gyro_sigma"], float) if "gyro_sigma" in details else None,
+            "residual/σ₀ with the static segments' σ₀ of each triad and axis (white noise)")
+
+
 def render_dynamic_report(results: dict, details: dict[str, np.ndarray]) -> str:
     """The HTML text of the report of a dynamic array calibration."""
     problem = Path(str(results.get("problem", "?"))).name
@@ -248,13 +262,16 @@ def render_dynamic_report(results: dict, details: dict[str, np.ndarray]) -> str:
                                         "iterations)" if est else " (given)")
                      if m.get("process_model") else "no process model: the motion of each sample is free"))
     ra = np.asarray(details["residual_acc"], float)
+    acc_sigma, gyro_sigma, whitening = residual_sigmas(details)
     rows.append(("accelerometer residual RMS",
                  f"{np.sqrt(np.nanmean(ra ** 2)) * 1e3:.2f} mm/s²; RMS of residual/σ "
-                 f"{figures.whitened_rms(ra, details['acc_sigma']):.3f} (all triads, axes and unmasked samples)"))
+                 f"{figures.whitened_rms(ra, acc_sigma):.3f} (all triads, axes and unmasked samples; {whitening})"))
     if "residual_gyro" in details and np.isfinite(details["residual_gyro"]).any():
         rg = np.asarray(details["residual_gyro"], float)
         rows.append(("gyroscope residual RMS", f"{np.sqrt(np.nanmean(rg ** 2)) * DEG:.3g} deg/s "
-                                               f"({len(details.get('gyro_triads', []))} triads, all axes)"))
+                                               f"({len(details.get('gyro_triads', []))} triads, all axes)"
+                     + (f"; RMS of residual/σ {figures.whitened_rms(rg, gyro_sigma):.3f}" if gyro_sigma is not None
+                        else "")))
     u = results.get("uncertainty") or {}
     if "lag1_autocorrelation" in u:
         rho = [v for c in u["lag1_autocorrelation"].values() for v in c.values() if finite(v)]
@@ -328,9 +345,9 @@ def render_dynamic_report(results: dict, details: dict[str, np.ndarray]) -> str:
     add(captioned(fig, "The estimated angular rate, angular acceleration and specific force of the body: "
                       "positions are only observable where ω and ω̇ are large, so long quiet stretches add "
                       "little information."))
-    fig = figures.residuals_over_time(t, details["residual_acc"], details["acc_sigma"], names)
-    add(captioned(fig, "Whitened accelerometer residuals per triad over time (grey: masked samples) and their "
-                      "RMS per triad against the noise σ: with a complete model the heatmaps look like "
+    fig = figures.residuals_over_time(t, details["residual_acc"], acc_sigma, names)
+    add(captioned(fig, f"Whitened accelerometer residuals per triad over time ({whitening}; grey: masked samples) "
+                      "and their RMS per triad against the noise σ: with a complete model the heatmaps look like "
                       "unstructured noise and the bars reach the σ ticks; stripes in time or a standing-out "
                       "triad point to an unmodelled effect there."))
     add("</body>\n</html>\n")

@@ -572,10 +572,17 @@ def motion_over_time(t: np.ndarray, omega: np.ndarray, omega_dot: np.ndarray, s:
     return fig
 
 
+def _per_sample(sigma: np.ndarray) -> np.ndarray:
+    """σ (K, 3) per triad and axis or (K, N, 3) per sample, as (K, 1 or N, 3) against residuals (K, N, 3)."""
+    sg = np.asarray(sigma, float)
+    return sg[:, None, :] if sg.ndim == 2 else sg
+
+
 def whitened_rms(residual: np.ndarray, sigma: np.ndarray) -> float:
-    """RMS of residual/σ over triads, samples and axes, ignoring masked (NaN) samples."""
+    """RMS of residual/σ over triads, samples and axes, ignoring masked (NaN) samples; σ (K, 3) per
+    triad and axis or (K, N, 3) per sample (a motion-dependent noise model)."""
     r = np.asarray(residual, float)
-    sg = np.asarray(sigma, float)[:, None, :]
+    sg = _per_sample(sigma)
     with np.errstate(divide="ignore", invalid="ignore"):
         w = np.where(sg > 0, r / sg, np.nan)
     w = w[np.isfinite(w)]
@@ -596,23 +603,30 @@ def residuals_over_time(t: np.ndarray, residual: np.ndarray, sigma: np.ndarray, 
     residual
         (K, N, 3) residual y − model, m/s²; NaN where a sample was masked (saturated).
     sigma
-        (K, 3) per-sample noise σ per triad and axis, m/s².
+        (K, 3) noise σ per triad and axis, the same for every sample, or (K, N, 3) sample by sample
+        (a motion-dependent noise model's σ_n), m/s².
     names
         The K triad names.
 
     One heatmap per sensor axis (triads × time) of residual/σ on a diverging scale symmetric around
     0, masked samples grey; below, the residual RMS per triad and axis in mm/s² with the noise σ as
-    black ticks. The title gives the RMS of residual/σ over everything (≈ 1 for a consistent fit).
+    black ticks (with per-sample σ's their RMS over the unmasked samples). The title gives the RMS of
+    residual/σ over everything (≈ 1 for a consistent fit).
     """
     import warnings
 
     t = np.asarray(t, float)
     r = np.asarray(residual, float)
-    sg = np.asarray(sigma, float)
+    full = _per_sample(sigma)
     names = list(names)
     K, N, _ = r.shape
     with np.errstate(divide="ignore", invalid="ignore"):
-        w = np.where(sg[:, None, :] > 0, r / sg[:, None, :], np.nan)
+        w = np.where(full > 0, r / full, np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a triad masked throughout has no RMS
+        # the σ tick per triad and axis: the RMS σ over the samples the residual RMS is taken over
+        sg = np.sqrt(np.nanmean(np.where(np.isfinite(r), np.broadcast_to(full, r.shape) ** 2, np.nan), axis=1)) \
+            if full.shape[1] > 1 else full[:, 0, :]
     finite = np.abs(w[np.isfinite(w)])
     vmax = max(3.0, float(np.quantile(finite, 0.995))) if finite.size else 3.0
     clipped = bool(finite.size and finite.max() > vmax)

@@ -24,10 +24,11 @@ Regression", ch. 2: generalised least squares with an estimated variance functio
 
 1. the weighted least-squares fit with the σ's of the current θ held fixed (the calibration and
    the motion);
-2. θ by maximum likelihood from the residuals e_j with the regressors held fixed, accounting for
-   the redundancy r_j = 1 − h_jj of each residual (the motion of a sample absorbs part of its
-   readings' noise, E[e_j²] = r_j v_j; Förstner 1979's variance-component estimation):
-   e_j² / r_j ~ v_j χ²₁, maximised by Fisher scoring (:func:`variance_components`);
+2. θ from the residuals e_j with the regressors held fixed, accounting for the redundancy
+   r_j = 1 − h_jj of each residual (the fit absorbs part of its noise, E[e_j²] = r_j v_j; h the
+   diagonal of the hat matrix): the variance components of :mod:`castimate.solver.variance`, the
+   machinery the process-noise levels use too (REML's score equations with the hat diagonal,
+   Förstner 1979);
 
 until θ no longer changes. The fixed point is the pseudo-likelihood estimate of Carroll & Ruppert;
 their theory shows it is as efficient for the mean parameters (here the calibration) as weighted
@@ -43,144 +44,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import chdtrc  # chi2.sf without scipy.stats's import (1 s of the CLI's start)
 
-
-@dataclass(frozen=True)
-class Components:
-    """Variance components θ of v = G θ (:func:`variance_components`).
-
-    ``theta`` the estimates (≥ 0), ``std`` their Fisher σ (0 where fixed or at the bound θ = 0),
-    ``nll`` the negative log-likelihood ½ Σ (e²/(r v) + log v) at ``theta``, ``iterations``."""
-
-    theta: np.ndarray
-    std: np.ndarray
-    nll: float
-    iterations: int
-
-
-def negative_log_likelihood(theta, G: np.ndarray, e2r: np.ndarray) -> float:
-    """½ Σ_j (e_j²/r_j / v_j + log v_j), v = G θ (the constant ½ log 2π per residual left out)."""
-    v = G @ np.asarray(theta, float)
-    return 0.5 * float(np.sum(e2r / v + np.log(v)))
-
-
-def score_information(theta, G: np.ndarray, e2r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Gradient of −:func:`negative_log_likelihood` in θ, s_m = ½ Σ G_jm (e_j²/r_j − v_j)/v_j², and the
-    expected information I_mk = ½ Σ G_jm G_jk / v_j²."""
-    v = G @ np.asarray(theta, float)
-    return 0.5 * G.T @ ((e2r - v) / v ** 2), 0.5 * (G / v[:, None] ** 2).T @ G
-
-
-def variance_components(e: np.ndarray, r: np.ndarray, G: np.ndarray, theta0, free, max_iter: int = 200,
-                        tol: float = 1e-10) -> Components:
-    """Maximum likelihood of θ ≥ 0 in v_j = G_j θ from residuals e_j of redundancy r_j ∈ (0, 1].
-
-    Fisher scoring on ½ Σ (e²/(r v) + log v): score s_m = ½ Σ G_jm (e_j²/r_j − v_j)/v_j², information
-    I_mk = ½ Σ G_jm G_jk / v_j²; the step is halved until the likelihood does not decrease, and a
-    component that would turn negative stays at 0 (active set). Components with ``free`` False keep
-    their ``theta0``. The rows of G, e and r with r ≤ 0 or non-finite e carry no information.
-    """
-    e, r, G = np.asarray(e, float).ravel(), np.asarray(r, float).ravel(), np.asarray(G, float)
-    ok = np.isfinite(e) & (r > 0) & np.all(np.isfinite(G), axis=1)
-    e2r, G = e[ok] ** 2 / r[ok], G[ok]
-    theta = np.array(theta0, float)
-    free = np.asarray(free, bool)
-    if np.any(G @ theta <= 0):
-        raise ValueError("the starting components give a non-positive variance")
-    nll = negative_log_likelihood(theta, G, e2r)
-    it = 0
-    for it in range(1, max_iter + 1):
-        s, info = score_information(theta, G, e2r)
-        act = free & ~((theta <= 0) & (s < 0))  # at the bound and pushed outwards: stays there
-        if not act.any():
-            break
-        step = np.zeros_like(theta)
-        step[act] = np.linalg.solve(info[np.ix_(act, act)], s[act])
-        t = 1.0
-        while True:
-            trial = np.maximum(theta + t * step, 0.0)
-            vt = G @ trial
-            if np.all(vt > 0):
-                new = negative_log_likelihood(trial, G, e2r)
-                if new <= nll + 1e-12 * abs(nll):
-                    break
-            t *= 0.5
-            if t < 1e-12:
-                trial, new = theta, nll
-                break
-        change = np.max(np.abs(trial - theta) / np.maximum(np.abs(trial), 1e-300))
-        theta, nll = trial, new
-        if change < tol:
-            break
-    info = score_information(theta, G, e2r)[1]
-    std = np.zeros_like(theta)
-    act = free & (theta > 0)
-    if act.any():
-        std[act] = np.sqrt(np.diag(np.linalg.inv(info[np.ix_(act, act)])))
-    return Components(theta, std, nll, it)
-
-
-def likelihood_ratio(nll_restricted: float, nll_full: float) -> tuple[float, float]:
-    """(Λ, p) for one component tested at its bound 0: Λ = 2 (nll₀ − nll₁) is then distributed as
-    ½ χ²₀ + ½ χ²₁ (Self & Liang 1987), so p = ½ P(χ²₁ > Λ)."""
-    lam = max(0.0, 2.0 * (nll_restricted - nll_full))
-    return lam, 0.5 * float(chdtrc(1, lam))
-
-
-def block_leverages(rows: np.ndarray, sample: np.ndarray, A: np.ndarray, n_samples: int) -> np.ndarray:
-    """Leverage h_jj of every residual row on the nuisance states of its own sample: with A_n the
-    whitened Jacobian of sample n's rows with respect to that sample's states,
-    h = diag(A_n (A_nᵀ A_n)⁺ A_nᵀ). ``rows`` (R,) row indices into the result, ``sample`` (R,)
-    their sample, ``A`` (R, q) their Jacobian rows on the sample's q states. Returns (max(rows)+1,)."""
-    order = np.lexsort((rows, sample))
-    rows, sample, A = rows[order], sample[order], A[order]
-    first = np.searchsorted(sample, np.arange(n_samples))
-    pos = np.arange(len(rows)) - first[sample]
-    width = int(pos.max()) + 1 if len(pos) else 0
-    q = A.shape[1]
-    D = np.zeros((n_samples, width, q))
-    D[sample, pos] = A
-    F = np.einsum("nrq,nrp->nqp", D, D)
-    Fi = np.linalg.pinv(F, hermitian=True)
-    h = np.einsum("nrq,nqp,nrp->nr", D, Fi, D)
-    out = np.zeros(int(rows.max()) + 1 if len(rows) else 0)
-    out[rows] = h[sample, pos]
-    return out
-
-
-def stage_leverages(solver, x, groups: tuple[str, ...], data=None) -> np.ndarray:
-    """Leverage h_jj (``solver.n_data_residuals``,) of every data residual on the per-sample states
-    ``groups`` (matrix groups with one row per sample, e.g. the motion ω, ω̇, s) of its own sample:
-    the sample whose row of ``groups[0]`` it depends on. A residual that touches none has h = 0.
-    The calibration parameters (a few against thousands of samples) and couplings between samples
-    (neighbouring samples' motion in a rate term, a process model) are left out; the redundancy of
-    the residual is r = 1 − h (:func:`block_leverages`)."""
-    lay = solver.problem.layout
-    J = solver.jacobians(x, data=data)[0].tocsr()[: solver.n_data_residuals]
-    col_sample = np.full(J.shape[1], -1)
-    col_state = np.full(J.shape[1], -1)
-    q = 0
-    for g in groups:
-        w = lay.w_index(g)
-        free = w < lay.n_x
-        col_sample[w[free]] = np.nonzero(free)[0]
-        col_state[w[free]] = q + np.nonzero(free)[1]
-        q += w.shape[1]
-    coo = J.tocoo()
-    anchor = col_state[coo.col] >= 0
-    anchor &= col_state[coo.col] < lay.w_index(groups[0]).shape[1]
-    row_sample = np.full(J.shape[0], -1)
-    row_sample[coo.row[anchor]] = col_sample[coo.col[anchor]]
-    keep = (col_state[coo.col] >= 0) & (row_sample[coo.row] >= 0) & (col_sample[coo.col] == row_sample[coo.row])
-    rows = np.flatnonzero(row_sample >= 0)
-    A = np.zeros((J.shape[0], q))
-    A[coo.row[keep], col_state[coo.col[keep]]] = coo.data[keep]
-    h = np.zeros(J.shape[0])
-    if len(rows):
-        lev = block_leverages(rows, row_sample[rows], A[rows], int(row_sample.max()) + 1)
-        h[: len(lev)] = lev
-    return h
+from .variance import likelihood_ratio, variance_components
 
 
 #: The components of the motion-dependent noise model beyond σ₀² (module docstring, eq. 2): name ->
@@ -219,7 +84,7 @@ def noise_sigma(sigma0, values: dict[str, float], regressors: dict[str, np.ndarr
 
 def fit_noise(residual, leverage, sigma0, regressors: dict[str, list], settings: dict[str, str | float],
               start: dict[str, float] | None = None, alpha: float = 0.01) -> dict[str, ComponentFit]:
-    """Maximum likelihood of the components of σ² = σ₀² + Σ θ_m g_m for the triads of one sensor type:
+    """REML estimate (:func:`castimate.solver.variance.variance_components`) of the components of σ² = σ₀² + Σ θ_m g_m for the triads of one sensor type:
     lists of (N, 3) residuals e (NaN where masked), leverages h (r = 1 − h) and σ₀ (3,) per triad;
     ``regressors`` component -> list of (N, 3) g per triad; ``settings`` component -> ``free``
     (estimated), ``auto`` (estimated, dropped unless the likelihood-ratio test of θ = 0 rejects at
@@ -232,7 +97,6 @@ def fit_noise(residual, leverage, sigma0, regressors: dict[str, list], settings:
                         + [flat(regressors[k]) for k in names])
     ok = np.isfinite(e) & (r > 0) & np.all(np.isfinite(G), axis=1)
     e, r, G = e[ok], r[ok], G[ok]
-    e2r = e ** 2 / r
     fixed = {k: float(v) for k, v in settings.items() if not isinstance(v, str)}
     active = [k for k, v in settings.items() if v in ("auto", "free")]
     start = start or {}
@@ -264,3 +128,89 @@ def fit_noise(residual, leverage, sigma0, regressors: dict[str, list], settings:
         out[k] = ComponentFit(value, float(sd / (2 * value)) if value > 0 and k in keep else 0.0,
                               value > 0, lam, p)
     return out
+
+
+#: The bounds of :func:`relaxation`'s factor: at most a tenth of the step is taken (a map whose
+#: log-slope is near −9, far beyond the 2-cycles seen) and at most twice the step (a slow monotone
+#: approach, log-slope ½, is extrapolated; further, the secant of two noisy steps is not trusted).
+RELAXATION_BOUNDS = (0.1, 2.0)
+
+
+def relaxation(previous: tuple[float, float] | None, x: float, dx: float) -> float:
+    """The factor ω of the step x ← x + ω dx of a fixed-point iteration x = F(x), dx = F(x) − x,
+    from the previous round's (x, dx): the secant of dx(x), s = (dx − dx₋₁)/(x − x₋₁), gives
+    Newton's step for dx(x) = 0, ω = −1/s (Aitken's Δ² per component; Burden & Faires, sec. 2.5).
+    A 2-cycle (F' = −1, s = −2) is halved onto its fixed point, a slow approach (F' = ½) doubled.
+    ω = 1 without a usable previous round (none, no movement, or a secant s ≥ 0 along which
+    F does not contract), and within :data:`RELAXATION_BOUNDS`.
+
+    >>> relaxation((0.0, 1.0), 1.0, -1.0)  # x₋₁ = 0 → 1 → back to 0: a 2-cycle
+    0.5
+    """
+    if previous is None or abs(x - previous[0]) < 1e-12:
+        return 1.0
+    s = (dx - previous[1]) / (x - previous[0])
+    if s >= 0:
+        return 1.0
+    return float(np.clip(-1.0 / s, *RELAXATION_BOUNDS))
+
+
+@dataclass(frozen=True)
+class OuterIteration:
+    """How :func:`relaxed_fixed_point` ended: the parameters of the last weighted fit, the number of
+    weighted refits, whether the estimate from the last fit changed no σ by more than the
+    tolerance, that last change, and a status line."""
+
+    params: dict[str, dict[str, float]]
+    rounds: int
+    converged: bool
+    change: float
+    status: str
+
+
+def relaxed_fixed_point(propose, refit, params: dict[str, dict[str, float]], relaxed, tol: float, max_rounds: int,
+                        log=lambda m: None) -> OuterIteration:
+    """The outer iteration of the noise model: θ = F(θ), F the components estimated from the weighted
+    fit with θ's σ's.
+
+    ``propose(params)`` -> (the estimate F from the current fit, the largest relative change of a σ
+    from ``params`` to it); ``refit(params)`` fits with the σ's of ``params``. Converged when the change
+    is at most ``tol`` (after at least one refit, or at once when the white noise needs nothing
+    added); unconverged after ``max_rounds`` refits. Each round moves every estimated (``relaxed(s,
+    k)``) positive parameter in log-space by the secant factor of :func:`relaxation`; one switched on or
+    off (0 ↔ > 0) takes the estimate as it is.
+    """
+    steps: dict = {}
+    rounds = 0
+    while True:
+        proposal, change = propose(params)
+        if rounds == 0 and not any(v for c in proposal.values() for v in c.values()):
+            converged = True
+            break
+        if rounds > 0 and change <= tol:
+            converged = True
+            break
+        if rounds == max_rounds:
+            converged = False
+            break
+        new = {s: dict(c) for s, c in proposal.items()}
+        for s, c in proposal.items():
+            for k, v in c.items():
+                old = params[s][k]
+                if relaxed(s, k) and old > 0 and v > 0:
+                    x, dx = float(np.log(old)), float(np.log(v / old))
+                    w = relaxation(steps.get((s, k)), x, dx)
+                    steps[s, k] = (x, dx)
+                    new[s][k] = float(np.exp(x + w * dx))
+                else:
+                    steps.pop((s, k), None)
+        params, rounds = new, rounds + 1
+        log(f"motion-dependent noise, round {rounds}: " + "; ".join(
+            f"{s}: " + ", ".join(f"{k} {v:.3g}" for k, v in c.items() if v) for s, c in params.items()
+            if any(c.values())) + f" (the estimate changed a σ by up to {change:.1%})")
+        refit(params)
+    status = (f"converged after {rounds} weighted refit(s): the components estimated from the last fit change no σ "
+              f"by more than {change:.2%} (tolerance {tol:.0%})" if converged else
+              f"not converged: stopped at the limit of {max_rounds} weighted refits with the components estimated "
+              f"from the last fit still changing a σ by {change:.2%} (tolerance {tol:.0%})")
+    return OuterIteration(params, rounds, converged, change, status)

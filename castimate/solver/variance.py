@@ -1,24 +1,29 @@
-"""Variance components: noise levels of groups of residuals estimated from the fit itself.
+"""Variance components: noise levels of residuals estimated from the fit itself.
 
-Helmert's estimator as Förstner (1979) iterates it: with the residuals r whitened by the current
-levels σ_k, component k (a set of residual rows) gets
+The one machinery behind both of the package's noise estimators: the process-noise levels of the
+motion model (:func:`estimate_levels`, ``motion.process_noise: auto``) and the motion-dependent
+measurement noise (:mod:`castimate.solver.motion_noise`, ``noise.motion_dependent``). Each models
+the variance of residual j as v_j = Σ_m G_jm θ_m and needs two things from a solution:
 
-    σ_k² ← σ_k² · r_kᵀ r_k / ρ_k,        ρ_k = n_k − tr(J_k P J_kᵀ)
+1. the redundancy r_j = 1 − h_j of each residual, h_j the diagonal of the hat matrix J P Jᵀ with P
+   the Gauss-Newton covariance of all variables (unit-norm constraints respected): the share of its
+   own degree of freedom the fit leaves it (:func:`hat_diagonal`; Σ_j h_j = variables − constraints);
+2. θ from the residuals and their redundancies (:func:`variance_components`): REML's score
+   equations with the hat diagonal (Förstner 1979), Σ_j G_jm (e_j² − r_j v_j) / v_j² = 0. With one
+   component per group of rows (the process levels) that is Helmert's estimator as Förstner iterates
+   it, σ_k² ← σ_k² · r_kᵀ r_k / ρ_k with ρ_k = Σ_{j∈k} r_j, in closed form.
 
-where ρ_k is the component's redundancy (its rows' share of the degrees of freedom, from the
-diagonal of the hat matrix J P Jᵀ) and P the Gauss-Newton covariance of all variables at the
-solution (unit-norm constraints respected). Iterated with re-solves, the fixed point is the REML
-estimate of the levels; Σ_k ρ_k + (the other rows' redundancy) = rows − (variables − constraints).
+Iterated with re-solves (the caller's outer iteration), the fixed point is the REML estimate.
 
-The hat-matrix trace uses the arrow structure of the dynamic problems: the motion states are
-stages coupled to their neighbours only (a block-tridiagonal H_mm, as eliminated in
+The hat diagonal uses the arrow structure of the dynamic problems: the motion states are stages
+coupled to their neighbours only (a block-tridiagonal H_mm, as eliminated in
 :mod:`castimate.solver.elimination`) and to a dense border θ. With B = H_mm⁻¹ H_mθ and P_θ the
 constrained inverse of the Schur complement S = H_θθ − H_θm B,
 
     j P jᵀ = j_m Σ j_mᵀ + (j_m B − j_θ) P_θ (j_m B − j_θ)ᵀ,
 
 where only the block-tridiagonal part Σ of H_mm⁻¹ is needed (a backward sweep like an RTS
-smoother's covariance), so a component costs time linear in the number of samples.
+smoother's covariance), so the leverages of all rows cost time linear in the number of samples.
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
+from scipy.special import chdtrc  # chi2.sf without scipy.stats's import (1 s of the CLI's start)
 
 
 def block_rows(solver, name: str) -> np.ndarray:
@@ -60,18 +66,6 @@ def _tridiagonal_blocks(H: sp.spmatrix, N: int, m: int) -> tuple[np.ndarray, np.
     return A, C
 
 
-def _banded_solve(H: sp.spmatrix, rhs: np.ndarray, u: int) -> np.ndarray:
-    """H⁻¹ rhs for a symmetric positive-definite H with u superdiagonals (LAPACK's band Cholesky)."""
-    H = sp.coo_matrix(H)
-    up = H.row <= H.col
-    if np.any(H.col[up] - H.row[up] > u):
-        raise ValueError("the stage Hessian is wider than its band")
-    ab = np.zeros((u + 1, H.shape[0]))
-    np.add.at(ab, (u + H.row[up] - H.col[up], H.col[up]), H.data[up])
-    # factor, then solve: LAPACK's one-call pbsv is orders of magnitude slower for many right-hand sides
-    return sla.cho_solve_banded((sla.cholesky_banded(ab), False), rhs)
-
-
 def selected_inverse(A: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The block-tridiagonal part of the inverse of a symmetric positive-definite block-tridiagonal
     matrix (diagonal blocks A (N, m, m), upper blocks C (N-1, m, m)): (Σ_nn (N, m, m), Σ_n,n+1
@@ -93,15 +87,40 @@ def selected_inverse(A: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return 0.5 * (S + S.transpose(0, 2, 1)), So
 
 
-def redundancies(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, components: dict[str, np.ndarray]
-                 ) -> dict[str, float]:
-    """ρ_k = n_k − tr(J_k P J_kᵀ) of each component (rows of J) at one Jacobian.
+def _factor(Hmm: sp.spmatrix, u: int):
+    """Band Cholesky of the stage Hessian, with a ridge of 1e-12 × its largest diagonal where it is
+    singular (a direction of one sample that no row reads: its leverage is then 0, not undefined).
+    Returns the (possibly regularised) matrix and the factor."""
+    H = sp.coo_matrix(Hmm)
+    up = H.row <= H.col
+    if np.any(H.col[up] - H.row[up] > u):
+        raise ValueError("the stage Hessian is wider than its band")
+    ab = np.zeros((u + 1, H.shape[0]))
+    np.add.at(ab, (u + H.row[up] - H.col[up], H.col[up]), H.data[up])
+    try:
+        return Hmm, sla.cholesky_banded(ab)
+    except np.linalg.LinAlgError:
+        ridge = 1e-12 * max(float(ab[u].max(initial=0.0)), 1e-300)
+        ab[u] += ridge
+        return (Hmm + ridge * sp.eye(Hmm.shape[0])).tocsc(), sla.cholesky_banded(ab)
+
+
+#: Rows per chunk of :func:`hat_diagonal` (bounds its memory: chunk × (2 m)² and chunk × n_θ floats).
+CHUNK = 4096
+
+
+def hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None) -> np.ndarray:
+    """Leverages h_j = (J P Jᵀ)_jj of residual rows at one Jacobian (the module docstring's sweep).
 
     J (rows, n_x) and G (constraints, n_x) are the Jacobians of the whitened residuals and of the
     constraints (``Solver.jacobians``), ``stages`` (N, m) the x indices of the banded nuisance
-    variables, stage by stage (no constraint may act on them); every other variable is θ.
+    variables, stage by stage (no constraint may act on them); every other variable is θ. ``rows``
+    (default: all) the rows wanted, each reading at most two neighbouring (super-)stages. Time and
+    memory are linear in the number of rows and samples. The redundancy of a row is 1 − h_j; Σ h_j
+    over all rows is the number of variables less the constraints.
     """
     J, G = sp.csr_matrix(J), sp.csr_matrix(G)
+    rows = np.arange(J.shape[0]) if rows is None else np.asarray(rows, int).ravel()
     N, m = stages.shape
     mx = stages.ravel()
     theta = np.setdiff1d(np.arange(J.shape[1]), mx)
@@ -119,48 +138,160 @@ def redundancies(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, components:
         Jm = sp.hstack([Jm, sp.csc_matrix((Jm.shape[0], pad))]).tocsc()
         Hmm = (Jm.T @ Jm + sp.diags(np.r_[np.zeros(N * m), np.ones(pad)])).tocsc()
         N, m = (N * m + pad) // (w * m), w * m
+    Hmm, chol = _factor(Hmm, 2 * m - 1)
     Hmt = (Jm.T @ Jt).toarray()
-    B = _banded_solve(Hmm, Hmt, 2 * m - 1) if len(theta) else np.zeros((Jm.shape[1], 0))
+    # factor, then solve: LAPACK's one-call pbsv is orders of magnitude slower for many right-hand sides
+    B = sla.cho_solve_banded((chol, False), Hmt) if len(theta) else np.zeros((Jm.shape[1], 0))
     S = (Jt.T @ Jt).toarray() - Hmt.T @ B
     Gt = G[:, theta].toarray()
     U = np.linalg.qr(Gt.T, mode="complete")[0][:, Gt.shape[0]:] if Gt.shape[0] else np.eye(len(theta))
-    P = U @ np.linalg.pinv(U.T @ S @ U, hermitian=True) @ U.T
+    # P = K Kᵀ, the constrained inverse of the Schur complement, so that w P wᵀ = |w K|²
+    ev, vec = np.linalg.eigh(U.T @ S @ U)
+    pos = ev > ev.max(initial=0.0) * len(ev) * np.finfo(float).eps
+    K = U @ (vec[:, pos] / np.sqrt(ev[pos]))
     Sd, So = selected_inverse(*_tridiagonal_blocks(Hmm, N, m))
-    out = {}
-    for name, rows in components.items():
-        rows = np.asarray(rows).ravel()
-        Jk = sp.coo_matrix(Jm[rows])
+    if N > 1:
+        Q = np.empty((N - 1, 2 * m, 2 * m))
+        Q[:, :m, :m], Q[:, m:, m:], Q[:, :m, m:] = Sd[:-1], Sd[1:], So
+        Q[:, m:, :m] = So.transpose(0, 2, 1)
+    else:
+        Q = Sd[:, :m, :m]
+    h = np.empty(len(rows))
+    for c0 in range(0, len(rows), CHUNK):
+        part = rows[c0:c0 + CHUNK]
+        Jk = sp.coo_matrix(Jm[part])
         stage = Jk.col // m
-        first = np.full(len(rows), N)
+        first = np.full(len(part), N)
         np.minimum.at(first, Jk.row, stage)
         first = np.minimum(first, max(N - 2, 0))
-        V = np.zeros((len(rows), 2 * m))
+        V = np.zeros((len(part), 2 * m))
         rel = stage - first[Jk.row]
         if np.any((rel < 0) | (rel > 1)):
-            raise ValueError(f"rows of component {name!r} span more than two neighbouring stages")
+            raise ValueError("a residual row spans more than two neighbouring stages")
         np.add.at(V, (Jk.row, rel * m + Jk.col % m), Jk.data)
-        if N > 1:
-            Q = np.empty((N - 1, 2 * m, 2 * m))
-            Q[:, :m, :m], Q[:, m:, m:], Q[:, :m, m:] = Sd[:-1], Sd[1:], So
-            Q[:, m:, :m] = So.transpose(0, 2, 1)
-        else:
-            Q = Sd[:, :m, :m]
+        if N == 1:
             V = V[:, :m]
-        tr = float(np.einsum("ri,rij,rj->", V, Q[first], V))
-        W = Jm[rows] @ B - Jt[rows].toarray()
-        tr += float(np.sum((W @ P) * W))
-        out[name] = len(rows) - tr
-    return out
+        hk = np.einsum("ri,rij,rj->r", V, Q[first], V)
+        W = Jm[part] @ B - Jt[part].toarray()
+        h[c0:c0 + CHUNK] = hk + np.sum((W @ K) ** 2, axis=1)
+    return h
+
+
+def redundancies(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, components: dict[str, np.ndarray]
+                 ) -> dict[str, float]:
+    """ρ_k = n_k − tr(J_k P J_kᵀ) of each component (rows of J) at one Jacobian (:func:`hat_diagonal`)."""
+    names = list(components)
+    idx = [np.asarray(components[k]).ravel() for k in names]
+    h = hat_diagonal(J, G, stages, np.concatenate(idx) if idx else np.zeros(0, int))
+    ends = np.cumsum([0] + [len(i) for i in idx])
+    return {k: float(len(i) - h[a:b].sum()) for k, i, a, b in zip(names, idx, ends[:-1], ends[1:])}
+
+
+# --- the components' update -------------------------------------------------------------------
+#
+# Both estimators of the package are variance components v_j = Σ_m G_jm θ_m of residuals e_j whose
+# redundancy is r_j = 1 − h_j: the process-noise levels (one component per group of process rows,
+# G one-hot, v the level squared) and the motion-dependent measurement noise (θ = (1, σ_d², τ², κ²),
+# G = (σ₀², 1, u̇², |ω|²) per reading; castimate.solver.motion_noise). With the hat diagonal, REML's
+# score equations (Förstner 1979; Koch 1999, "Parameter Estimation and Hypothesis Testing in Linear
+# Models", sec. 3.6) are those of the objective
+#
+#     ℓ(θ) = ½ Σ_j (e_j² / v_j + r_j log v_j),     s_m = −∂ℓ/∂θ_m = ½ Σ_j G_jm (e_j² − r_j v_j) / v_j²,
+#
+# (E[e_j²] = r_j v_j) with the expected information I_mk = ½ Σ_j r_j G_jm G_jk / v_j². For a single
+# component over a group (G = 1) its root is Helmert's θ = Σ e² / Σ r = σ² r'r/ρ in closed form.
+
+
+@dataclass(frozen=True)
+class Components:
+    """Variance components θ of v = G θ (:func:`variance_components`).
+
+    ``theta`` the estimates (≥ 0), ``std`` their Fisher σ (0 where fixed or at the bound θ = 0),
+    ``nll`` the objective ℓ at ``theta``, ``iterations``."""
+
+    theta: np.ndarray
+    std: np.ndarray
+    nll: float
+    iterations: int
+
+
+def negative_log_likelihood(theta, G: np.ndarray, e2: np.ndarray, r: np.ndarray) -> float:
+    """ℓ(θ) = ½ Σ_j (e_j²/v_j + r_j log v_j), v = G θ (REML with the hat diagonal; constants left out)."""
+    v = G @ np.asarray(theta, float)
+    return 0.5 * float(np.sum(e2 / v + r * np.log(v)))
+
+
+def score_information(theta, G: np.ndarray, e2: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """−∂ℓ/∂θ, s_m = ½ Σ G_jm (e_j² − r_j v_j)/v_j², and the expected information I_mk = ½ Σ r_j G_jm G_jk / v_j²."""
+    v = G @ np.asarray(theta, float)
+    return 0.5 * G.T @ ((e2 - r * v) / v ** 2), 0.5 * (G * (r / v ** 2)[:, None]).T @ G
+
+
+def variance_components(e: np.ndarray, r: np.ndarray, G: np.ndarray, theta0, free, max_iter: int = 200,
+                        tol: float = 1e-10) -> Components:
+    """REML estimate of θ ≥ 0 in v_j = G_j θ from residuals e_j of redundancy r_j ∈ (0, 1].
+
+    Fisher scoring on ℓ (above): the step is halved until ℓ does not increase, and a component that
+    would turn negative stays at 0 (active set). Components with ``free`` False keep their
+    ``theta0``. The rows with r ≤ 0 or non-finite e or G carry no information.
+    """
+    e, r, G = np.asarray(e, float).ravel(), np.asarray(r, float).ravel(), np.asarray(G, float)
+    ok = np.isfinite(e) & (r > 0) & np.all(np.isfinite(G), axis=1)
+    e2, r, G = e[ok] ** 2, r[ok], G[ok]
+    theta = np.array(theta0, float)
+    free = np.asarray(free, bool)
+    if np.any(G @ theta <= 0):
+        raise ValueError("the starting components give a non-positive variance")
+    nll = negative_log_likelihood(theta, G, e2, r)
+    it = 0
+    for it in range(1, max_iter + 1):
+        s, info = score_information(theta, G, e2, r)
+        act = free & ~((theta <= 0) & (s < 0))  # at the bound and pushed outwards: stays there
+        if not act.any():
+            break
+        step = np.zeros_like(theta)
+        step[act] = np.linalg.solve(info[np.ix_(act, act)], s[act])
+        t = 1.0
+        while True:
+            trial = np.maximum(theta + t * step, 0.0)
+            vt = G @ trial
+            if np.all(vt > 0):
+                new = negative_log_likelihood(trial, G, e2, r)
+                if new <= nll + 1e-12 * abs(nll):
+                    break
+            t *= 0.5
+            if t < 1e-12:
+                trial, new = theta, nll
+                break
+        change = np.max(np.abs(trial - theta) / np.maximum(np.abs(trial), 1e-300))
+        theta, nll = trial, new
+        if change < tol:
+            break
+    info = score_information(theta, G, e2, r)[1]
+    std = np.zeros_like(theta)
+    act = free & (theta > 0)
+    if act.any():
+        std[act] = np.sqrt(np.diag(np.linalg.inv(info[np.ix_(act, act)])))
+    return Components(theta, std, nll, it)
+
+
+def likelihood_ratio(nll_restricted: float, nll_full: float) -> tuple[float, float]:
+    """(Λ, p) for one component tested at its bound 0: Λ = 2 (ℓ₀ − ℓ₁) is then distributed as
+    ½ χ²₀ + ½ χ²₁ (Self & Liang 1987), so p = ½ P(χ²₁ > Λ)."""
+    lam = max(0.0, 2.0 * (nll_restricted - nll_full))
+    return lam, 0.5 * float(chdtrc(1, lam))
 
 
 #: Largest factor by which one iteration changes a level.
 MAX_STEP = 10.0
 
 
-def _next_level(level: float, ratio: float) -> float:
-    """Helmert's update σ ← σ·sqrt(r'r/ρ) (Newton's step on log(r'r/ρ) = 0 when the ratio falls
-    like σ⁻², a well-determined component), at most ×/÷ ``MAX_STEP``."""
-    return level * float(np.clip(np.sqrt(max(ratio, 0.0)), 1 / MAX_STEP, MAX_STEP))
+def _next_level(level: float, e: np.ndarray, r: np.ndarray) -> float:
+    """The level σ of one component from its rows' whitened residuals e (at ``level``) and their
+    redundancies r: √θ of :func:`variance_components` with G = 1 (Helmert's σ·sqrt(r'r/ρ)), at most
+    ×/÷ ``MAX_STEP`` from ``level``."""
+    theta = variance_components(e * level, r, np.ones((e.size, 1)), [level ** 2], [True]).theta[0]
+    return float(np.clip(np.sqrt(theta), level / MAX_STEP, level * MAX_STEP))
 
 
 #: A component whose rows hold less than this share of their own degrees of freedom (ρ_k < share·n_k)
@@ -205,11 +336,14 @@ def estimate_levels(solve: Callable[[dict[str, float], object], tuple[object, ob
         solver, sol, data = cur
         idx = rows(solver)
         J, G = solver.jacobians(sol.x, data=data)
-        red = redundancies(J, G, stages, idx)
+        h = hat_diagonal(J, G, stages, np.concatenate([i.ravel() for i in idx.values()]))
+        ends = np.cumsum([0] + [i.size for i in idx.values()])
+        redund = {k: 1.0 - h[a:b] for k, a, b in zip(idx, ends[:-1], ends[1:])}
+        red = {k: float(v.sum()) for k, v in redund.items()}
         r = solver.residuals(sol.x, data=data)
         ratio = {k: float(np.sum(r[i] ** 2)) / max(red[k], 1e-12) for k, i in idx.items()}
         kept |= {k for k in levels if red[k] < MIN_REDUNDANCY_SHARE * idx[k].size}
-        new = {k: levels[k] if k in kept else _next_level(levels[k], ratio[k]) for k in levels}
+        new = {k: levels[k] if k in kept else _next_level(levels[k], r[idx[k].ravel()], redund[k]) for k in levels}
         history.append({"levels": dict(levels), "redundancy": red, "ratio": ratio, "cost": sol.cost})
         log(f"  variance components, iteration {it}: " + ", ".join(
             f"{k} {levels[k]:.4g} (r'r/redundancy {ratio[k]:.4g}, redundancy {red[k]:.1f} of {idx[k].size}"
