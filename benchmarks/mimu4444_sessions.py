@@ -98,27 +98,36 @@ def session_row(i: int, runs: dict) -> dict:
         cc = runs["coupling"]["chi2_per_dof_log"]
         row.update({"chi2_coupling": cc[0], "chi2_coupling_clocks": cc[1] if len(cc) > 1 else np.nan,
                     "chi2_coupling_noise": runs["coupling"]["results"]["residuals"]["chi2_per_dof"],
-                    "ratio_coupling": in_plane_ratio(runs["coupling"]["results"])})
+                    "ratio_coupling": in_plane_ratio(runs["coupling"]["results"]),
+                    "noise_rounds_coupling": runs["coupling"]["results"]["noise"].get("motion_dependent", {}).get("rounds"),
+                    "noise_converged_coupling": runs["coupling"]["results"]["noise"].get("motion_dependent", {}).get(
+                        "converged")})
     return row
 
 
 def table(rows: list[dict], spread: dict) -> str:
     f = lambda x, d=4: "–" if x is None or not np.isfinite(x) else f"{x:.{d}g}"  # noqa: E731
+    refits = lambda n, ok: "–" if n is None else f"{n}" + ("" if ok is None else " (converged)" if ok  # noqa: E731
+                                                            else " (limit, not converged)")
     lines = ["| session | χ²/dof white | + chip clocks | + noise model | in-plane ratio (white → final) | "
-             "noise model: accelerometer floor [m/s²], jitter τ [µs], rate κ [m/s² per rad/s] | gyroscope floor [rad/s], τ [µs], κ [-] |",
-             "|---|---|---|---|---|---|---|"]
+             "noise model: accelerometer floor [m/s²], jitter τ [µs], rate κ [m/s² per rad/s] | gyroscope floor [rad/s], τ [µs], κ [-] | "
+             "weighted refits |",
+             "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         n = r["noise"]
         comp = lambda s: ", ".join("–" if s not in n else f"{n[s][k] * (1e6 if k == 'jitter' else 1):.3g}"  # noqa: E731
                                    for k in ("floor", "jitter", "rate"))
         lines.append(f"| {r['session']} | {f(r['chi2_white'])} | {f(r['chi2_clocks'])} | {f(r['chi2_noise'], 3)} | "
-                     f"{f(r['ratio_white'], 5)} → {r['ratio']:.4f} | {comp('accelerometer')} | {comp('gyroscope')} |")
+                     f"{f(r['ratio_white'], 5)} → {r['ratio']:.4f} | {comp('accelerometer')} | {comp('gyroscope')} | "
+                     f"{refits(r.get('noise_rounds'), r.get('noise_converged'))} |")
     coupled = [r for r in rows if "chi2_coupling" in r]
     if coupled:
-        lines += ["", "| session, with the gyroscope coupling | χ²/dof white + coupling | + chip clocks | + noise model | in-plane ratio |",
-                  "|---|---|---|---|---|"]
+        lines += ["", "| session, with the gyroscope coupling | χ²/dof white + coupling | + chip clocks | + noise model | in-plane ratio "
+                      "| weighted refits |",
+                  "|---|---|---|---|---|---|"]
         lines += [f"| {r['session']} | {f(r['chi2_coupling'])} | {f(r['chi2_coupling_clocks'])} | {f(r['chi2_coupling_noise'], 3)} | "
-                  f"{r['ratio_coupling']:.4f} |" for r in coupled]
+                  f"{r['ratio_coupling']:.4f} | {refits(r.get('noise_rounds_coupling'), r.get('noise_converged_coupling'))} |"
+                  for r in coupled]
     names = sorted({n for r in rows for n in r["beats_Hz"]}, key=lambda s: int(s[3:]))
     lines += ["", "Beats ν [Hz] of the chip clocks found per session:", "",
               "| session | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]

@@ -64,15 +64,17 @@ def test_score_and_information_match_finite_differences():
     assert np.allclose(-dS, score_information(theta, G, at_v, r)[1], rtol=1e-5)
 
 
-def test_relaxation_settles_a_two_cycle_and_speeds_a_slow_approach():
+def test_relaxation_settles_an_alternation_and_leaves_a_monotone_approach():
     """Secant relaxation on linear maps x ← F(x) in one variable: a 2-cycle (F(x) = 2 − x, fixed
-    point 1) is settled in one relaxed step; a slow approach (F(x) = ½ x + ½) reaches its fixed point
-    in one relaxed step instead of halving its distance each round."""
-    for F, slope in ((lambda x: 2.0 - x, -1.0), (lambda x: 0.5 * x + 0.5, 0.5)):
+    point 1) and a damped alternation (F(x) = 1.5 − x/2) are settled in one relaxed step; a monotone
+    approach (F(x) = ½ x + ½) keeps the plain step (no extrapolation of noisy secants)."""
+    for F, slope in ((lambda x: 2.0 - x, -1.0), (lambda x: 1.5 - 0.5 * x, -0.5)):
         x0, x1 = 0.0, F(0.0)
         w = relaxation((x0, F(x0) - x0), x1, F(x1) - x1)
         assert w == pytest.approx(1 / (1 - slope))
         assert x1 + w * (F(x1) - x1) == pytest.approx(1.0)
+    F = lambda x: 0.5 * x + 0.5  # noqa: E731
+    assert relaxation((0.0, F(0.0)), F(0.0), F(F(0.0)) - F(0.0)) == 1.0
     assert relaxation(None, 0.3, 0.1) == 1.0 and relaxation((0.3, 0.2), 0.3, 0.1) == 1.0
     assert relaxation((0.0, 1.0), 1.0, 2.0) == 1.0  # F expanding along the secant: no relaxation
     assert relaxation((0.0, 1.0), 1.0, -30.0) == 0.1  # the bounds
@@ -81,11 +83,12 @@ def test_relaxation_settles_a_two_cycle_and_speeds_a_slow_approach():
 def test_outer_iteration_converges_where_the_plain_alternation_cycles():
     """A noise component whose estimate from the refit alternates around its fixed point (the 2-cycle
     of the gyroscopes' κ on real exp_2, 3 and 5 with the coupling: F(κ) = κ*² / κ, log-slope −1) and a
-    second one approaching slowly (log-slope ½): the plain alternation (no relaxation) stops at the
+    second one approaching monotonely (log-slope ½): the plain alternation (no relaxation) stops at the
     refit limit, unconverged, with κ still off by its starting factor; the relaxed iteration converges
     in a few refits to both fixed points."""
     star = {"rate": 6e-3, "floor": 3e-3}
-    g = {"rate": 400.0, "floor": 1.0}  # the regressors (|ω|² and 1) of one reading
+    g = {"rate": 0.25, "floor": 1.0}  # the regressors (|ω|² and 1) of one reading
+    sig = lambda q: np.sqrt(1e-6 + sum(q[k] ** 2 * g[k] for k in g))  # noqa: E731
 
     def run(relaxed):
         refits = []
@@ -94,19 +97,18 @@ def test_outer_iteration_converges_where_the_plain_alternation_cycles():
             c = p["gyroscope"]
             prop = {"gyroscope": {"rate": star["rate"] ** 2 / c["rate"],
                                   "floor": star["floor"] * np.sqrt(c["floor"] / star["floor"])}}
-            sig = lambda q: np.sqrt(1e-6 + sum(q[k] ** 2 * g[k] for k in g))  # noqa: E731
             return prop, abs(sig(prop["gyroscope"]) / sig(c) - 1)
 
-        start = {"gyroscope": {"rate": 1.04 * star["rate"], "floor": 0.2}}
-        return relaxed_fixed_point(propose, refits.append, start, lambda s, k: relaxed, 0.001, 6), refits
+        start = {"gyroscope": {"rate": 1.04 * star["rate"], "floor": 1.5 * star["floor"]}}
+        return relaxed_fixed_point(propose, refits.append, start, lambda s, k: relaxed, 0.001, 8), refits
 
     plain, refits = run(False)
-    assert not plain.converged and plain.rounds == len(refits) == 6 and "not converged" in plain.status
+    assert not plain.converged and plain.rounds == len(refits) == 8 and "not converged" in plain.status
     assert plain.params["gyroscope"]["rate"] == pytest.approx(1.04 * star["rate"])  # back where it started
     damped, refits = run(True)
-    assert damped.converged and damped.rounds == len(refits) < 6 and damped.status.startswith("converged after")
-    for k in star:
-        assert damped.params["gyroscope"][k] == pytest.approx(star[k], rel=2e-3)
+    assert damped.converged and damped.rounds == len(refits) < 8 and damped.status.startswith("converged after")
+    assert damped.params["gyroscope"]["rate"] == pytest.approx(star["rate"], rel=1e-9)
+    assert sig(damped.params["gyroscope"]) == pytest.approx(sig(star), rel=0.002)
 
 
 def test_fit_noise_recovers_jitter_on_synthetic_residuals():

@@ -8,6 +8,8 @@ rates; restart from the estimated poses when one is found. Every attempt is repo
 
 from __future__ import annotations
 
+import time
+
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -603,8 +605,10 @@ def fit_motion_noise(spec: ProblemSpec, problem, solver: Solver, sol: Solution, 
         regressors = state["regressors"] = noise_regressors(problem, sol.values, data)
         proposal = {s: dict(c) for s, c in params.items()}
         if estimated:
+            t0 = time.process_time()
             J, G = solver.jacobians(sol.x, data=problem.data_vector(data))
             h = problem.per_triad(hat_diagonal(J, G, stages, np.arange(solver.n_data_residuals)))
+            log(f"  leverages of {solver.n_data_residuals} residuals: {time.process_time() - t0:.2f} s CPU")
             res = measurement_residuals(problem, data, sol)
             for i, (sensor, kind) in enumerate(SENSORS):
                 names = list(res[i])

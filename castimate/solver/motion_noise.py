@@ -131,18 +131,21 @@ def fit_noise(residual, leverage, sigma0, regressors: dict[str, list], settings:
 
 
 #: The bounds of :func:`relaxation`'s factor: at most a tenth of the step is taken (a map whose
-#: log-slope is near −9, far beyond the 2-cycles seen) and at most twice the step (a slow monotone
-#: approach, log-slope ½, is extrapolated; further, the secant of two noisy steps is not trusted).
-RELAXATION_BOUNDS = (0.1, 2.0)
+#: log-slope is near −9, far beyond the 2-cycles seen), and never more than the step: each estimate
+#: comes from a refit that ends at the solver's tolerance, so a secant through two of them is noisy,
+#: and extrapolating it (a slow monotone approach, slope in (0, 1)) overshot on real exp_1 and exp_2
+#: (9 and 6 refits instead of 5 and 3 with factors up to 2).
+RELAXATION_BOUNDS = (0.1, 1.0)
 
 
 def relaxation(previous: tuple[float, float] | None, x: float, dx: float) -> float:
     """The factor ω of the step x ← x + ω dx of a fixed-point iteration x = F(x), dx = F(x) − x,
     from the previous round's (x, dx): the secant of dx(x), s = (dx − dx₋₁)/(x − x₋₁), gives
     Newton's step for dx(x) = 0, ω = −1/s (Aitken's Δ² per component; Burden & Faires, sec. 2.5).
-    A 2-cycle (F' = −1, s = −2) is halved onto its fixed point, a slow approach (F' = ½) doubled.
-    ω = 1 without a usable previous round (none, no movement, or a secant s ≥ 0 along which
-    F does not contract), and within :data:`RELAXATION_BOUNDS`.
+    A 2-cycle (F' = −1, s = −2) is halved onto its fixed point; an alternation that converges
+    slowly (F' ∈ (−1, 0)) is damped onto it too. ω = 1 without a usable previous round (none, no
+    movement, or a secant s ≥ 0 along which F does not contract), and within
+    :data:`RELAXATION_BOUNDS` (a monotone approach, F' ∈ (0, 1), is not extrapolated).
 
     >>> relaxation((0.0, 1.0), 1.0, -1.0)  # x₋₁ = 0 → 1 → back to 0: a 2-cycle
     0.5
