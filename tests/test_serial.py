@@ -90,7 +90,7 @@ def test_line_fit_hac_variance_in_closed_form():
     w = np.maximum(0.0, 1 - np.abs(np.subtract.outer(np.arange(N), np.arange(N))) / L)
     s = xt * e / sigma
     hac = s @ w @ s / (xt @ xt / sigma ** 2) ** 2
-    hc = serial_covariance(solver, sol.x, lags=L)
+    hc = serial_covariance(solver, sol.x, lags=L, floor=False)
     assert hc.fisher[0, 0] == pytest.approx(sigma ** 2 / (xt @ xt), rel=1e-8)
     assert hc.covariance[0, 0] == pytest.approx(hac, rel=1e-8)
     assert hc.lags == L and hc.samples == N
@@ -162,7 +162,7 @@ def test_eliminated_hac_equals_the_dense_full_space_sandwich(case):
         for L in (1, 4):
             full, fisher = brute_force(ref, x, L)
             for solver in (ref, new):
-                hc = serial_covariance(solver, x, lags=L)
+                hc = serial_covariance(solver, x, lags=L, floor=False)
                 scale = np.sqrt(np.outer(np.diag(full), np.diag(full)))
                 assert np.abs(hc.covariance - full).max() / scale.max() < 1e-7
                 assert np.abs(np.sqrt(np.diag(hc.covariance) / np.diag(full)) - 1).max() < 1e-6
@@ -196,7 +196,7 @@ def test_channel_pooling_is_each_channels_own_sandwich():
     th = solver.theta
     sc = prob.lsq.layout.x_scale[th]
     full = (P @ S @ P)[np.ix_(th, th)] * np.outer(sc, sc)
-    hc = serial_covariance(solver, x, lags=3, pooling="channel")
+    hc = serial_covariance(solver, x, lags=3, pooling="channel", floor=False)
     assert np.abs(np.sqrt(np.diag(hc.covariance) / np.diag(full)) - 1).max() < 1e-6
     with pytest.raises(ValueError, match="pooling 'channel': expected 'sample', or 'channel' with lags"):
         serial_covariance(solver, x, pooling="channel")
@@ -331,3 +331,22 @@ def test_results_record_the_reported_sigmas(tmp_path):
     assert doc2["uncertainty"] == {"reported": "fisher", "residual_correlation": "none"}
     assert "position_std_fisher" not in doc2["triads"]["imu32"]
     assert np.allclose(doc2["triads"]["imu32"]["position_std"], t["position_std_fisher"], rtol=1e-6)
+
+
+def test_at_least_clips_the_generalised_eigenvalues_at_one():
+    """Hand-computed: against the floor F = diag(4, 1), a covariance 2F stays, F/2 becomes F, and
+    diag(8, 0.5) (twice F along x, half along y) becomes diag(8, 1); a rotated case is ≥ both in the
+    PSD order and equals the covariance where it already exceeds F."""
+    from castimate.solver.serial import at_least
+
+    F = np.diag([4.0, 1.0])
+    assert np.allclose(at_least(2 * F, F), 2 * F)
+    assert np.allclose(at_least(F / 2, F), F)
+    assert np.allclose(at_least(np.diag([8.0, 0.5]), F), np.diag([8.0, 1.0]))
+    c, s_ = np.cos(0.4), np.sin(0.4)
+    R = np.array([[c, -s_], [s_, c]])
+    cov = R @ np.diag([10.0, 0.2]) @ R.T
+    out = at_least(cov, F)
+    assert np.linalg.eigvalsh(out - F).min() > -1e-12 and np.linalg.eigvalsh(out - cov).min() > -1e-12
+    big = 3 * F + np.array([[1.0, 0.5], [0.5, 1.0]])
+    assert np.allclose(at_least(big, F), big)

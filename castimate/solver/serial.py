@@ -29,6 +29,14 @@ autocorrelation ρ_a and innovation variance σ_a² of each channel's whitened r
     α(1) = Σ_a 4 ρ_a² σ_a⁴ / ((1 - ρ_a)⁶ (1 + ρ_a)²) / Σ_a σ_a⁴ / (1 - ρ_a)⁴,   S_T = 1.1447 (α(1) T)^(1/3)
 
 and L = round(S_T) (at least 1: white residuals give the Fisher information's empirical form).
+
+The reported covariance is at least the Fisher one in every direction (:func:`at_least`: the
+generalised eigenvalues of the pair clipped at 1). The sandwich is estimated from residuals, which
+the fit has shrunk (by its leverage, and across samples by the process model's smoothing, which
+makes neighbouring residuals anticorrelated); with white noise its scatter around the Fisher
+covariance is then biased low (std(error/σ) 1.14-1.24 in simulation against 1.01-1.10 with the
+Fisher σ's). Sensor noise is not anticorrelated in time, so a σ below the Fisher σ is that bias,
+not information.
 """
 
 from __future__ import annotations
@@ -107,6 +115,23 @@ class SerialCovariance:
             return np.sqrt(np.diag(self.covariance) / np.diag(self.fisher))
 
 
+def at_least(cov: np.ndarray, floor: np.ndarray) -> np.ndarray:
+    """The covariance that is ``cov`` in every direction where it exceeds ``floor`` and ``floor``
+    elsewhere: the generalised eigenvalues λ of (cov, floor) clipped below at 1,
+    F^½ V max(Λ, 1) Vᵀ F^½ with F^{-½} cov F^{-½} = V Λ Vᵀ. The result is ≥ both in the PSD order, so
+    every linear combination's σ is at least its Fisher σ. Directions where ``floor`` is singular
+    keep ``cov``."""
+    d, U = np.linalg.eigh(0.5 * (floor + floor.T))
+    ok = d > d.max(initial=0.0) * 1e-12
+    if not ok.all():
+        return cov
+    half = U * np.sqrt(d)  # F^½ = half Uᵀ
+    inv = U / np.sqrt(d)
+    lam, V = np.linalg.eigh(inv.T @ (0.5 * (cov + cov.T)) @ inv)
+    B = half @ (V * np.sqrt(np.maximum(lam, 1.0)))
+    return B @ B.T
+
+
 def _elimination(solver, x, pf, d):
     """A function mapping sparse Jacobian rows (layout order, scaled x) to the eliminated rows Ĵ
     (rows, nθ): the nuisance variables (every variable outside ``solver.theta``) eliminated with the
@@ -182,11 +207,12 @@ def _rows(solver, x, pf, d):
 
 
 def serial_covariance(solver, x, p_fixed=None, data=None, lags: int | None = None,
-                      pooling: str = "sample") -> SerialCovariance | None:
+                      pooling: str = "sample", floor: bool = True) -> SerialCovariance | None:
     """The HAC covariance of ``solver.theta`` at scaled layout-order x (module docstring), or None
     when no factor block is a time series (``FactorBlock.series``). ``lags``: a fixed L instead of
     Andrews' plug-in (tests). ``pooling="channel"`` (with ``lags``; for comparison only): the
-    Bartlett sum of each channel's own scores, no correlation between channels."""
+    Bartlett sum of each channel's own scores, no correlation between channels. ``floor``: the
+    covariance is at least the Fisher one in every direction (:func:`at_least`; module docstring)."""
     if pooling not in ("sample", "channel") or (pooling == "channel" and lags is None):
         raise ValueError(f"pooling {pooling!r}: expected 'sample', or 'channel' with lags")
     if not any(getattr(b.block, "series", None) is not None for b in solver.blocks):
@@ -246,7 +272,7 @@ def serial_covariance(solver, x, p_fixed=None, data=None, lags: int | None = Non
     S = (bartlett(Gt, L) if pooling == "sample" else S_channels) + F_ind
     cov = C @ S @ C
     cov = 0.5 * (cov + cov.T) * np.outer(s, s)
-    return SerialCovariance(cov, C_phys, S_T, L, T, channels, rho, num, den)
+    return SerialCovariance(at_least(cov, C_phys) if floor else cov, C_phys, S_T, L, T, channels, rho, num, den)
 
 
 def std_by_group(solver, cov: np.ndarray) -> dict[str, np.ndarray]:
