@@ -39,7 +39,8 @@ from ..prepare.masks import saturation_mask
 from ..prepare.plausibility import check_dynamic_information, check_uniform_sampling
 from ..problem.effects import BY_KEY, MOTION, RATE
 from ..solver.motion_noise import COMPONENTS, fit_noise, noise_sigma, relaxed_fixed_point
-from ..solver.serial import serial_covariance, std_by_group
+from ..solver.serial import serial_covariance
+from ..solver.uncertainty import std_by_group
 
 #: A sensor with more than this fraction of its samples masked as saturated is refused.
 MAX_MASKED = 0.5

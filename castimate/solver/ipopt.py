@@ -283,13 +283,7 @@ class Solver:
             x = P.solution(np.asarray(sol["x"]).ravel(), pf)
         values = lay.unpack(x, pf)
         cov = self.covariance(x, pf, data)
-        sd = np.full(self.n_x, np.nan)
-        sd[self.theta] = np.sqrt(np.clip(np.diag(cov), 0, None))
-        std = {}
-        for g in lay.groups:
-            s = np.zeros(g.free.shape)
-            s[g.free] = sd[lay.x_indices(g.name)]
-            std[g.name] = g.shaped(s)
+        std = uncertainty.std_by_group(self, cov)
         residual = self.residuals(x, pf, data)
         cost = 0.5 * float(residual @ residual)
         lam = np.asarray(sol["lam_g"]).ravel()

@@ -273,17 +273,3 @@ def serial_covariance(solver, x, p_fixed=None, data=None, lags: int | None = Non
     cov = C @ S @ C
     cov = 0.5 * (cov + cov.T) * np.outer(s, s)
     return SerialCovariance(at_least(cov, C_phys) if floor else cov, C_phys, S_T, L, T, channels, rho, num, den)
-
-
-def std_by_group(solver, cov: np.ndarray) -> dict[str, np.ndarray]:
-    """σ per parameter group (zero where not free) from a covariance of ``solver.theta``, as in
-    :class:`castimate.problem.graph.Solution`'s ``std``."""
-    lay = solver.problem.layout
-    sd = np.full(solver.n_x, np.nan)
-    sd[solver.theta] = np.sqrt(np.clip(np.diag(cov), 0, None))
-    out = {}
-    for g in lay.groups:
-        v = np.zeros(g.free.shape)
-        v[g.free] = sd[lay.x_indices(g.name)]
-        out[g.name] = g.shaped(v)
-    return out

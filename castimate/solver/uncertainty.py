@@ -216,3 +216,15 @@ def newton_decrement(solver, x, lam_g, p_fixed=None, data=None) -> float:
     return g_nn + float(g_t @ step)
 
 
+def std_by_group(solver, cov: np.ndarray) -> dict[str, np.ndarray]:
+    """σ per parameter group (zero where not free) from a covariance of ``solver.theta``, as in
+    a :class:`castimate.problem.graph.Solution`'s ``std``."""
+    lay = solver.problem.layout
+    sd = np.full(solver.n_x, np.nan)
+    sd[solver.theta] = np.sqrt(np.clip(np.diag(cov), 0, None))
+    out = {}
+    for g in lay.groups:
+        v = np.zeros(g.free.shape)
+        v[g.free] = sd[lay.x_indices(g.name)]
+        out[g.name] = g.shaped(v)
+    return out
