@@ -333,20 +333,16 @@ def test_results_record_the_reported_sigmas(tmp_path):
     assert np.allclose(doc2["triads"]["imu32"]["position_std"], t["position_std_fisher"], rtol=1e-6)
 
 
-def test_at_least_clips_the_generalised_eigenvalues_at_one():
+def test_at_least_raises_each_variance_to_the_floor_keeping_correlations():
     """Hand-computed: against the floor F = diag(4, 1), a covariance 2F stays, F/2 becomes F, and
-    diag(8, 0.5) (twice F along x, half along y) becomes diag(8, 1); a rotated case is ≥ both in the
-    PSD order and equals the covariance where it already exceeds F."""
+    diag(8, 0.5) becomes diag(8, 1); a correlated case keeps its correlation coefficient, and a
+    parameter with zero variance takes the floor's row and column."""
     from castimate.solver.serial import at_least
 
     F = np.diag([4.0, 1.0])
     assert np.allclose(at_least(2 * F, F), 2 * F)
     assert np.allclose(at_least(F / 2, F), F)
     assert np.allclose(at_least(np.diag([8.0, 0.5]), F), np.diag([8.0, 1.0]))
-    c, s_ = np.cos(0.4), np.sin(0.4)
-    R = np.array([[c, -s_], [s_, c]])
-    cov = R @ np.diag([10.0, 0.2]) @ R.T
-    out = at_least(cov, F)
-    assert np.linalg.eigvalsh(out - F).min() > -1e-12 and np.linalg.eigvalsh(out - cov).min() > -1e-12
-    big = 3 * F + np.array([[1.0, 0.5], [0.5, 1.0]])
-    assert np.allclose(at_least(big, F), big)
+    cov = np.array([[9.0, 0.6], [0.6, 0.25]])  # σ 3 and 0.5, correlation 0.4
+    assert np.allclose(at_least(cov, F), [[9.0, 1.2], [1.2, 1.0]])  # σ 3 and 1, correlation 0.4
+    assert np.allclose(at_least(np.diag([5.0, 0.0]), F), np.diag([5.0, 1.0]))

@@ -30,8 +30,8 @@ autocorrelation ρ_a and innovation variance σ_a² of each channel's whitened r
 
 and L = round(S_T) (at least 1: white residuals give the Fisher information's empirical form).
 
-The reported covariance is at least the Fisher one in every direction (:func:`at_least`: the
-generalised eigenvalues of the pair clipped at 1). The sandwich is estimated from residuals, which
+Every reported σ is at least its Fisher σ (:func:`at_least`; the correlations stay the
+sandwich's). The sandwich is estimated from residuals, which
 the fit has shrunk (by its leverage, and across samples by the process model's smoothing, which
 makes neighbouring residuals anticorrelated); with white noise its scatter around the Fisher
 covariance is then biased low (std(error/σ) 1.14-1.24 in simulation against 1.01-1.10 with the
@@ -116,20 +116,17 @@ class SerialCovariance:
 
 
 def at_least(cov: np.ndarray, floor: np.ndarray) -> np.ndarray:
-    """The covariance that is ``cov`` in every direction where it exceeds ``floor`` and ``floor``
-    elsewhere: the generalised eigenvalues λ of (cov, floor) clipped below at 1,
-    F^½ V max(Λ, 1) Vᵀ F^½ with F^{-½} cov F^{-½} = V Λ Vᵀ. The result is ≥ both in the PSD order, so
-    every linear combination's σ is at least its Fisher σ. Directions where ``floor`` is singular
-    keep ``cov``."""
-    d, U = np.linalg.eigh(0.5 * (floor + floor.T))
-    ok = d > d.max(initial=0.0) * 1e-12
-    if not ok.all():
-        return cov
-    half = U * np.sqrt(d)  # F^½ = half Uᵀ
-    inv = U / np.sqrt(d)
-    lam, V = np.linalg.eigh(inv.T @ (0.5 * (cov + cov.T)) @ inv)
-    B = half @ (V * np.sqrt(np.maximum(lam, 1.0)))
-    return B @ B.T
+    """``cov`` with every parameter's variance raised to at least ``floor``'s, its correlations kept:
+    D cov D with D = diag(max(1, √(floor_ii / cov_ii))). A parameter whose variance in ``cov`` is
+    zero takes ``floor``'s row and column. (Clipping the generalised eigenvalues of the pair at 1
+    instead raises the σ's above both wherever the sandwich scatters above the Fisher covariance in
+    some directions and below it in others: 24 % above both on a simulated 8-IMU board.)"""
+    dc, df = np.diag(cov), np.diag(floor)
+    zero = ~(dc > 0)
+    s = np.where(zero, 1.0, np.sqrt(np.maximum(1.0, np.divide(df, dc, out=np.ones_like(dc), where=~zero))))
+    out = cov * np.outer(s, s)
+    out[zero, :], out[:, zero] = floor[zero, :], floor[:, zero]
+    return out
 
 
 def _elimination(solver, x, pf, d):
@@ -212,7 +209,7 @@ def serial_covariance(solver, x, p_fixed=None, data=None, lags: int | None = Non
     when no factor block is a time series (``FactorBlock.series``). ``lags``: a fixed L instead of
     Andrews' plug-in (tests). ``pooling="channel"`` (with ``lags``; for comparison only): the
     Bartlett sum of each channel's own scores, no correlation between channels. ``floor``: the
-    covariance is at least the Fisher one in every direction (:func:`at_least`; module docstring)."""
+    σ's are at least the Fisher ones (:func:`at_least`; module docstring)."""
     if pooling not in ("sample", "channel") or (pooling == "channel" and lags is None):
         raise ValueError(f"pooling {pooling!r}: expected 'sample', or 'channel' with lags")
     if not any(getattr(b.block, "series", None) is not None for b in solver.blocks):
