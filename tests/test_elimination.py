@@ -210,3 +210,26 @@ def test_stall_stops_after_iterations_that_do_not_move_x():
     assert s.eval([x + 1e-6 + 2e-12] + rest) == [1] and s.stalled
     s.reset()
     assert not s.stalled and s.eval([x] + rest) == [0]
+
+
+@pytest.mark.parametrize("kind", ["dynamic", "dynamic_no_process_model", "static"])
+def test_hessian_left_pending_equals_the_eager_one(kind):
+    """Without ``hessian`` the reduced evaluation leaves the Schur complement pending; asked for
+    afterwards at the same θ it equals the one computed with the objective and gradient, also
+    when the pending factors were given up in between (the covariance reuses their arrays), and
+    the objective and gradient do not depend on it. (Without the shortcut: the Hessian at the
+    nuisance optimum, not one Newton step before it, whatever the start.)"""
+    prob = CASES[kind]()
+    P = Solver(prob.lsq).projection
+    P.shortcut = False
+    pf = prob.lsq.layout.p0()
+    theta = P.reset(prob.lsq.layout.x0(), None)
+    f1, g1, S1 = P.reduced(theta, pf, None)
+    P.reset(prob.lsq.layout.x0(), None)
+    f2, g2, S2 = P.reduced(theta, pf, None, hessian=False)
+    assert S2 is None and f2 == f1 and relative(g2, g1) < 1e-12
+    np.testing.assert_array_equal(P.hessian(theta, pf, None), S1)
+    P.reset(prob.lsq.layout.x0(), None)
+    P.reduced(theta, pf, None, hessian=False)
+    P.marginal(P.x_full(theta, P._cache["X"]), pf, None)  # noqa: SLF001 - reuses the coupling's arrays
+    assert relative(P.hessian(theta, pf, None), S1) < 1e-9

@@ -133,14 +133,14 @@ class Solver:
         C_h = sp.csr_matrix((cat(vals, float), (cat(rows, int), cat(cols, int))), shape=(len(hr), c.numel()))
 
         def objective(a, o):
-            o[0][0] = P.reduced(a[0], a[1], P.data)[0]
+            o[0][0] = P.reduced(a[0], a[1], P.data, hessian=False)[0]
 
         def gradient(a, o):
-            f, g, _ = P.reduced(a[0], a[1], P.data)
+            f, g, _ = P.reduced(a[0], a[1], P.data, hessian=False)
             o[0][0], o[1][:] = f, g
 
         def hessian(a, o):
-            S = P.reduced(a[0], a[1], P.data)[2]
+            S = P.hessian(a[0], a[1], P.data)
             o[0][:] = S[hr, hc] * a[2][0] + C_h @ a[3]
 
         return self._nlpsol(x, p, c, objective, gradient, hessian, H_sp)
