@@ -82,14 +82,17 @@ def test_process_factor_derivatives_match_finite_differences(integration):
     assert np.allclose(np.asarray(J(z0, d0)), fd, rtol=1e-6, atol=1e-6 * np.abs(fd).max())
 
 
-def test_selected_inverse_matches_the_dense_inverse():
+@pytest.mark.parametrize("coupled", [True, False])
+def test_selected_inverse_matches_the_dense_inverse(coupled):
+    """With neighbours coupled (the forward/backward sweep) and without (independent stages: the
+    blocks' own inverses)."""
     rng = np.random.default_rng(2)
     N, m = 6, 3
     G = rng.standard_normal((3 * N * m, N * m)) * (np.abs(np.subtract.outer(np.arange(3 * N * m) // (3 * m),
                                                                              np.arange(N * m) // m)) <= 0)
     H = G.T @ G + np.diag(np.ones(N * m))
     for n in range(N - 1):  # couple neighbours
-        c = 0.3 * rng.standard_normal((m, m))
+        c = 0.3 * rng.standard_normal((m, m)) * coupled
         H[n * m:(n + 1) * m, (n + 1) * m:(n + 2) * m] += c
         H[(n + 1) * m:(n + 2) * m, n * m:(n + 1) * m] += c.T
     H += 3 * np.eye(N * m)

@@ -617,9 +617,12 @@ def fit_motion_noise(spec: ProblemSpec, problem, solver: Solver, sol: Solution, 
                     continue
                 base = data.acc_sigma if kind == "acc" else data.gyro_sigma
                 comps = {k: v for k, v in setting[sensor].items() if v != "none"}
-                fit = fit_noise([res[i][n] for n in names], [h[i][n] for n in names], [base[n] for n in names],
-                                {k: [regressors[i][n][k] for n in names] for k in comps}, comps,
-                                params[sensor], MOTION_NOISE_ALPHA)
+                try:
+                    fit = fit_noise([res[i][n] for n in names], [h[i][n] for n in names], [base[n] for n in names],
+                                    {k: [regressors[i][n][k] for n in names] for k in comps}, comps,
+                                    params[sensor], MOTION_NOISE_ALPHA)
+                except NotConvergedError as err:
+                    raise NotConvergedError(f"{spec.path}: noise.motion_dependent.{sensor}: {err}") from None
                 fits[sensor] = fit
                 proposal[sensor].update({k: f.value for k, f in fit.items()})
         return proposal, _sigma_change(data, regressors, proposal, params)
