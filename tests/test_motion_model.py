@@ -171,6 +171,16 @@ def test_redundancies_with_rows_reading_both_neighbours():
     for k, r in comps.items():
         assert red[k] == pytest.approx(len(r) - h[r].sum(), rel=1e-9, abs=1e-9)
     assert np.allclose(hat_diagonal(sp.csr_matrix(J), sp.csr_matrix((0, J.shape[1])), stages), h, atol=1e-10)
+    # rows that read no stage (a joint problem's static rows), alone in a chunk of their own
+    Jt = np.vstack([J, np.hstack([np.zeros((4, N * m)), rng.normal(size=(4, c))])])
+    ht = np.einsum("ri,ij,rj->r", Jt, np.linalg.inv(Jt.T @ Jt), Jt)
+    import castimate.solver.variance as var
+    chunk, var.CHUNK = var.CHUNK, 4
+    try:
+        got = hat_diagonal(sp.csr_matrix(Jt), sp.csr_matrix((0, J.shape[1])), stages, np.arange(len(J), len(Jt)))
+    finally:
+        var.CHUNK = chunk
+    assert np.allclose(got, ht[len(J):], atol=1e-10)
 
 
 def test_hat_diagonal_with_a_stage_no_row_reads():

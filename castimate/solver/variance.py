@@ -176,7 +176,8 @@ def hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None) 
         stage = Jk.col // m
         nnz = np.diff(Jmk.indptr)
         # a row's first stage: its smallest column (sorted indices); rows that read no stage: any
-        first = np.where(nnz > 0, Jmk.indices[np.minimum(Jmk.indptr[:-1], max(Jmk.nnz - 1, 0))] // m, 0)
+        first = np.zeros(Jmk.shape[0], int)
+        first[nnz > 0] = Jmk.indices[Jmk.indptr[:-1][nnz > 0]] // m
         first = np.minimum(first, max(N - 2, 0))
         V = np.zeros((Jmk.shape[0], 2 * m))
         rel = stage - first[Jk.row]
