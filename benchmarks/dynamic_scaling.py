@@ -727,7 +727,7 @@ def growth_rows(results: list[dict]) -> list[list[str]]:
 
 
 def text_table(columns, rows) -> str:
-    w = [max(len(c), *(len(r[i]) for r in rows)) for i, c in enumerate(columns)]
+    w = [max([len(c), *(len(r[i]) for r in rows)]) for i, c in enumerate(columns)]
     line = lambda cells: "  ".join(c.ljust(w[i]) for i, c in enumerate(cells))  # noqa: E731
     return "\n".join([line(columns), line(["-" * x for x in w]), *map(line, rows)])
 
@@ -794,18 +794,30 @@ def targets(results: list[dict]) -> list[str]:
 # --------------------------------------------------------------------------------------------
 
 REPO = Path(__file__).resolve().parent.parent
-#: case: (problem file in problems/, changes to its model section, target [s])
+#: case: (problem file in problems/, changes merged into its sections, target [s])
 REAL = {
     "mimu4444_dynamic": ("mimu4444_exp1_dynamic.yaml", {}, 3.0),
+    # the one white-noise solve the bundled file starts with: no motion-dependent noise model (its
+    # weighted refits) and the Fisher σ's (no HAC covariance)
+    "mimu4444_dynamic_white": ("mimu4444_exp1_dynamic.yaml", {"noise": {"motion_dependent": "none"},
+                                                              "uncertainty": {"residual_correlation": "none"}}, 3.0),
     "mimu4444_joint": ("mimu4444_exp1_joint.yaml", {}, 10.0),
     # 72 more calibration parameters: the g-sensitivity matrix of all 8 gyroscopes
-    "mimu4444_refit": ("mimu4444_exp1_dynamic.yaml", {"gyroscope": {"g_sensitivity": "free"}}, 20.0),
+    "mimu4444_refit": ("mimu4444_exp1_dynamic.yaml", {"model": {"gyroscope": {"g_sensitivity": "free"}}}, 20.0),
 }
+
+
+def _merge(into: dict, changes: dict) -> None:
+    for k, v in changes.items():
+        if isinstance(v, dict) and isinstance(into.get(k), dict):
+            _merge(into[k], v)
+        else:
+            into[k] = v
 
 
 def real_problem(case: str, elimination: str, data_root: Path, out: Path) -> Path:
     """A copy of the case's problem file with absolute paths (data under ``data_root`` when the
-    relative path does not resolve, as in a worktree), the case's model changes and
+    relative path does not resolve, as in a worktree), the case's changes and
     ``solver.elimination``."""
     import yaml
     name, changes, _ = REAL[case]
@@ -821,8 +833,7 @@ def real_problem(case: str, elimination: str, data_root: Path, out: Path) -> Pat
     spec["data"]["path"] = resolve(spec["data"]["path"])
     if "intrinsics" in spec.get("model", {}):
         spec["model"]["intrinsics"] = resolve(spec["model"]["intrinsics"])
-    for sensor, groups in changes.items():
-        spec["model"].setdefault(sensor, {}).update(groups)
+    _merge(spec, changes)
     spec.setdefault("solver", {})["elimination"] = elimination
     path = out / f"{case}_{elimination}.yaml"
     path.write_text(yaml.safe_dump(spec, sort_keys=False))
