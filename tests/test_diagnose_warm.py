@@ -106,3 +106,33 @@ def test_an_unconverged_cross_validation_fold_is_reported(spec, monkeypatch):
     r = confirm(session, model, test, level=0.01)
     assert not r.accepted and r.reason.startswith("no cross-validation fold was predicted by both models")
     assert len(r.cv_after.failed) == 5
+
+
+def test_cross_validation_folds_compute_no_uncertainty(spec, monkeypatch):
+    """The folds use their fits' estimates only: no Fisher or HAC σ's are computed for them, and the
+    estimates are those of the solve with σ's (the same iterations; only what follows them is skipped)."""
+    from dataclasses import replace
+
+    from castimate.solver import ipopt, uncertainty
+    from castimate.solver.ipopt import Solver
+
+    session = Session(spec)
+    model = session.fit()
+    out = model.outcome
+    # the same solve with and without the σ's: identical estimates, none of the σ's
+    x0 = out.problem.lsq.layout.x0(out.solution.values)
+    with_std = Solver(out.problem.lsq, spec.solver).solve(x0)
+    without = Solver(out.problem.lsq, replace(spec.solver, covariance=False)).solve(x0)
+    assert with_std.success and without.success
+    np.testing.assert_array_equal(without.x, with_std.x)
+    assert without.cost == with_std.cost and without.covariance is None and without.std == {}
+    assert with_std.covariance is not None and with_std.std
+
+    def forbidden(*a, **k):
+        raise AssertionError("a cross-validation fold computed σ's")
+
+    monkeypatch.setattr(uncertainty, "covariance", forbidden)
+    monkeypatch.setattr(dynamic, "serial_covariance", forbidden)
+    monkeypatch.setattr(ipopt.uncertainty, "covariance", forbidden)
+    cv = session.cross_validate(model.effects, start=model)
+    assert not cv.failed and np.isfinite(cv.rms) and len(cv.fold_n) == 5

@@ -840,6 +840,9 @@ class DynamicKind:
         held-out ones (the same optima, without the search from the nominal poses). A fold whose fit
         or prediction does not converge is left out and named in ``CrossValidation.failed``."""
         d = data.data
+        # the folds use the fits' estimates only: no σ's (Fisher or HAC) are computed for them
+        spec = replace(spec, solver=replace(spec.solver, covariance=False),
+                       uncertainty=replace(spec.uncertainty, residual_correlation="none"))
         fold = np.arange(d.n) * folds // d.n
         per_sample = [] if start is None else [g.name for g in start.problem.lsq.layout.groups
                                                if g.nuisance and g.matrix and g.rows == start.data.n]

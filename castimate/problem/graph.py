@@ -45,6 +45,10 @@ class SolverOptions:
         only the calibration parameters dense. ``none``: the full NLP with every nuisance variable,
         its KKT system factorised by MUMPS (the reference path). Problems without such nuisance
         rows solve the same either way.
+    covariance
+        Compute the Fisher covariance and the σ's at the solution (default). ``False`` leaves
+        ``Solution.covariance`` None and ``Solution.std`` empty: for fits whose estimates alone are
+        used, e.g. the folds of a cross-validation (not a problem-file key).
     """
 
     method: str = "ipopt"
@@ -56,6 +60,7 @@ class SolverOptions:
     identifiability_tol: float = 1e-10
     jit: bool = True
     elimination: str = "motion"
+    covariance: bool = True
 
     def ipopt(self) -> dict:
         return {

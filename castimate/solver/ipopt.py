@@ -282,8 +282,8 @@ class Solver:
         else:
             x = P.solution(np.asarray(sol["x"]).ravel(), pf)
         values = lay.unpack(x, pf)
-        cov = self.covariance(x, pf, data)
-        std = uncertainty.std_by_group(self, cov)
+        cov = self.covariance(x, pf, data) if self.options.covariance else None
+        std = uncertainty.std_by_group(self, cov) if cov is not None else {}
         residual = self.residuals(x, pf, data)
         cost = 0.5 * float(residual @ residual)
         lam = np.asarray(sol["lam_g"]).ravel()
