@@ -233,3 +233,34 @@ def test_hessian_left_pending_equals_the_eager_one(kind):
     P.reduced(theta, pf, None, hessian=False)
     P.marginal(P.x_full(theta, P._cache["X"]), pf, None)  # noqa: SLF001 - reuses the coupling's arrays
     assert relative(P.hessian(theta, pf, None), S1) < 1e-9
+
+
+@pytest.mark.parametrize("kind", ["dynamic_no_process_model", "static_quaternion"])
+@pytest.mark.parametrize("elimination", ["motion", "none"])
+def test_newton_decrement_leaves_the_marginal_information_of_its_point(kind, elimination):
+    """The score test asks for the decrement and the identifiability check at one point: the
+    decrement's elimination is kept (``Solver.marginal_memo``) and is the marginal information a
+    fresh solver computes there; at another point the memo is not used."""
+    from castimate.solver import uncertainty
+    prob = CASES[kind]()
+    opts = SolverOptions(elimination=elimination)
+    solver, fresh = Solver(prob.lsq, opts), Solver(prob.lsq, opts)
+    x = prob.lsq.layout.x0() + 1e-3 * np.random.default_rng(3).standard_normal(solver.n_x)
+    solver.newton_decrement(x, np.zeros(solver.n_constraints))
+    assert solver.marginal_memo is not None
+    calls = []
+    original = uncertainty.eliminate
+    uncertainty.eliminate = lambda *a, **k: calls.append(1) or original(*a, **k)
+    try:
+        S, G = solver.marginal_information(x)
+        assert not calls  # from the memo
+        S0, G0 = fresh.marginal_information(x)
+        assert calls  # computed
+        np.testing.assert_allclose(S, S0, rtol=1e-12, atol=1e-12 * np.abs(S0).max())
+        np.testing.assert_array_equal(G, G0)
+        assert solver.undetermined(x) == fresh.undetermined(x)
+        calls.clear()
+        solver.marginal_information(x + 1e-6)
+        assert calls  # another point: computed again
+    finally:
+        uncertainty.eliminate = original

@@ -338,10 +338,12 @@ def score_test(session: Session, model: Model, effect: Effect) -> ScoreTest:
         if p_min >= ALPHA:
             return ScoreTest(effect.key, k, np.nan, np.nan, np.nan, -np.inf,
                              f"no chip's implied-age periodogram has a significant peak (p = {min(p_min, 1):.2g})")
+    # the decrement first: its elimination leaves the marginal information that the identifiability
+    # check then reads (Solver.marginal_memo), so the nuisance block is eliminated once per candidate
+    lm = solver.newton_decrement(x, np.zeros(solver.n_constraints))
     bad = solver.undetermined(x)
     if bad:
         return ScoreTest(effect.key, k, np.nan, np.nan, np.nan, -np.inf, f"not determined by these data: {bad[0]}")
-    lm = solver.newton_decrement(x, np.zeros(solver.n_constraints))
     F = lm / (k * model.s2)
     return ScoreTest(effect.key, k, lm, F, float(stats.f.sf(F, k, model.dof)), _z(F, k))
 

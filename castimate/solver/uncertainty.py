@@ -206,6 +206,10 @@ def newton_decrement(solver, x, lam_g, p_fixed=None, data=None) -> float:
         S, G_t, g_t, g_nn = eliminate(solver, x, p_fixed, data, g)
     except np.linalg.LinAlgError:
         return float("inf")
+    # the same marginal information as marginal_information's at x: kept for the identifiability
+    # check or covariance that follows (the score test asks for both at one point)
+    x = np.asarray(x, float)
+    solver.marginal_memo = ((x.tobytes(), pf.tobytes(), None if d is None else hash(d.tobytes())), S.copy(), G_t.copy())
     nt, c = S.shape[0], G_t.shape[0]
     K = np.zeros((nt + c, nt + c))
     K[:nt, :nt], K[nt:, :nt], K[:nt, nt:] = S, G_t, G_t.T
