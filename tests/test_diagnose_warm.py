@@ -136,3 +136,4 @@ def test_cross_validation_folds_compute_no_uncertainty(spec, monkeypatch):
     monkeypatch.setattr(ipopt.uncertainty, "covariance", forbidden)
     cv = session.cross_validate(model.effects, start=model)
     assert not cv.failed and np.isfinite(cv.rms) and len(cv.fold_n) == 5
+

@@ -444,19 +444,20 @@ def solve_dynamic(config: DynamicConfig, data: DynamicData, nominal: dict, optio
         # After a diverged attempt the other path is tried: the exact Hessian from the start.
         gauss_newton_first = (attempt == 1) if from_start else \
             not has_gyro and options.hessian == "exact" and not diverged
-        gn = solver_of("gauss_newton") if attempt == 0 or gauss_newton_first else None
+        gn = solver_of("gauss_newton") if gauss_newton_first else None
+        solver = solver_of(options.hessian)
         if gauss_newton_first:
             first = gn.solve(x0)
             log(f"  Gauss-Newton: {first.message} in {first.iterations} iterations, {first.wall_s:.2f} s")
             x0, lam = first.x, first.lam_g
         if attempt == 0:
             # at a point with motion: the gyro-aided start, or the Gauss-Newton solution (at zero
-            # angular motion nothing about the geometry is observable)
-            bad = gn.undetermined(lay.x0() if x0 is None else x0)
+            # angular motion nothing about the geometry is observable). The Fisher information is
+            # J^T J whichever Hessian the solver uses: no Gauss-Newton solver is built for the check.
+            bad = (gn or solver).undetermined(lay.x0() if x0 is None else x0)
             if bad:
                 raise InputError(path, "model", f"the data cannot determine {len(bad)} direction(s): "
                                  f"{'; '.join(bad[:3])}; fix these parameters, give them priors, or enable the process model")
-        solver = solver_of(options.hessian)
         sol = solver.solve(x0, lam_g0=lam)
         if not sol.success and first is not None and first.success and \
                 solver.newton_decrement(first.x, first.lam_g) < 1e-6:
