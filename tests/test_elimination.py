@@ -264,3 +264,29 @@ def test_newton_decrement_leaves_the_marginal_information_of_its_point(kind, eli
         assert calls  # another point: computed again
     finally:
         uncertainty.eliminate = original
+
+
+@pytest.mark.parametrize("kind", ["dynamic", "dynamic_no_process_model", "dynamic_sample_ages"])
+def test_gradient_first_near_the_optimum_keeps_the_reduced_objective_gradient_and_hessian(kind):
+    """Once a prediction of the nuisance was converged, the next point is accepted on the gradient
+    alone with the previous point's factors (no full evaluation unless the Hessian is asked for):
+    φ and ∇φ equal those of the path that evaluates everything, to round-off, and the Hessian
+    asked for afterwards is the full evaluation's."""
+    prob = CASES[kind]()
+    solver = Solver(prob.lsq)
+    P = solver.projection
+    sol = solver.solve()
+    pf = prob.lsq.layout.p0()
+    th0 = P.reset(sol.x, None)
+    theta = th0 + 1e-7 * np.random.default_rng(2).standard_normal(P.c)
+    P.reduced(th0, pf, None, hessian=False)
+    anchor, last, before = P._anchor, P._last_dec, P.grad_firsts  # noqa: SLF001
+    assert last <= P.grad_first_dec
+    f1, g1, S1 = P.reduced(theta, pf, None, hessian=False)
+    assert P.grad_firsts == before + 1 and S1 is None
+    S1 = P.hessian(theta, pf, None)
+    P._cache, P._anchor, P.shortcut = None, anchor, False  # noqa: SLF001
+    f2, g2, S2 = P.reduced(theta, pf, None)
+    assert abs(f1 - f2) < 1e-12 * (1 + abs(f2))
+    assert relative(g1, g2) < 1e-9
+    assert relative(S1, S2) < 1e-9
