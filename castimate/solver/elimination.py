@@ -359,8 +359,13 @@ class _StageFunctions:
             F, layout = self._build(f"{fn.name()}_{mode}_stages", fn, names, width, red, tgt, K, nc, nd, widths)
             functions.append(F)
             self.layout[mode] = layout
+        # the residuals themselves, instance by instance (K m per stage group, the block's order)
+        zc, zs, d = ca.MX.sym("zc", K * nc), ca.MX.sym("zs", inner_fn.size1_in(1)), ca.MX.sym("d", K * nd)
+        r = ca.vec(f.symbolic["res"].map(K, "serial")(ca.reshape(zc, nc, K), ca.repmat(zs, 1, K), ca.reshape(d, nd, K)))
+        functions.append(ca.Function(f"{f.symbolic['res'].name()}_vec_stages", [zc, zs, d], [0.5 * ca.sumsqr(r), r]))
+        self.layout["vec"] = (True, [], [], 1, K * f.m)
         compiled = (compile_functions(functions) if jit else None) or functions
-        self.fns = dict(zip(specs, compiled))
+        self.fns = dict(zip([*specs, "vec"], compiled))
         self._buffers: dict = {}
 
     @staticmethod
@@ -652,11 +657,23 @@ class Projection:
         """One local function (res or jac) of every block over all instances, original order."""
         w = np.concatenate([x * self.xscale, pf])
         out = []
+        whole = {u.parent: u for u in self.units if u.stage_fns is not None and u.rows is None and u.order is None}
         for i, b in enumerate(self.blocks):
             fn = getattr(b.f, which)
             D = self._data(i, data)
             nc = b.f.n_cal
             R = np.empty((b.block.n, fn.size1_out(0) * fn.size2_out(0)))
+            if which == "res" and i in whole:  # a stage group at a time: the calibration inputs gathered once
+                sf, sb = whole[i].stage_fns, whole[i].st[1]
+                K, W = sb.K, b.w_idx
+                Zc = np.take(w, W[:K, :nc])
+                step = max(1, STAGE_CHUNK // K)
+                for j0 in range(0, sb.J, step):
+                    j1 = min(sb.J, j0 + step)
+                    _, T = sf("vec", Zc, np.take(w, W[j0 * K: j1 * K: K, nc:]), D[j0 * K: j1 * K].reshape(j1 - j0, -1))
+                    R[j0 * K: j1 * K] = T.reshape(-1, R.shape[1])
+                out.append(R)
+                continue
             for t0 in range(0, b.block.n, CHUNK):
                 t1 = min(b.block.n, t0 + CHUNK)
                 b.f(fn, _inputs(w, b.w_idx[t0:t1], nc) + [D[t0:t1]], [R[t0:t1]])
