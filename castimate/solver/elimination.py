@@ -34,8 +34,8 @@ nuisance components alone for the inner steps, land on the eliminated system's a
 small constant maps in numpy (:class:`_Plan`).
 
 Measured against the reference path (the full NLP, KKT factorised by MUMPS), same start, same
-optimum to 1e-13 relative, in ``benchmarks/dynamic_scaling.py``: at 32 IMUs x 20 000 samples 6.5 s
-CPU and 742 MB against 15.7 s and 2.7 GB.
+optimum to 1e-13 relative, in ``benchmarks/dynamic_scaling.py``: at 32 IMUs x 20 000 samples 5.1 s
+CPU and 714 MB against 13.6 s and 2.7 GB (load 4.5).
 """
 
 from __future__ import annotations
