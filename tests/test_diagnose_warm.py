@@ -137,3 +137,25 @@ def test_cross_validation_folds_compute_no_uncertainty(spec, monkeypatch):
     cv = session.cross_validate(model.effects, start=model)
     assert not cv.failed and np.isfinite(cv.rms) and len(cv.fold_n) == 5
 
+
+
+def test_a_refit_without_sigmas_gets_the_same_sigmas_later(spec):
+    """Diagnose fits a candidate for its estimates alone and adds the σ's (Fisher, then HAC) only to
+    the model that ends the search: the same σ's and serial-correlation record as a fit that
+    computed them, and the same estimates."""
+    session = Session(spec)
+    model = session.fit()
+    full = session.fit((EFFECT,), start=model)
+    bare = session.fit((EFFECT,), start=model, sigmas=False)
+    assert bare.outcome.solution.covariance is None and bare.outcome.solution.std == {}
+    assert bare.outcome.spec == full.outcome.spec  # the problem as declared, not the σ-less variant
+    np.testing.assert_array_equal(bare.outcome.solution.x, full.outcome.solution.x)
+    done = session.with_sigmas(bare)
+    assert session.with_sigmas(done) is done and session.with_sigmas(full) is full
+    a, b = done.outcome.solution, full.outcome.solution
+    np.testing.assert_allclose(a.covariance, b.covariance, rtol=1e-9, atol=0)
+    assert a.std.keys() == b.std.keys()
+    for k in b.std:
+        np.testing.assert_allclose(a.std[k], b.std[k], rtol=1e-9, atol=0)
+    assert done.outcome.serial["reported"] == full.outcome.serial["reported"] == "hac"
+    assert done.outcome.serial["bandwidth_samples"] == full.outcome.serial["bandwidth_samples"]

@@ -116,14 +116,26 @@ class Session:
         self.clock = Stopwatch()  # fits, cross-validation, score tests
 
     def fit(self, effects=(), start: Model | None = None, spec: ProblemSpec | None = None,
-            stage: str = "fits") -> Model:
+            stage: str = "fits", sigmas: bool = True) -> Model:
         """The model with ``effects`` added to the declared ones (of ``spec``, default: the
         declared problem under white noise), started from ``start``'s fit when warm; its time is
-        counted under ``stage``."""
+        counted under ``stage``. ``sigmas=False`` (kinds with ``estimate`` and ``with_sigmas``:
+        dynamic sessions): the estimates alone, e.g. a candidate's refit, whose σ's are reported
+        only if it ends the search (:meth:`with_sigmas`)."""
         s = with_effects(spec or self.spec, effects)
         kw = {"start": start.outcome} if self.warm and start is not None else {}
         with self.clock(stage):
+            if not sigmas and hasattr(self.kind, "estimate"):
+                return Model(s.model.effects, self.kind.estimate(s, self.data, _indent(self.log), **kw))
             return Model(s.model.effects, self.kind.calibrate(s, self.data, _indent(self.log), quick=True, **kw))
+
+    def with_sigmas(self, model: Model) -> Model:
+        """``model`` with its σ's, if it was fitted without them (:meth:`fit`)."""
+        if not hasattr(self.kind, "with_sigmas"):
+            return model
+        with self.clock("fits"):
+            outcome = self.kind.with_sigmas(model.outcome)
+        return model if outcome is model.outcome else Model(model.effects, outcome, model.cv)
 
     def augmented(self, model: Model, effects) -> Solver:
         """The Gauss-Newton solver of the model with ``effects`` added (same session regressors)."""
@@ -355,7 +367,7 @@ def confirm(session: Session, model: Model, test: ScoreTest, level: float) -> Re
     prediction did not converge is left out of both, and the reason says which (no fold in common:
     the candidate is not confirmed)."""
     try:
-        new = session.fit(model.effects + (test.effect,), start=model)
+        new = session.fit(model.effects + (test.effect,), start=model, sigmas=False)  # σ's: if it ends the search
     except CastimateError as e:  # not identifiable after all, or no convergence: the candidate is not confirmed
         nan = CrossValidation(0, np.nan, np.nan, np.nan)
         return Refit(test.effect, test.k, model.chi2, np.nan, np.nan, np.nan, model.cv or nan, nan, np.nan, False,
@@ -461,6 +473,7 @@ def diagnose(spec: ProblemSpec, log: Log = quiet, alpha: float = ALPHA, session:
         model = accepted[0].model
     if model is before:
         before.cv = before.cv or session.cross_validate(before.effects, start=before)
+    model = session.with_sigmas(model)  # the refits were fitted for their estimates alone
     analyse = lambda m: analyse_residuals(*session.residuals(m.outcome), m.dof)  # noqa: E731
     timing = (lambda m: timing_traces(m.outcome)) if session.kind.sampled else (lambda m: [])  # noqa: E731
     final = model

@@ -771,6 +771,13 @@ def orientation_quaternion(outcome: DynamicOutcome, name: str) -> np.ndarray:
 # The kind (castimate.kinds.Kind)
 # ---------------------------------------------------------------------------------------------
 
+def estimates_only(spec: ProblemSpec) -> ProblemSpec:
+    """``spec`` fitted for its estimates alone: no Fisher covariance after the solve and no HAC σ's
+    (cross-validation folds, diagnose's refits until one is reported: :meth:`DynamicKind.with_sigmas`)."""
+    return replace(spec, solver=replace(spec.solver, covariance=False),
+                   uncertainty=replace(spec.uncertainty, residual_correlation="none"))
+
+
 class DynamicKind:
     """Sampled motion of an array (Carlsson 2017, Schopp 2016): ω, ω̇, s per sample; optionally
     joint with the static poses of ``data.static``."""
@@ -801,6 +808,26 @@ class DynamicKind:
                   start: DynamicOutcome | None = None) -> DynamicOutcome:
         """``start``: a fit of the same samples (another model of the session) to start from."""
         return calibrate_dynamic(spec, log, loaded=data, start=None if start is None else start.solution.values)
+
+    def estimate(self, spec: ProblemSpec, data: DynamicInput, log: Log = quiet,
+                 start: DynamicOutcome | None = None) -> DynamicOutcome:
+        """:meth:`calibrate` for the estimates alone (:func:`estimates_only`; the outcome keeps
+        ``spec``): the σ's it asks for are added later, if needed, by :meth:`with_sigmas`."""
+        out = calibrate_dynamic(estimates_only(spec), log, loaded=data, start=None if start is None
+                                else start.solution.values)
+        return replace(out, spec=spec)
+
+    def with_sigmas(self, outcome: DynamicOutcome) -> DynamicOutcome:
+        """``outcome`` with the σ's its spec asks for (Fisher covariance, then HAC with
+        ``uncertainty.residual_correlation: auto``) if it was fitted without them; the same σ's as
+        a fit that computed them."""
+        if outcome.solution.covariance is not None:
+            return outcome
+        solver, sol = outcome.solver, outcome.solution
+        cov = solver.covariance(sol.x)
+        sol = replace(sol, covariance=cov, std=std_by_group(solver, cov))
+        sol, serial = serial_uncertainty(outcome.spec, outcome.problem, solver, sol, outcome.data)
+        return replace(outcome, solution=sol, serial=serial)
 
     def nuisance_only(self, config: DynamicInputs) -> DynamicInputs:
         """Intrinsics and positions fixed at their start values: the array's per-sample ML motion
@@ -841,9 +868,7 @@ class DynamicKind:
         held-out ones (the same optima, without the search from the nominal poses). A fold whose fit
         or prediction does not converge is left out and named in ``CrossValidation.failed``."""
         d = data.data
-        # the folds use the fits' estimates only: no σ's (Fisher or HAC) are computed for them
-        spec = replace(spec, solver=replace(spec.solver, covariance=False),
-                       uncertainty=replace(spec.uncertainty, residual_correlation="none"))
+        spec = estimates_only(spec)  # the folds use the fits' estimates only: no σ's are computed for them
         fold = np.arange(d.n) * folds // d.n
         per_sample = [] if start is None else [g.name for g in start.problem.lsq.layout.groups
                                                if g.nuisance and g.matrix and g.rows == start.data.n]
