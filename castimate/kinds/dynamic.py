@@ -333,6 +333,9 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = quiet, max_restarts: int = 2
             log("  " + ", ".join(f"{n} {b.nu:+.4f} Hz" for n, b in beats.items()))
             loaded = replace(loaded, regressors=loaded.regressors.with_beats(
                 {n: (b.nu, b.phi) for n, b in beats.items()}))
+            # the fit without the sawtooth is where the full one starts (from the nominal poses the
+            # refined MIMU4444 exp_1 problem's nuisance steps did not converge)
+            start = start if start is not None else pre.solution.values
     inputs = dynamic_inputs(spec, log, loaded)
     config, data, sat, nominal, static_problem = (inputs.config, inputs.data, inputs.saturation, inputs.nominal,
                                                   inputs.static_problem)
