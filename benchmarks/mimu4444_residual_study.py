@@ -190,7 +190,7 @@ class Study:
 
 def hypotheses(st: Study) -> list[tuple[str, int, float]]:
     """(candidate, coefficients, χ² drop) of every deterministic candidate term."""
-    K, w, wd, cr = st.K, st.w, st.wd, np.cross
+    w, wd, cr = st.w, st.wd, np.cross
     cov = np.stack([cr(wd, cr(wd, r)) for r in st.pos])
     ug = st.sensor(w, gyro=True)
     agd = st.age + st.delay[:, None]
