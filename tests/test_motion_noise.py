@@ -4,6 +4,7 @@ the hat matrix, the simulator's timing jitter against the analytic motion, recov
 on a simulated board with jittering chips, nothing found without jitter, and the problem file's
 errors."""
 
+import functools
 import json
 from dataclasses import replace
 
@@ -11,12 +12,12 @@ import numpy as np
 import pytest
 import yaml
 
+from castimate.errors import NotConvergedError
 from castimate.kinds.dynamic import calibrate_dynamic
 from castimate.simulate.dynamic import dynamic_measurements, smooth_random_motion
 from castimate.simulate.effects import jitter_ages
 from castimate.simulate.scenarios import simulate_scenario
 from castimate.solver.motion_noise import fit_noise, noise_sigma, relaxation, relaxed_fixed_point
-from castimate.errors import NotConvergedError
 from castimate.solver.variance import negative_log_likelihood, score_information, variance_components
 from castimate.spec import load_problem, motion_noise_setting
 
@@ -221,6 +222,18 @@ def test_no_jitter_nothing_added(tmp_path):
     out = calibrate_dynamic(spec)
     assert all(c["value"] == 0.0 for s in ("accelerometer", "gyroscope") for c in out.motion_noise[s].values())
     assert out.motion_noise["rounds"] == 0 and out.data.sigma_sample == {}
+
+
+def test_unconverged_components_named_in_one_line(tmp_path, monkeypatch):
+    """A variance-component iteration that reaches its limit is an error naming the problem file and
+    the sensor's key, never a silently used estimate."""
+    import castimate.solver.motion_noise as mn
+    spec, _ = _board(tmp_path, 1e-4)
+    monkeypatch.setattr(mn, "variance_components", functools.partial(mn.variance_components, max_iter=1))
+    with pytest.raises(NotConvergedError, match=r"problem\.yaml: noise\.motion_dependent\.(accelerometer|gyroscope): "
+                                                r"the variance components did not converge in 1 iterations") as err:
+        calibrate_dynamic(spec)
+    assert "\n" not in str(err.value)
 
 
 @pytest.mark.parametrize("value, where, found", [
