@@ -131,6 +131,9 @@ class ArraySpec:
         return [t.name for t in self.triads]
 
 
+#: ``model.sample_age``: the Taylor order of a reading's sample age, u(t − a) ≈ u − a u̇ (+ ½ a² ü).
+SAMPLE_AGE_ORDERS = ("first_order", "second_order")
+
 @dataclass(frozen=True)
 class ModelSpec:
     gravity: float
@@ -140,6 +143,7 @@ class ModelSpec:
     intrinsics: Path | None = None  # a results.json whose values start (and by default fix) the intrinsics
     effects: tuple[str, ...] = ()  # included effects, "sensor.name" keys in library order
     reuse: str = "fixed"  # fixed | prior: how the intrinsics of model.intrinsics enter (prior: N(value, σ²))
+    sample_age: str = "first_order"  # first_order | second_order: the timing effects' Taylor order (dynamic)
 
     def effect_settings(self, triad: str, sensor: str) -> dict:
         """The included effects' settings of one triad's sensor, by effect name (absent: not included there)."""
@@ -456,7 +460,7 @@ def _model(c: Check, m, array: ArraySpec, kind: str = "static_array", base: Path
     """``joint``: a dynamic problem with a static phase, whose intrinsics default to free as in the static kind."""
     dynamic = kind == "dynamic_array"
     m = c.mapping(m, "model", ("gravity", "gravity_direction", "misalignment", "accelerometer", "gyroscope",
-                               "triads", "intrinsics", "reuse") + (("position",) if dynamic else ()))
+                               "triads", "intrinsics", "reuse") + (("position", "sample_age") if dynamic else ()))
     intrinsics = None
     if "intrinsics" in m:
         intrinsics = (base / _path_text(c, m["intrinsics"], "model.intrinsics",
@@ -544,7 +548,8 @@ def _model(c: Check, m, array: ArraySpec, kind: str = "static_array", base: Path
                 settings[name, sensor, g] = GroupSetting(**s)
     included = {(sensor, g) for (_, sensor, g) in settings if g in effects.get(sensor, {})}
     keys = tuple(e.key for sensor in SENSOR_GROUPS for g, e in effects[sensor].items() if (sensor, g) in included)
-    return ModelSpec(gravity, direction, mis, settings, intrinsics, keys, reuse)
+    order = c.choice(m.get("sample_age", "first_order"), "model.sample_age", SAMPLE_AGE_ORDERS)
+    return ModelSpec(gravity, direction, mis, settings, intrinsics, keys, reuse, order)
 
 
 #: The levels of each integration (motion section of a problem file).

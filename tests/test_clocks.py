@@ -58,39 +58,80 @@ def test_specific_force_rate_matches_finite_differences():
     assert np.allclose(analytic, (f(t + h) - f(t - h)) / (2 * h), rtol=1e-6, atol=1e-8)
 
 
-def _config(effects):
+def _config(effects, age_order=1):
     free = GroupSetting(free=(True,) * 3)
     t = TriadConfig("a", np.eye(3), {g: free for g in ("gain", "bias", "nonorthogonality", "misalignment")},
                     {g: free for g in ("gain", "bias", "misalignment")}, np.zeros(3))
-    return DynamicConfig((t,), "a", effects=tuple(effects))
+    return DynamicConfig((t,), "a", effects=tuple(effects), age_order=age_order)
+
+
+def test_specific_force_acceleration_matches_finite_differences():
+    """f̈ of the rigid-body specific force against a central difference of ḟ along a smooth motion."""
+    r = np.array([0.01, -0.02, 0.005])
+
+    def state(t):
+        w = np.array([np.sin(3 * t), 2 * np.cos(2 * t), t ** 2])
+        wd = np.array([3 * np.cos(3 * t), -4 * np.sin(2 * t), 2 * t])
+        wdd = np.array([-9 * np.sin(3 * t), -8 * np.cos(2 * t), 2.0])
+        wddd = np.array([-27 * np.cos(3 * t), 16 * np.sin(2 * t), 0.0])
+        s, sd, sdd = np.array([np.cos(t), t ** 3, 1.0]), np.array([-np.sin(t), 3 * t ** 2, 0.0]), np.array([-np.cos(t), 6 * t, 0.0])
+        return w, wd, wdd, wddd, s, sd, sdd
+
+    def f_dot(t):
+        w, wd, wdd, _, _, sd, _ = state(t)
+        return ev(mot.specific_force_rate(*(ca.DM(x) for x in (sd, w, wd, wdd, r))))
+
+    t, h = 0.7, 1e-6
+    w, wd, wdd, wddd, _, _, sdd = state(t)
+    analytic = ev(mot.specific_force_acceleration(*(ca.DM(x) for x in (sdd, w, wd, wdd, wddd, r))))
+    assert np.allclose(analytic, (f_dot(t + h) - f_dot(t - h)) / (2 * h), rtol=1e-6, atol=1e-8)
 
 
 def test_clock_beat_acts_on_both_sensors_by_hand():
     """A = 1 ms, beat regressor 0.25: the chip's samples are 0.25 ms old. The gyroscope reads
-    ω − a ω̇; the accelerometer reads f − a ḟ with ṡ, ω̈ from the neighbours' central differences."""
-    cfg = _config([BEAT])
+    ω − a ω̇ + ½ a² ω̈; the accelerometer reads f − a ḟ + ½ a² f̈ with ṡ, ω̈ from the neighbours' central
+    differences and s̈, ω⃛ from their central second differences (Δt = 50 ms); to first order
+    (``model.sample_age: first_order``, the default) without the ½ a² terms."""
+    cfg = _config([BEAT], age_order=2)
     assert [e.key for e in fxs.acting_on(cfg.effects, "gyroscope")] == [BEAT]
     k, m, b = np.ones(3), np.zeros(3), np.zeros(3)
     w, wd = np.array([1.0, 2.0, 3.0]), np.array([100.0, -50.0, 20.0])
     reg = np.array([0, 0, 0, 0, 0.25])
-    d = lambda y: np.concatenate([y, np.ones(3), np.eye(3).ravel(), reg, [10.0]])  # noqa: E731  (1/(2 Δt), Δt = 50 ms)
+    # 1/(2 Δt) = 10 and 1/Δt² = 400 for Δt = 50 ms
+    d = lambda y: np.concatenate([y, np.ones(3), np.eye(3).ravel(), reg, [10.0, 400.0]])  # noqa: E731
+    a = 0.25e-3
     G = gyroscope_sample_factor(cfg)
-    assert np.allclose(ev(G(np.concatenate([k, m, b, w, wd, [1e-3]]), d(w))), 0.25e-3 * wd)  # y = ω: residual a ω̇
+    wdd = np.full(3, 25.0)  # ω̈ = (1.5 + 1) · 10 per axis
+    z = np.concatenate([k, m, b, w, wd, [1e-3], wd - 1.0, wd + 1.5])
+    assert np.allclose(ev(G(z, d(w))), a * wd - 0.5 * a ** 2 * wdd, rtol=1e-12, atol=0)  # y = ω
     A = accelerometer_sample_factor(cfg)
     r, s = np.array([0.01, 0.0, 0.0]), np.array([0.0, 0.0, 9.81])
-    prev, nxt = np.r_[wd - 1.0, s - 0.2], np.r_[wd + 1.0, s + 0.2]  # ω̈ = 2 · 10 = 20, ṡ = 0.4 · 10 = 4 per axis
+    prev, nxt = np.r_[wd - 1.0, s - 0.2], np.r_[wd + 1.5, s + 0.3]
+    # ṡ = 0.5 · 10 = 5, s̈ = (0.3 − 0.2) · 400 = 40, ω⃛ = (1.5 − 1) · 400 = 200 per axis
     f = s + np.cross(w, np.cross(w, r)) + np.cross(wd, r)
-    f_dot = 4.0 + np.cross(np.full(3, 20.0), r) + np.cross(wd, np.cross(w, r)) + np.cross(w, np.cross(wd, r))
+    f_dot = 5.0 + np.cross(wdd, r) + np.cross(wd, np.cross(w, r)) + np.cross(w, np.cross(wd, r))
+    f_ddot = 40.0 + np.cross(np.full(3, 200.0), r) + np.cross(wdd, np.cross(w, r)) \
+        + 2 * np.cross(wd, np.cross(wd, r)) + np.cross(w, np.cross(wdd, r))
     z = np.concatenate([k, np.zeros(3), m, b, r, w, wd, s, [1e-3], prev, nxt])
-    assert np.allclose(ev(A(z, d(f))), 0.25e-3 * f_dot)
+    assert np.allclose(ev(A(z, d(f))), a * f_dot - 0.5 * a ** 2 * f_ddot, rtol=1e-12, atol=0)
+    dz = d(f).copy()
+    dz[-1] = 0.0  # no neighbours on both sides (first or last sample): no s̈, ω⃛
+    f_ddot_end = np.cross(wdd, np.cross(w, r)) + 2 * np.cross(wd, np.cross(wd, r)) + np.cross(w, np.cross(wdd, r))
+    assert np.allclose(ev(A(z, dz)), a * f_dot - 0.5 * a ** 2 * f_ddot_end, rtol=1e-12, atol=0)
+    first = _config([BEAT])
+    assert np.allclose(ev(accelerometer_sample_factor(first)(z, d(f))), a * f_dot, rtol=1e-12, atol=0)
+    assert np.allclose(ev(gyroscope_sample_factor(first)(np.concatenate([k, m, b, w, wd, [1e-3]]), d(w))), a * wd,
+                       rtol=1e-12, atol=0)
 
 
-def test_timing_factor_derivatives_match_finite_differences():
-    cfg = _config([BEAT, DRIFT, "accelerometer.age", "gyroscope.delay"])
+@pytest.mark.parametrize("order", [1, 2])
+def test_timing_factor_derivatives_match_finite_differences(order):
+    cfg = _config([BEAT, DRIFT, "accelerometer.age", "gyroscope.delay"], age_order=order)
     rng = np.random.default_rng(3)
     for F in (accelerometer_sample_factor(cfg), gyroscope_sample_factor(cfg)):
         z = rng.standard_normal(F.size1_in(0))
-        dv = np.concatenate([rng.standard_normal(3), np.full(3, 0.5), np.eye(3).ravel(), [0.3, 0.09, 0, 0, -0.2], [10.0]])
+        dv = np.concatenate([rng.standard_normal(3), np.full(3, 0.5), np.eye(3).ravel(), [0.3, 0.09, 0, 0, -0.2],
+                             [10.0, 400.0]])
         x = F.mx_in(0)
         J = np.asarray(ca.Function("j", [x], [ca.jacobian(F(x, dv), x)])(z))
         h = 1e-6

@@ -159,6 +159,7 @@ def dynamic_problem(tmp_path, **changes):
     ({"model__intrinsics": 3}, "model.intrinsics", "expected the path of a castimate results.json"),
     ({"model__triads": {"imu1": {"position": "free"}}}, "model.triads.imu1.position", "its position is fixed"),
     ({"model__position": {"free": [True, True]}}, "model.position.free", "a list of 3"),
+    ({"model__sample_age": "third_order"}, "model.sample_age", "expected one of first_order, second_order"),
     ({"data__saturation": {"gyroscope": "sometimes"}}, "data.saturation.gyroscope", "expected auto, none or a level"),
     ({"data__saturation": {"magnetometer": 1}}, "data.saturation.magnetometer", "unknown key"),
     ({"motion__process_model": "yes"}, "motion.process_model", "expected true or false"),

@@ -113,7 +113,7 @@ def dynamic_config(spec: ProblemSpec, full: Recording, log: Log) -> DynamicConfi
                                    **spec.model.effect_settings(t.name, "gyroscope")} if has_gyro else None,
                                   t.position, s[t.name, "position", "position"]))
     return DynamicConfig(tuple(triads), spec.array.reference, mis, motion_sigmas(spec), spec.motion.process_model,
-                         spec.model.effects)
+                         spec.model.effects, age_order=2 if spec.model.sample_age == "second_order" else 1)
 
 
 #: The problem-file key (motion section) of each process-model level (MotionSigmas' components), per

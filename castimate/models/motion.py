@@ -24,6 +24,13 @@ def specific_force_rate(s_dot, omega, omega_dot, omega_ddot, r):
     return s_dot + ca.cross(omega_ddot, r) + ca.cross(omega_dot, ca.cross(omega, r)) + ca.cross(omega, ca.cross(omega_dot, r))
 
 
+def specific_force_acceleration(s_ddot, omega, omega_dot, omega_ddot, omega_dddot, r):
+    """f̈ = s̈ + ω⃛×r + ω̈×(ω×r) + 2 ω̇×(ω̇×r) + ω×(ω̈×r): the second time derivative of
+    :func:`specific_force_at` (the second-order term of a sample age, ``models.effects.sample_age``)."""
+    return (s_ddot + ca.cross(omega_dddot, r) + ca.cross(omega_ddot, ca.cross(omega, r))
+            + 2 * ca.cross(omega_dot, ca.cross(omega_dot, r)) + ca.cross(omega, ca.cross(omega_ddot, r)))
+
+
 #: The process models' integration rules (``motion.integration`` of a problem file).
 INTEGRATIONS = ("wiener3", "wiener2", "trapezoid", "euler")
 

@@ -106,6 +106,7 @@ class DynamicConfig:
     process_model: bool = True
     effects: tuple[str, ...] = ()  # included effects (problem.effects)
     regressors: Regressors | None = None  # time and temperature references of the effects
+    age_order: int = 1  # Taylor order of the timing effects' sample age (model.sample_age): 1 or 2
 
     @property
     def names(self) -> list[str]:
@@ -173,27 +174,31 @@ def accelerometer_sample_factor(config: DynamicConfig) -> ca.Function:
     rigid-body specific force, Carlsson 2017 eq. 1), plus the included effects' terms.
 
     z = [k, l, m, b, r, ω, ω̇, s, effect parameters..., (ω̇, s) of samples n-1 and n+1 if an effect
-    acts on the reading's rate], d = [y, σ, vec(Rbar), τ, τ², ΔT, ΔT², beat, 1/(t_n+1 - t_n-1)].
-    The rate is T ḟ (``models.motion.specific_force_rate``) with ṡ and ω̈ as central differences.
+    acts on the reading's rate], d = [y, σ, vec(Rbar), τ, τ², ΔT, ΔT², beat, 1/(t_n+1 - t_n-1),
+    4/(t_n+1 - t_n-1)² (0 at the ends)]. The rate is T ḟ (``models.motion.specific_force_rate``) with ṡ
+    and ω̈ as central differences; its rate T f̈ (``models.motion.specific_force_acceleration``, the sample age's second-order term) with s̈ and ω⃛ as
+    central second differences (a uniform grid assumed; dropped at the first and last samples).
     """
     Tfn = accelerometer_matrix(config.misalignment)
     effects = fxs.acting_on(config.effects, "accelerometer")
     k, l, m, b = ca.SX.sym("k", 3), ca.SX.sym("l", 3), ca.SX.sym("m", Tfn.size1_in(2)), ca.SX.sym("b", 3)
     r, w, wd, s = ca.SX.sym("r", 3), ca.SX.sym("omega", 3), ca.SX.sym("omega_dot", 3), ca.SX.sym("s", 3)
     y, sigma, R = ca.SX.sym("y", 3), ca.SX.sym("sigma", 3), ca.SX.sym("Rbar", 9)
-    reg, inv_span = ca.SX.sym("regressors", N_SAMPLE_REGRESSORS), ca.SX.sym("inv_span")
+    reg, inv_span, inv_h2 = ca.SX.sym("regressors", N_SAMPLE_REGRESSORS), ca.SX.sym("inv_span"), ca.SX.sym("inv_h2")
     c = effect_params(effects)
     T = Tfn(k, l, m, ca.reshape(R, 3, 3))
     f = mot.specific_force_at(s, w, wd, r)
     z = [k, l, m, b, r, w, wd, s, *c]
-    u_dot = None
+    u_dot = u_ddot = None
     if fxs.need(effects, fxs.RATE):
         prev, nxt = [ca.SX.sym(n, 6) for n in ("motion_prev", "motion_next")]  # (ω̇, s)
         z += [prev, nxt]
         u_dot = accelerometer_rate()(T, r, w, wd, prev, nxt, inv_span)
-    ctx = effect_context(reg, u=ca.mtimes(T, f), T=T, omega=w, omega_dot=wd, u_dot=u_dot)
+        if config.age_order == 2:
+            u_ddot = accelerometer_rate_of_rate()(T, r, w, wd, s, prev, nxt, inv_span, inv_h2)
+    ctx = effect_context(reg, u=ca.mtimes(T, f), T=T, omega=w, omega_dot=wd, u_dot=u_dot, u_ddot=u_ddot)
     res = (y - tri.triad_output(T, b, f) - fxs.total(effects, c, ctx)) / sigma
-    return ca.Function("accelerometer_sample", [ca.vertcat(*z), ca.vertcat(y, sigma, R, reg, inv_span)], [res])
+    return ca.Function("accelerometer_sample", [ca.vertcat(*z), ca.vertcat(y, sigma, R, reg, inv_span, inv_h2)], [res])
 
 
 def accelerometer_rate() -> ca.Function:
@@ -206,10 +211,25 @@ def accelerometer_rate() -> ca.Function:
     return ca.Function("accelerometer_rate", [T, r, w, wd, prev, nxt, inv_span], [ca.mtimes(T, f_dot)])
 
 
-def _gyro_needs(effects: list[fxs.Effect]) -> tuple[bool, bool]:
-    """(ω̇, specific force): the motion a gyroscope factor's effects need beyond ω."""
-    force = fxs.need(effects, fxs.SPECIFIC_FORCE)
-    return force or fxs.need(effects, fxs.RATE), force
+def accelerometer_rate_of_rate() -> ca.Function:
+    """ü = T f̈ of an accelerometer triad at sample n (``models.motion.specific_force_acceleration``):
+    ω̈ the central difference of the neighbours' ω̇, s̈ and ω⃛ the central second differences of (s, ω̇)
+    (``inv_h2`` = 4/(t_n+1 - t_n-1)², 0 where there are no neighbours on both sides): (T, r, ω, ω̇, s,
+    (ω̇, s)_n-1, (ω̇, s)_n+1, 1/(t_n+1 - t_n-1), inv_h2) -> ü."""
+    T, r, w, wd, s = (ca.SX.sym("T", 3, 3), ca.SX.sym("r", 3), ca.SX.sym("omega", 3), ca.SX.sym("omega_dot", 3),
+                      ca.SX.sym("s", 3))
+    prev, nxt, inv_span, inv_h2 = ca.SX.sym("prev", 6), ca.SX.sym("next", 6), ca.SX.sym("inv_span"), ca.SX.sym("inv_h2")
+    second = lambda i, x: (nxt[i:i + 3] - 2 * x + prev[i:i + 3]) * inv_h2  # noqa: E731
+    f_ddot = mot.specific_force_acceleration(second(3, s), w, wd, (nxt[0:3] - prev[0:3]) * inv_span, second(0, wd), r)
+    return ca.Function("accelerometer_rate_of_rate", [T, r, w, wd, s, prev, nxt, inv_span, inv_h2],
+                       [ca.mtimes(T, f_ddot)])
+
+
+def _gyro_needs(effects: list[fxs.Effect], age_order: int = 1) -> tuple[bool, bool, bool]:
+    """(ω̇, specific force, the neighbours' ω̇): the motion a gyroscope factor's effects need beyond ω
+    (the neighbours' ω̇ for ω̈ of a second-order sample age)."""
+    force, rate = fxs.need(effects, fxs.SPECIFIC_FORCE), fxs.need(effects, fxs.RATE)
+    return force or rate, force, rate and age_order == 2
 
 
 def gyroscope_sample_factor(config: DynamicConfig) -> ca.Function:
@@ -223,11 +243,11 @@ def gyroscope_sample_factor(config: DynamicConfig) -> ca.Function:
     effects = fxs.acting_on(config.effects, "gyroscope")
     k, m, b, w = ca.SX.sym("k", 3), ca.SX.sym("m", 3), ca.SX.sym("b", 3), ca.SX.sym("omega", 3)
     y, sigma, R = ca.SX.sym("y", 3), ca.SX.sym("sigma", 3), ca.SX.sym("Rbar", 9)
-    reg, inv_span = ca.SX.sym("regressors", N_SAMPLE_REGRESSORS), ca.SX.sym("inv_span")
+    reg, inv_span, inv_h2 = ca.SX.sym("regressors", N_SAMPLE_REGRESSORS), ca.SX.sym("inv_span"), ca.SX.sym("inv_h2")
     Rbar = ca.reshape(R, 3, 3)
     T = gyroscope_matrix()(k, m, Rbar)
-    z, f, u_dot = [k, m, b, w], None, None
-    need_wd, need_f = _gyro_needs(effects)
+    z, f, u_dot, u_ddot = [k, m, b, w], None, None, None
+    need_wd, need_f, need_rate = _gyro_needs(effects, config.age_order)
     wd = ca.SX.sym("omega_dot", 3)
     if need_wd:
         z.append(wd)
@@ -238,9 +258,13 @@ def gyroscope_sample_factor(config: DynamicConfig) -> ca.Function:
         f = ca.mtimes(Rbar, mot.specific_force_at(s, w, wd, r))
     c = effect_params(effects)
     z += c
-    ctx = effect_context(reg, u=ca.mtimes(T, w), f=f, u_dot=u_dot)
+    if need_rate:  # the reading's rate of rate T ω̈, ω̈ the central difference of the neighbours' ω̇
+        prev, nxt = ca.SX.sym("omega_dot_prev", 3), ca.SX.sym("omega_dot_next", 3)
+        z += [prev, nxt]
+        u_ddot = ca.mtimes(T, (nxt - prev) * inv_span)
+    ctx = effect_context(reg, u=ca.mtimes(T, w), f=f, u_dot=u_dot, u_ddot=u_ddot)
     res = (y - tri.triad_output(T, b, w) - fxs.total(effects, c, ctx)) / sigma
-    return ca.Function("gyroscope_sample", [ca.vertcat(*z), ca.vertcat(y, sigma, R, reg, inv_span)], [res])
+    return ca.Function("gyroscope_sample", [ca.vertcat(*z), ca.vertcat(y, sigma, R, reg, inv_span, inv_h2)], [res])
 
 
 def process_factor(integration: str = "wiener3") -> ca.Function:
@@ -317,12 +341,13 @@ class DynamicProblem:
         reg = self.config.regressors or Regressors.from_times(data.t, data.temp)
         prev, nxt = _neighbours(data.n)
         inv_span = 1.0 / (data.t[nxt] - data.t[prev]) if data.n > 1 else np.zeros(data.n)
+        inv_h2 = np.where(nxt - prev == 2, 4.0 * inv_span ** 2, 0.0)  # central second differences (none at the ends)
 
         def stack(names, kind, y):
             # written column group by column group into one array (no temporaries of its size: at
             # 32 triads x 20 000 samples it is 108 MB)
             ok, axes = self.valid(kind, names), self.valid_axes(kind, names)
-            out = np.empty((self.n_samples, len(names), 16 + N_SAMPLE_REGRESSORS))
+            out = np.empty((self.n_samples, len(names), 17 + N_SAMPLE_REGRESSORS))
             for k, n in enumerate(names):
                 out[:, k, 0:3] = y[n]
                 out[:, k, 3:6] = data.sigma(kind, n)
@@ -332,7 +357,8 @@ class DynamicProblem:
                 out[:, :, 3:6] = np.where(axes, out[:, :, 3:6], np.where(ok[..., None], MASKED_SIGMA, np.inf))
             out[:, :, 6:15] = np.stack([R[n].ravel(order="F") for n in names])
             out[:, :, 15 + N_SAMPLE_REGRESSORS] = inv_span[:, None]
-            return out.reshape(-1, 16 + N_SAMPLE_REGRESSORS)
+            out[:, :, 16 + N_SAMPLE_REGRESSORS] = inv_h2[:, None]
+            return out.reshape(-1, 17 + N_SAMPLE_REGRESSORS)
 
         out = [stack(self.config.names, "acc", data.acc)]
         if self.gyro_triads:
@@ -487,12 +513,13 @@ def build_dynamic(config: DynamicConfig, data: DynamicData, start: dict | None =
                           np.zeros((len(k), 0)), valid=ok, series=n)]
     if gyro_triads:
         k, n, ok = instances("gyro", gyro_triads)
-        need_wd, need_f = _gyro_needs(fxs.acting_on(config.effects, "gyroscope"))
+        need_wd, need_f, need_rate = _gyro_needs(fxs.acting_on(config.effects, "gyroscope"), config.age_order)
         blocks.append(FactorBlock("gyroscope_sample", gyroscope_sample_factor(config),
                                   [(tuple(group_name(t, "gyroscope", g) for t in gyro_triads), k) for g in GYRO_FACTOR_GROUPS]
                                   + [(OMEGA, n)] + ([(OMEGA_DOT, n)] if need_wd else [])
                                   + ([(tuple(f"{t}.position" for t in gyro_triads), k), (S, n)] if need_f else [])
-                                  + effect_inputs("gyroscope", gyro_triads, k),
+                                  + effect_inputs("gyroscope", gyro_triads, k)
+                                  + ([(OMEGA_DOT, prev[n]), (OMEGA_DOT, nxt[n])] if need_rate else []),
                                   np.zeros((len(k), 0)), valid=ok, series=n))
     if config.process_model and N > 1:
         a, b = np.arange(N - 1), np.arange(1, N)

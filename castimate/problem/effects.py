@@ -17,6 +17,8 @@ Regressors an effect term may use (:class:`Context`):
 - ``u_dot``: the time derivative of ``u`` (time offsets and sample ages): T_g ω̇ for a gyroscope,
   T ḟ for an accelerometer (``models.motion.specific_force_rate``, with ṡ and ω̈ from the
   neighbouring samples' motion);
+- ``u_ddot``: its second derivative (the sample age's second-order term): T_g ω̈ for a gyroscope,
+  T f̈ for an accelerometer (``models.motion.specific_force_acceleration``), from the neighbours;
 - ``beat``: the chip clock's sawtooth frac(ν t + φ) − ½ (:mod:`castimate.problem.clocks`).
 
 What an entry says about the data it needs (:attr:`Effect.needs`): :data:`TIME` (the sample times),
@@ -33,7 +35,10 @@ form); one that does is removed by Newton steps on the CasADi expression
 triad senses (sensing-element offsets, time offsets, sample ages); they are not undone sample by sample.
 
 Timing (issue 11, item 4): a triad's sample is a(t) old when the board reads it, so it reads u(t − a)
-≈ u − a u̇ (:func:`castimate.models.effects.sample_age`), one term for every timing effect. The age is
+≈ u − a u̇ + ½ a² ü (:func:`castimate.models.effects.sample_age`): every timing effect adds to the
+reading's one age a (:attr:`Effect.age`), and :func:`total` applies the term to their sum (``ü``:
+T_g ω̈ and T f̈ from the neighbouring samples; the second order matters at fast hand twisting, where
+ω̈ reaches 10⁴–10⁵ rad/s³). The age is
 a property of the chip, shared by its accelerometer and gyroscope (:attr:`Effect.shared`): constant
 (``accelerometer.age``), drifting with the chip's clock rate (``clock_drift``) or a sawtooth at the
 beat between the chip's clock and the board's read-out (``clock_beat``); all relative to the
@@ -75,6 +80,7 @@ class Context:
     omega_dot: Any = None
     u_dot: Any = None
     beat: Any = None
+    u_ddot: Any = None
 
 
 @dataclass(frozen=True)
@@ -106,6 +112,11 @@ class Effect:
     shared
         A property of the IMU's chip (its sample clock): the group belongs to the accelerometer
         (every triad has one) and its term also acts on the triad's gyroscope.
+    age
+        For a timing effect, ``(c, ctx) -> a``: the sample age [s] it adds. :func:`total` sums the ages
+        of a reading's timing effects and adds one :func:`castimate.models.effects.sample_age` term of
+        the sum (its second order is not a sum of the effects' own); ``term`` is that term for the
+        effect alone.
     """
 
     name: str
@@ -118,6 +129,7 @@ class Effect:
     relative: bool = False
     sample_wise: bool = True
     shared: bool = False
+    age: Callable[[Any, Context], Any] | None = None
 
     @property
     def key(self) -> str:
@@ -148,7 +160,13 @@ def probe_context() -> Context:
     sym = ca.SX.sym
     return Context(tau=(sym("tau"), sym("tau2")), temp=(sym("dT"), sym("dT2")), u=sym("u", 3), f=sym("f", 3),
                    T=sym("T", 3, 3), omega=sym("omega", 3), omega_dot=sym("omega_dot", 3), u_dot=sym("u_dot", 3),
-                   beat=sym("beat"))
+                   beat=sym("beat"), u_ddot=sym("u_ddot", 3))
+
+
+def _timing(name: str, sensor: str, group: GroupDef, age: Callable[[Any, Context], Any], **kw) -> Effect:
+    """A timing effect: it adds ``age`` to the reading's sample age (``Effect.age``)."""
+    return Effect(name, sensor, group, lambda c, x: fx.sample_age(age(c, x), x.u_dot, x.u_ddot), kinds=(DYNAMIC,),
+                  needs=(RATE,), sample_wise=False, age=age, **kw)
 
 
 def _bias_drift(sensor: str, unit: str, scale: float) -> Effect:
@@ -177,32 +195,26 @@ EFFECTS: tuple[Effect, ...] = (
            relative=True, sample_wise=False,
            title="accelerometer sensing-element offsets (size effect): y and z elements relative to x, "
                  "relative to the reference triad's"),
-    Effect("age", "accelerometer", GroupDef(("a",), (0.0,), 1e-3, "s"),
-           lambda c, x: fx.sample_age(c, x.u_dot), kinds=(DYNAMIC,), needs=(RATE,), relative=True,
-           sample_wise=False, shared=True,
-           title="chip sample age: the IMU's accelerometer and gyroscope read the motion a late "
+    _timing("age", "accelerometer", GroupDef(("a",), (0.0,), 1e-3, "s"), lambda c, x: c, relative=True, shared=True,
+            title="chip sample age: the IMU's accelerometer and gyroscope read the motion a late "
                  "(constant, relative to the reference triad's)"),
     _bias_drift("gyroscope", "rad/s", 1e-3),
     _temperature_bias("gyroscope", "rad/s", 1e-4),
     Effect("g_sensitivity", "gyroscope",
            GroupDef(("xx", "xy", "xz", "yx", "yy", "yz", "zx", "zy", "zz"), (0.0,) * 9, 1e-4, "rad/s per m/s^2"),
            lambda c, x: fx.g_sensitivity(c, x.f), needs=(SPECIFIC_FORCE,), title="gyroscope g-sensitivity"),
-    Effect("delay", "gyroscope", GroupDef(("d",), (0.0,), 1e-3, "s"),
-           lambda c, x: fx.sample_age(c, x.u_dot), kinds=(DYNAMIC,), needs=(RATE,), sample_wise=False,
-           title="accelerometer-gyroscope delay: the gyroscope reads the motion d later than its own "
+    _timing("delay", "gyroscope", GroupDef(("d",), (0.0,), 1e-3, "s"), lambda c, x: c,
+            title="accelerometer-gyroscope delay: the gyroscope reads the motion d later than its own "
                  "accelerometer (filter group delays)"),
     Effect("coupling", "gyroscope", GroupDef(("yx", "zx", "zy"), (0.0,) * 3, 1e-2, "-", limits=(-1.0, 1.0)),
            lambda c, x: fx.coupling(c, x.u), kinds=(DYNAMIC,),
            title="gyroscope cross-axis coupling: unit lower-triangular C in C K_g M_g Rbar (a general 3x3 matrix)"),
-    Effect("clock_drift", "accelerometer", GroupDef(("end",), (0.0,), 1e-4, "s"),
-           lambda c, x: fx.sample_age(c * x.tau[0], x.u_dot), kinds=(DYNAMIC,), needs=(RATE,), relative=True,
-           sample_wise=False, shared=True,
-           title="chip clock-rate drift: the IMU's sample age (accelerometer and gyroscope) linear in time, "
+    _timing("clock_drift", "accelerometer", GroupDef(("end",), (0.0,), 1e-4, "s"), lambda c, x: c * x.tau[0],
+            relative=True, shared=True,
+            title="chip clock-rate drift: the IMU's sample age (accelerometer and gyroscope) linear in time, "
                  "its value at the session's end, relative to the reference triad's"),
-    Effect("clock_beat", "accelerometer", GroupDef(("A",), (0.0,), 1e-3, "s"),
-           lambda c, x: fx.sample_age(c * x.beat, x.u_dot), kinds=(DYNAMIC,), needs=(RATE,), sample_wise=False,
-           shared=True,
-           title="chip clock: the IMU's sample age (accelerometer and gyroscope) a sawtooth A (frac(ν t + φ) − ½) "
+    _timing("clock_beat", "accelerometer", GroupDef(("A",), (0.0,), 1e-3, "s"), lambda c, x: c * x.beat, shared=True,
+            title="chip clock: the IMU's sample age (accelerometer and gyroscope) a sawtooth A (frac(ν t + φ) − ½) "
                  "at the beat with the read-out; ν, φ from the implied age"),
 )
 BY_KEY = {e.key: e for e in EFFECTS}
@@ -240,8 +252,13 @@ def acting_on(keys, sensor: str) -> list[Effect]:
 
 
 def total(effects, params, ctx: Context):
-    """Σ of the terms of ``effects`` with their parameter vectors ``params`` (0 if none)."""
-    out = 0
+    """Σ of the terms of ``effects`` with their parameter vectors ``params`` (0 if none). The timing
+    effects' ages are summed into the reading's one sample age a, which adds −a u̇ + ½ a² ü
+    (:func:`castimate.models.effects.sample_age`; first order where the context has no ü)."""
+    out, age = 0, None
     for e, c in zip(effects, params):
-        out = out + e.term(c, ctx)
-    return out
+        if e.age is not None:
+            age = e.age(c, ctx) if age is None else age + e.age(c, ctx)
+        else:
+            out = out + e.term(c, ctx)
+    return out if age is None else out + fx.sample_age(age, ctx.u_dot, ctx.u_ddot)
