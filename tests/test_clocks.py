@@ -39,21 +39,26 @@ def test_sawtooth_by_hand():
     assert np.allclose(sawtooth([0.1], -2.0, 0.0), [0.3])  # falling: frac(-0.2) = 0.8
 
 
+def _smooth_state(t):
+    """A smooth motion in closed form: ω, ω̇, ω̈, ω⃛, s, ṡ, s̈ at t."""
+    w = np.array([np.sin(3 * t), 2 * np.cos(2 * t), t ** 2])
+    wd = np.array([3 * np.cos(3 * t), -4 * np.sin(2 * t), 2 * t])
+    wdd = np.array([-9 * np.sin(3 * t), -8 * np.cos(2 * t), 2.0])
+    wddd = np.array([-27 * np.cos(3 * t), 16 * np.sin(2 * t), 0.0])
+    s, sd, sdd = np.array([np.cos(t), t ** 3, 1.0]), np.array([-np.sin(t), 3 * t ** 2, 0.0]), np.array([-np.cos(t), 6 * t, 0.0])
+    return w, wd, wdd, wddd, s, sd, sdd
+
+
 def test_specific_force_rate_matches_finite_differences():
     """ḟ of the rigid-body specific force against a central difference along a smooth motion."""
     r = np.array([0.01, -0.02, 0.005])
 
-    def state(t):
-        w = np.array([np.sin(3 * t), 2 * np.cos(2 * t), t ** 2])
-        wd = np.array([3 * np.cos(3 * t), -4 * np.sin(2 * t), 2 * t])
-        wdd = np.array([-9 * np.sin(3 * t), -8 * np.cos(2 * t), 2.0])
-        s = np.array([np.cos(t), t ** 3, 1.0])
-        sd = np.array([-np.sin(t), 3 * t ** 2, 0.0])
-        return w, wd, wdd, s, sd
+    def f(t):
+        w, wd, _, _, s, _, _ = _smooth_state(t)
+        return ev(mot.specific_force_at(*(ca.DM(x) for x in (s, w, wd)), ca.DM(r)))
 
     t, h = 0.7, 1e-6
-    f = lambda t: ev(mot.specific_force_at(*(ca.DM(x) for x in (state(t)[3], state(t)[0], state(t)[1])), ca.DM(r)))  # noqa: E731
-    w, wd, wdd, s, sd = state(t)
+    w, wd, wdd, _, _, sd, _ = _smooth_state(t)
     analytic = ev(mot.specific_force_rate(*(ca.DM(x) for x in (sd, w, wd, wdd, r))))
     assert np.allclose(analytic, (f(t + h) - f(t - h)) / (2 * h), rtol=1e-6, atol=1e-8)
 
@@ -69,20 +74,12 @@ def test_specific_force_acceleration_matches_finite_differences():
     """f̈ of the rigid-body specific force against a central difference of ḟ along a smooth motion."""
     r = np.array([0.01, -0.02, 0.005])
 
-    def state(t):
-        w = np.array([np.sin(3 * t), 2 * np.cos(2 * t), t ** 2])
-        wd = np.array([3 * np.cos(3 * t), -4 * np.sin(2 * t), 2 * t])
-        wdd = np.array([-9 * np.sin(3 * t), -8 * np.cos(2 * t), 2.0])
-        wddd = np.array([-27 * np.cos(3 * t), 16 * np.sin(2 * t), 0.0])
-        s, sd, sdd = np.array([np.cos(t), t ** 3, 1.0]), np.array([-np.sin(t), 3 * t ** 2, 0.0]), np.array([-np.cos(t), 6 * t, 0.0])
-        return w, wd, wdd, wddd, s, sd, sdd
-
     def f_dot(t):
-        w, wd, wdd, _, _, sd, _ = state(t)
+        w, wd, wdd, _, _, sd, _ = _smooth_state(t)
         return ev(mot.specific_force_rate(*(ca.DM(x) for x in (sd, w, wd, wdd, r))))
 
     t, h = 0.7, 1e-6
-    w, wd, wdd, wddd, _, _, sdd = state(t)
+    w, wd, wdd, wddd, _, _, sdd = _smooth_state(t)
     analytic = ev(mot.specific_force_acceleration(*(ca.DM(x) for x in (sdd, w, wd, wdd, wddd, r))))
     assert np.allclose(analytic, (f_dot(t + h) - f_dot(t - h)) / (2 * h), rtol=1e-6, atol=1e-8)
 
