@@ -134,6 +134,7 @@ class ArraySpec:
 #: ``model.sample_age``: the Taylor order of a reading's sample age, u(t − a) ≈ u − a u̇ (+ ½ a² ü).
 SAMPLE_AGE_ORDERS = ("first_order", "second_order")
 
+
 @dataclass(frozen=True)
 class ModelSpec:
     gravity: float
