@@ -166,17 +166,21 @@ def test_elimination_note_says_what_was_eliminated_and_why_not():
     assert "prior" in Family.refusal(SimpleNamespace(**{**vars(g), "prior_std": np.ones((4, 3))}))
 
 
+def _projection_at_optimum(kind):
+    """The solved case's projection, its fixed parameters and its reduced variables at the optimum."""
+    prob = CASES[kind]()
+    solver = Solver(prob.lsq)
+    P = solver.projection
+    sol = solver.solve()
+    return P, prob.lsq.layout.p0(), P.reset(sol.x, None)
+
+
 @pytest.mark.parametrize("kind", [k for k in CASES if k.startswith("dynamic")])
 def test_newton_point_shortcut_keeps_the_reduced_objective_and_gradient(kind):
     """Off the optimum, φ and ∇φ accepted from the gradient at the Newton point of the nuisance
     (one full evaluation fewer) equal those of the path that evaluates everything there, to
     round-off; the Hessian is the previous point's, within the Newton step's size."""
-    prob = CASES[kind]()
-    solver = Solver(prob.lsq)
-    P = solver.projection
-    sol = solver.solve()
-    pf = prob.lsq.layout.p0()
-    th0 = P.reset(sol.x, None)
+    P, pf, th0 = _projection_at_optimum(kind)
     for size in (1e-5, 1e-4, 1e-3, 1e-2):  # a step whose prediction needs one Newton step, not more
         theta = th0 + size * np.random.default_rng(1).standard_normal(P.c)
         P._cache = None  # noqa: SLF001
@@ -272,12 +276,7 @@ def test_gradient_first_near_the_optimum_keeps_the_reduced_objective_gradient_an
     alone with the previous point's factors (no full evaluation unless the Hessian is asked for):
     φ and ∇φ equal those of the path that evaluates everything, to round-off, and the Hessian
     asked for afterwards is the full evaluation's."""
-    prob = CASES[kind]()
-    solver = Solver(prob.lsq)
-    P = solver.projection
-    sol = solver.solve()
-    pf = prob.lsq.layout.p0()
-    th0 = P.reset(sol.x, None)
+    P, pf, th0 = _projection_at_optimum(kind)
     theta = th0 + 1e-7 * np.random.default_rng(2).standard_normal(P.c)
     P.reduced(th0, pf, None, hessian=False)
     anchor, last, before = P._anchor, P._last_dec, P.grad_firsts  # noqa: SLF001
