@@ -202,6 +202,60 @@ def test_hat_diagonal_with_a_stage_no_row_reads():
     assert np.allclose(hat_diagonal(sp.csr_matrix(J), sp.csr_matrix((0, J.shape[1])), stages), h, atol=1e-8)
 
 
+def joint_jacobian(coupled_stages: bool, seed: int = 11):
+    """A Jacobian shaped like a joint static-plus-dynamic problem's: stages of m = 3 motion states,
+    each read by two 'accelerometer' rows per axis pattern (a triad's θ columns, repeated within
+    the stage) and a 'gyroscope' row reading one state; static rows that read the unit pose
+    directions (|d|² = 1 constraints) and some of the calibration θ but no stage; with
+    ``coupled_stages`` also process rows reading stages n and n+1. Returns (J, G, stages)."""
+    rng = np.random.default_rng(seed)
+    N, m, n_cal, n_pose = 23, 3, 7, 4
+    stages = np.arange(N * m).reshape(N, m)
+    cal = N * m + np.arange(n_cal)
+    pose = N * m + n_cal + np.arange(3 * n_pose).reshape(n_pose, 3)
+    n = N * m + n_cal + pose.size
+    rows = []
+
+    def row(cols, stage_cols=()):
+        r = np.zeros(n)
+        r[list(stage_cols)] = rng.normal(size=len(stage_cols))
+        r[list(cols)] = rng.normal(size=len(cols))
+        rows.append(r)
+
+    for k in range(N):
+        for _ in range(2):
+            row(cal[[0, 1, 2]], stages[k])          # triad 1: the same θ pattern twice per stage
+            row(cal[[3, 4, 5, 6]], stages[k])       # triad 2
+        row(cal[[6]], stages[k, [1]])               # a gyroscope axis: one state
+        if coupled_stages and k + 1 < N:
+            row((), np.r_[stages[k], stages[k + 1]])
+    d = rng.normal(size=(n_pose, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    for p in range(n_pose):
+        for _ in range(3):
+            row(np.r_[pose[p], cal[[0, 3]]])
+    G = np.zeros((n_pose, n))
+    for p in range(n_pose):
+        G[p, pose[p]] = 2 * d[p]
+    return np.array(rows), G, stages
+
+
+@pytest.mark.parametrize("coupled_stages", [False, True])
+def test_hat_diagonal_of_a_joint_problem_matches_the_dense_hat_matrix(coupled_stages):
+    """Leverages of every row, and of a subset (unordered, repeated), equal diag(J P Jᵀ) with P the
+    constrained inverse written out densely, to 1e-10: stages alone (block-diagonal) or coupled,
+    static rows that read no stage, θ patterns repeated within a stage, a row reading part of a stage."""
+    J, G, stages = joint_jacobian(coupled_stages)
+    n, c = J.shape[1], G.shape[0]
+    P = np.linalg.inv(np.block([[J.T @ J, G.T], [G, np.zeros((c, c))]]))[:n, :n]
+    h = np.einsum("ri,ij,rj->r", J, P, J)
+    assert h.sum() == pytest.approx(n - c, rel=1e-10)
+    got = hat_diagonal(sp.csr_matrix(J), sp.csr_matrix(G), stages)
+    assert np.abs(got - h).max() < 1e-10
+    some = np.array([len(h) - 1, 3, 0, 3, 57])
+    assert np.abs(hat_diagonal(sp.csr_matrix(J), sp.csr_matrix(G), stages, some) - h[some]).max() < 1e-10
+
+
 def test_known_process_noise_recovered():
     """A motion that is a sample of the wiener3 model (ω̈ a Wiener process of density q_ω, s a
     random walk of density q_s), read by four triads with gyroscopes: the estimated levels

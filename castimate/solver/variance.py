@@ -113,6 +113,72 @@ def _factor(Hmm: sp.spmatrix, u: int):
 CHUNK = 4096
 
 
+def _stage_inverse(A: np.ndarray) -> np.ndarray:
+    """Inverses of independent stage blocks A (N, m, m), with :func:`_factor`'s ridge where one is singular."""
+    try:
+        np.linalg.cholesky(A)
+    except np.linalg.LinAlgError:
+        ridge = 1e-12 * max(float(np.diagonal(A, axis1=1, axis2=2).max(initial=0.0)), 1e-300)
+        A = A + ridge * np.eye(A.shape[1])
+    return np.linalg.inv(A)
+
+
+def _row_patterns(Jt: sp.csr_matrix) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The rows of a canonical CSR grouped by their column pattern: per pattern (the rows in order,
+    its columns, the rows' values (rows, k)); rows without entries left out. A dynamic problem's
+    border has a few hundred patterns (one per sensor axis and kind of reading), each read at most
+    once per sample. Patterns are hashed, and the hash is checked for exactness."""
+    n = Jt.shape[0]
+    nnz = np.diff(Jt.indptr)
+    k = int(nnz.max(initial=0))
+    row = np.repeat(np.arange(n), nnz)
+    pos = np.arange(Jt.nnz) - Jt.indptr[row]
+    cols = np.full((n, k), -1, np.int64)
+    vals = np.zeros((n, k))
+    cols[row, pos], vals[row, pos] = Jt.indices, Jt.data
+    mult = np.random.default_rng(0).integers(1, 2**62, size=k, dtype=np.uint64) | np.uint64(1)
+    with np.errstate(over="ignore"):
+        key = ((cols + 2).astype(np.uint64) * mult).sum(axis=1, dtype=np.uint64)
+    _, first, group = np.unique(key, return_index=True, return_inverse=True)
+    group = group.ravel()
+    if not np.array_equal(cols, cols[first[group]]):  # a collision: the exact (slower) grouping
+        _, group = np.unique(cols, axis=0, return_inverse=True)
+        group = group.ravel()
+    order = np.argsort(group, kind="stable")
+    ends = np.flatnonzero(np.diff(np.r_[-1, group[order], -2]))
+    out = []
+    for a, b in zip(ends[:-1], ends[1:]):
+        idx = order[a:b]
+        kk = int(nnz[idx[0]])
+        if kk:
+            out.append((idx, cols[idx[0], :kk], vals[idx, :kk]))
+    return out
+
+
+def _border_index(first: np.ndarray, used: np.ndarray, ci: np.ndarray, m: int, c: int) -> np.ndarray:
+    """Flat indices (rows, len(used), len(ci)) into an (N·m, c) array: the rows' stage variables
+    ``used`` (0 ... span·m − 1, from the row's first stage) and the coupled θ columns ``ci``."""
+    return ((first[:, None] * m + used[None, :]) * c)[:, :, None] + ci[None, None, :]
+
+
+def _scatter_add(out: np.ndarray, first: np.ndarray, used: np.ndarray, ci: np.ndarray, vals: np.ndarray, m: int,
+                 c: int) -> None:
+    """out[_border_index(...)] += vals with repeated indices summed: split into batches in which no
+    stage repeats (a pattern is read about once per sample: one batch, a plain indexed add)."""
+    for half in (used < m, used >= m):
+        if not half.any():
+            continue
+        stage = first + (0 if half[0] else 1)
+        u, v = used[half] % m, vals[:, half]
+        order = np.argsort(stage, kind="stable")
+        s = stage[order]
+        start = np.r_[True, s[1:] != s[:-1]]
+        rank = np.arange(s.size) - np.maximum.accumulate(np.where(start, np.arange(s.size), 0))
+        for k in range(int(rank.max(initial=-1)) + 1):
+            sel = order[rank == k]
+            out[_border_index(stage[sel], u, ci, m, c)] += v[sel]
+
+
 def hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None) -> np.ndarray:
     """Leverages h_j = (J P Jᵀ)_jj of residual rows at one Jacobian (the module docstring's sweep).
 
@@ -122,6 +188,13 @@ def hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None) 
     (default: all) the rows wanted, each reading at most two neighbouring (super-)stages. Time and
     memory are linear in the number of rows and samples. The redundancy of a row is 1 − h_j; Σ h_j
     over all rows is the number of variables less the constraints.
+
+    With the covariance written out, a row j = (v on its stage(s) s, t on θ) has
+    j P jᵀ = v Q_s vᵀ − 2 v X_s tᵀ + t P_θ tᵀ, Q_s = Σ_s + B_s P_θ B_sᵀ the stages' covariance and
+    X = B P_θ (−X their covariance with θ). B, X and H_mθ only have the columns of the θ's that rows
+    reading a stage also read (not a joint problem's static pose directions); H_mθ, H_θθ and the θ
+    terms are summed per pattern of θ columns (one per sensor axis and reading kind), on the
+    entries a row has: no (rows × n_θ) array is formed.
     """
     J, G = sp.csr_matrix(J), sp.csr_matrix(G)
     N, m = stages.shape
@@ -145,51 +218,84 @@ def hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None) 
         Jm.sum_duplicates()
         Hmm = (Jm.T @ Jm + sp.diags(np.r_[np.zeros(N * m), np.ones(pad)])).tocsc()
         N, m = (N * m + pad) // (w * m), w * m
-    if rows is not None:
-        rows = np.asarray(rows, int).ravel()
-        Jm_rows, Jt_rows = Jm[rows], Jt[rows]
+    A, C = _tridiagonal_blocks(Hmm, N, m)
+    span = 2 if C.any() and N > 1 else 1  # independent stages (no row reads two): span 1
+    # each row's values v on its first stage (its smallest column; any for a row that reads none) and the next
+    n_all = Jm.shape[0]
+    Jk = Jm.tocoo()
+    nnz = np.diff(Jm.indptr)
+    reads = nnz > 0
+    first = np.zeros(n_all, int)
+    first[reads] = Jm.indices[Jm.indptr[:-1][reads]] // m
+    first = np.minimum(first, N - span)
+    rel = Jk.col // m - first[Jk.row]
+    if np.any((rel < 0) | (rel >= span)):
+        raise ValueError("a residual row spans more than two neighbouring stages")
+    V = np.zeros((n_all, span * m))
+    V[Jk.row, rel * m + Jk.col % m] = Jk.data  # unique entries (canonical CSR)
+    # the θ columns that rows reading a stage also read: the border's coupled part
+    coupled = np.unique(Jt[reads].indices)
+    c = coupled.size
+    cmap = np.full(Jt.shape[1], -1)
+    cmap[coupled] = np.arange(c)
+    groups = [(idx, cols, t, cmap[cols], np.flatnonzero(np.any(V[idx] != 0, axis=0)))
+              for idx, cols, t in _row_patterns(Jt)]
+    # H_θθ and H_mθ (coupled columns, flat (N·m, c)) summed pattern by pattern
+    S = np.zeros((len(theta), len(theta)))
+    Hmt = np.zeros(N * m * c)
+    for idx, cols, t, ci, used in groups:
+        S[np.ix_(cols, cols)] += t.T @ t
+        if used.size:
+            _scatter_add(Hmt, first[idx], used, ci, V[idx][:, used, None] * t[:, None, :], m, c)
+    Hmt = Hmt.reshape(N * m, c)
+    if span == 1:
+        Sd = _stage_inverse(A)
+        B = np.matmul(Sd, Hmt.reshape(N, m, c)).reshape(N * m, c)
     else:
-        Jm_rows, Jt_rows = Jm, Jt
-    Hmm, chol = _factor(Hmm, 2 * m - 1)
-    Hmt = (Jm.T @ Jt).toarray()
-    # factor, then solve: LAPACK's one-call pbsv is orders of magnitude slower for many right-hand sides
-    B = np.ascontiguousarray(sla.cho_solve_banded((chol, False), Hmt)) if len(theta) else np.zeros((Jm.shape[1], 0))
-    S = (Jt.T @ Jt).toarray() - Hmt.T @ B
+        Hmm, chol = _factor(Hmm, 2 * m - 1)
+        # factor, then solve: LAPACK's one-call pbsv is orders of magnitude slower for many right-hand sides
+        B = sla.cho_solve_banded((chol, False), Hmt) if c else np.zeros((N * m, 0))
+        Sd, So = selected_inverse(*_tridiagonal_blocks(Hmm, N, m))
+    if c:
+        S[np.ix_(coupled, coupled)] -= Hmt.T @ B
     Gt = G[:, theta].toarray()
     U = np.linalg.qr(Gt.T, mode="complete")[0][:, Gt.shape[0]:] if Gt.shape[0] else np.eye(len(theta))
-    # P = K Kᵀ, the constrained inverse of the Schur complement, so that w P wᵀ = |w K|²
+    # P_θ = K Kᵀ, the constrained inverse of the Schur complement
     ev, vec = np.linalg.eigh(U.T @ S @ U)
     pos = ev > ev.max(initial=0.0) * len(ev) * np.finfo(float).eps
     K = U @ (vec[:, pos] / np.sqrt(ev[pos]))
-    Sd, So = selected_inverse(*_tridiagonal_blocks(Hmm, N, m))
-    if N > 1:
-        Q = np.empty((N - 1, 2 * m, 2 * m))
-        Q[:, :m, :m], Q[:, m:, m:], Q[:, :m, m:] = Sd[:-1], Sd[1:], So
-        Q[:, m:, :m] = So.transpose(0, 2, 1)
+    P = K @ K.T
+    X = B @ P[np.ix_(coupled, coupled)]
+    B3, X3 = B.reshape(N, m, c), X.reshape(N, m, c)
+    if span == 1:
+        Q = Sd + np.matmul(X3, B3.transpose(0, 2, 1))
     else:
-        Q = Sd[:, :m, :m]
-    n_rows = Jm_rows.shape[0]
-    h = np.empty(n_rows)
-    for c0 in range(0, n_rows, CHUNK):
-        Jmk, Jtk = Jm_rows[c0:c0 + CHUNK], Jt_rows[c0:c0 + CHUNK]
-        Jk = Jmk.tocoo()
-        stage = Jk.col // m
-        nnz = np.diff(Jmk.indptr)
-        # a row's first stage: its smallest column (sorted indices); rows that read no stage: any
-        first = np.zeros(Jmk.shape[0], int)
-        first[nnz > 0] = Jmk.indices[Jmk.indptr[:-1][nnz > 0]] // m
-        first = np.minimum(first, max(N - 2, 0))
-        V = np.zeros((Jmk.shape[0], 2 * m))
-        rel = stage - first[Jk.row]
-        if np.any((rel < 0) | (rel > 1)):
-            raise ValueError("a residual row spans more than two neighbouring stages")
-        V[Jk.row, rel * m + Jk.col % m] = Jk.data  # unique entries (canonical CSR)
-        if N == 1:
-            V = V[:, :m]
-        hk = np.einsum("ri,ri->r", V, np.matmul(Q[first], V[:, :, None])[:, :, 0])
-        W = Jmk @ B - Jtk.toarray()
-        h[c0:c0 + CHUNK] = hk + np.sum((W @ K) ** 2, axis=1)
-    return h
+        Q = np.empty((N - 1, 2 * m, 2 * m))
+        Bt = B3.transpose(0, 2, 1)
+        Q[:, :m, :m] = Sd[:-1] + np.matmul(X3[:-1], Bt[:-1])
+        Q[:, m:, m:] = Sd[1:] + np.matmul(X3[1:], Bt[1:])
+        Q[:, :m, m:] = So + np.matmul(X3[:-1], Bt[1:])
+        Q[:, m:, :m] = Q[:, :m, m:].transpose(0, 2, 1)
+    X = X.ravel()
+    want = np.arange(n_all) if rows is None else np.unique(np.asarray(rows, int).ravel())
+    h = np.zeros(n_all)
+    for c0 in range(0, want.size, CHUNK):
+        r = want[c0:c0 + CHUNK]
+        h[r] = np.einsum("ri,ri->r", V[r], np.matmul(Q[first[r]], V[r][:, :, None])[:, :, 0])
+    wanted = np.zeros(n_all, bool)
+    wanted[want] = True
+    for idx, cols, t, ci, used in groups:
+        keep = wanted[idx]
+        if not keep.all():
+            idx, t = idx[keep], t[keep]
+        if not idx.size:
+            continue
+        ht = np.einsum("ri,ri->r", t @ P[np.ix_(cols, cols)], t)
+        if used.size:  # −2 v X_s tᵀ
+            Xs = X[_border_index(first[idx], used, ci, m, c)]
+            ht -= 2.0 * np.einsum("ri,rik,rk->r", V[idx][:, used], Xs, t)
+        h[idx] += ht
+    return h if rows is None else h[np.asarray(rows, int).ravel()]
 
 
 def redundancies(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, components: dict[str, np.ndarray]
