@@ -344,21 +344,35 @@ class DynamicProblem:
         inv_h2 = np.where(nxt - prev == 2, 4.0 * inv_span ** 2, 0.0)  # central second differences (none at the ends)
 
         def stack(names, kind, y):
-            # written column group by column group into one array (no temporaries of its size: at
-            # 32 triads x 20 000 samples it is 108 MB)
-            ok, axes = self.valid(kind, names), self.valid_axes(kind, names)
-            out = np.empty((self.n_samples, len(names), 17 + N_SAMPLE_REGRESSORS))
-            for k, n in enumerate(names):
-                out[:, k, 0:3] = y[n]
-                out[:, k, 3:6] = data.sigma(kind, n)
-                out[:, k, 15: 15 + N_SAMPLE_REGRESSORS] = reg.sample_moments(data.t, data.temp.get(n), n)
+            # sample-major (n, k) rows, filled a slab of samples at a time: each triad's columns are
+            # written into a small triad-major array (contiguous, in cache), which is then copied
+            # transposed into the slab of the result. Writing the triads' columns into the result
+            # directly strides over it (one page per row at 32 triads) and took 0.37 s at
+            # 32 triads x 20 000 samples (the result is 118 MB)
+            K, C = len(names), 17 + N_SAMPLE_REGRESSORS
+            ok = self.valid(kind, names)
+            ax = (self.axes or {}).get(kind, {})
+            axes = ok[..., None] & np.stack([ax.get(n, np.ones((self.n_samples, 3), bool)) for n in names], axis=1)
+            Rcols = np.stack([R[n].ravel(order="F") for n in names])
+            sig = [data.sigma(kind, n) for n in names]
+            moments = [reg.sample_moments(data.t, data.temp.get(n), n) for n in names]
+            out = np.empty((self.n_samples, K, C))
+            tmp = np.empty((K, SLAB, C))
+            for s0 in range(0, self.n_samples, SLAB):
+                s1 = min(self.n_samples, s0 + SLAB)
+                t = tmp[:, : s1 - s0]
+                for k, n in enumerate(names):
+                    t[k, :, 0:3] = y[n][s0:s1]
+                    t[k, :, 3:6] = sig[k][s0:s1]
+                    t[k, :, 15: 15 + N_SAMPLE_REGRESSORS] = moments[k][s0:s1]
+                t[:, :, 6:15] = Rcols[:, None, :]
+                t[:, :, 15 + N_SAMPLE_REGRESSORS] = inv_span[None, s0:s1]
+                t[:, :, 16 + N_SAMPLE_REGRESSORS] = inv_h2[None, s0:s1]
+                out[s0:s1] = t.transpose(1, 0, 2)
             if not axes.all():
                 out[:, :, 0:3][~axes] = 0.0
                 out[:, :, 3:6] = np.where(axes, out[:, :, 3:6], np.where(ok[..., None], MASKED_SIGMA, np.inf))
-            out[:, :, 6:15] = np.stack([R[n].ravel(order="F") for n in names])
-            out[:, :, 15 + N_SAMPLE_REGRESSORS] = inv_span[:, None]
-            out[:, :, 16 + N_SAMPLE_REGRESSORS] = inv_h2[:, None]
-            return out.reshape(-1, 17 + N_SAMPLE_REGRESSORS)
+            return out.reshape(-1, C)
 
         out = [stack(self.config.names, "acc", data.acc)]
         if self.gyro_triads:
@@ -451,6 +465,9 @@ def initial_motion(config: DynamicConfig, data: DynamicData, gyro_triads: list[s
             omega = np.column_stack([np.interp(data.t, data.t[good], est[good, i] / weight[good]) for i in range(3)])
     omega_dot = np.gradient(omega, data.t, axis=0) if data.n > 1 else np.zeros_like(omega)
     return {OMEGA: omega, OMEGA_DOT: omega_dot, S: s}
+
+
+SLAB = 512  # samples per slab of DynamicProblem.block_data
 
 
 def _valid(rows: dict, names, N: int) -> np.ndarray:
