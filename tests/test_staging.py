@@ -11,10 +11,17 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from castimate.solver.assembly import NotStaged, StagedBlock
+from castimate.solver.assembly import Block, NotStaged, StagedBlock
 from castimate.solver.elimination import _stage
 
 N_CAL, R, M, K = 5, 6, 2, 3  # calibration variables, stages, variables per stage, instances per stage
+
+
+@pytest.fixture(autouse=True, params=[None, 4])
+def slab(request, monkeypatch):
+    """The checks in one slab, and a stage group per slab (StagedBlock.SLAB)."""
+    if request.param is not None:
+        monkeypatch.setattr(StagedBlock, "SLAB", request.param)
 
 
 def family():
@@ -109,3 +116,18 @@ def test_stage_cuts_a_block_with_clamped_neighbours_into_runs():
     segs, order = _stage(SimpleNamespace(w_idx=W), st)
     assert order is None
     assert [(t0, t1) for t0, t1, _ in segs] == [(0, K), (K, (R - 1) * K), ((R - 1) * K, R * K)]
+
+
+def test_reorder_in_place_by_slabs():
+    """Block.reorder permutes the index matrix's columns in place, a slab of instances at a time."""
+    W = np.random.default_rng(1).integers(0, 1000, (23, 6)).astype(np.int32)
+    b = Block.__new__(Block)
+    b.w_idx, b.order = W.copy(), np.arange(6)
+    buffer = b.w_idx
+    order = np.array([3, 0, 5, 1, 4, 2])
+    b.reorder(order)
+    assert b.w_idx is buffer
+    np.testing.assert_array_equal(b.w_idx, W[:, order])
+    np.testing.assert_array_equal(b.order, order)
+    b.reorder(np.argsort(b.order))
+    np.testing.assert_array_equal(b.w_idx, W)

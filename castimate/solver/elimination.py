@@ -48,7 +48,7 @@ from scipy.linalg import blas, lapack
 
 from ..jit import compile_functions
 from ..problem.parameters import Layout
-from .assembly import CHUNK, LOCAL, Block, NotStaged, StagedBlock, exact_hessian, row_min
+from .assembly import CHUNK, LOCAL, Block, NotStaged, StagedBlock, exact_hessian
 
 
 STAGE_CHUNK = 4096  # instances per call of a stage function (whole stage groups)
@@ -179,16 +179,11 @@ def _stage(b, fam):
     none = np.iinfo(np.int32).max
     stage_of = np.full(max(int(W.max()) + 1, n), none, np.int32)
     stage_of[:n][fam.stage_of >= 0] = fam.stage_of[fam.stage_of >= 0]
-    first = np.take(stage_of, W[0]) != none
-    if first.any():
-        # the first instance's stage columns alone (a third of the accelerometers' at 32 x 20 000):
-        # if the block is staged on them (StagedBlock checks that no other column reads the family),
-        # they give every instance's first stage; else the general analysis below
-        base = row_min(np.take(stage_of, np.compress(first, W, axis=1)))
+    tried = (np.take(stage_of, W[0]) != none).any()
+    if tried:
+        # staged as given (instances in stage order): StagedBlock finds out from the first
+        # instance's stage columns alone; else the general analysis below
         try:
-            if (np.diff(base) < 0).any():
-                order = np.argsort(base, kind="stable")
-                return [(0, len(W), StagedBlock(_View(W[order]), fam, max_offset=None))], order
             return [(0, len(W), StagedBlock(b, fam, max_offset=None))], None
         except NotStaged:
             pass
@@ -200,6 +195,8 @@ def _stage(b, fam):
         order = np.argsort(base, kind="stable")
         return [(0, len(W), StagedBlock(_View(W[order]), fam, max_offset=None))], order
     try:
+        if tried:
+            raise NotStaged
         return [(0, len(W), StagedBlock(b, fam, max_offset=None))], None
     except NotStaged:
         S = np.take(stage_of, W)
