@@ -38,7 +38,7 @@ from ..problem.graph import SolverOptions
 from ..prepare.masks import saturation_mask
 from ..prepare.plausibility import check_dynamic_information, check_uniform_sampling
 from ..problem.effects import BY_KEY, MOTION, RATE
-from ..solver.motion_noise import COMPONENTS, fit_noise, noise_sigma, relaxed_fixed_point
+from ..solver.motion_noise import COMPONENTS, accelerated_fixed_point, fit_noise, noise_sigma
 from ..solver.serial import serial_covariance
 from ..solver.uncertainty import std_by_group
 
@@ -565,23 +565,23 @@ def noise_regressors(problem, values: dict, data: DynamicData) -> tuple[dict, di
     return tuple({n: {"floor": np.ones_like(u), "jitter": u ** 2, "rate": w2} for n, u in r.items()} for r in rates)
 
 
-def with_motion_noise(data: DynamicData, params: dict[str, dict[str, float]], regressors: tuple[dict, dict]
-                      ) -> DynamicData:
-    """``data`` with the per-sample σ of σ² = σ₀² + Σ θ g (:func:`castimate.solver.motion_noise.noise_sigma`)
-    for the sensors with a non-zero component; ``params`` sensor -> component -> √θ."""
-    sample = {}
-    for (sensor, kind), reg in zip(SENSORS, regressors):
-        if any(params.get(sensor, {}).values()):
-            base = data.acc_sigma if kind == "acc" else data.gyro_sigma
-            sample[kind] = {n: noise_sigma(base[n], params[sensor], g) for n, g in reg.items()}
+def _log_sigmas(data: DynamicData, params: dict, regressors: tuple[dict, dict]) -> np.ndarray:
+    """The log σ of every reading (sensor, triad, sample, axis; the order of ``regressors``) under the
+    parameters ``params`` (sensor -> component -> √θ): the state of the outer iteration."""
+    return np.concatenate([np.log(noise_sigma(base[n], params[s], g)).ravel()
+                           for (s, kind), reg in zip(SENSORS, regressors)
+                           for base in [data.acc_sigma if kind == "acc" else data.gyro_sigma] for n, g in reg.items()])
+
+
+def _with_log_sigmas(data: DynamicData, z: np.ndarray, regressors: tuple[dict, dict]) -> DynamicData:
+    """``data`` with the per-sample σ's exp(z) (the layout of :func:`_log_sigmas`)."""
+    sample, i = {}, 0
+    for (_, kind), reg in zip(SENSORS, regressors):
+        for n, g in reg.items():
+            shape = np.shape(next(iter(g.values())))
+            sample.setdefault(kind, {})[n] = np.exp(z[i: i + int(np.prod(shape))]).reshape(shape)
+            i += int(np.prod(shape))
     return replace(data, sigma_sample=sample)
-
-
-def _sigma_change(data: DynamicData, regressors: tuple[dict, dict], new: dict, old: dict) -> float:
-    """The largest relative change of any reading's σ from the parameters ``old`` to ``new``."""
-    return max(float(np.nanmax(np.abs(noise_sigma(base[n], new[s], g) / noise_sigma(base[n], old[s], g) - 1)))
-               for (s, kind), reg in zip(SENSORS, regressors)
-               for base in [data.acc_sigma if kind == "acc" else data.gyro_sigma] for n, g in reg.items())
 
 
 def fit_motion_noise(spec: ProblemSpec, problem, solver: Solver, sol: Solution, data: DynamicData, log: Log
@@ -589,13 +589,13 @@ def fit_motion_noise(spec: ProblemSpec, problem, solver: Solver, sol: Solution, 
     """The motion-dependent noise model of ``noise.motion_dependent`` (:mod:`castimate.solver.motion_noise`):
     alternately its components from the residuals and their redundancy (the variance components of
     :mod:`castimate.solver.variance`), and the weighted fit with the σ's they give (warm-started, no
-    rebuild), until the components estimated from a refit no longer change any σ by more than
-    MOTION_NOISE_TOL. Each round moves the parameters towards the new estimate in log-space by the
-    secant relaxation of :func:`castimate.solver.motion_noise.relaxation` (damping a 2-cycle,
-    extrapolating a slow monotone approach). Returns the data with the per-sample σ's, the solution
-    of the last weighted fit and, per sensor and component, the parameter, its σ and its
-    likelihood-ratio test, plus the number of weighted refits (``rounds``), whether the iteration
-    converged and its status line."""
+    rebuild), until the σ's of the components estimated from a refit differ from those of that
+    refit by at most MOTION_NOISE_TOL. The σ's of every reading are the iteration's state, moved by
+    Anderson acceleration (:func:`castimate.solver.motion_noise.accelerated_fixed_point`). Returns the
+    data with the per-sample σ's, the solution of the last weighted fit and, per sensor and
+    component, the parameter, its σ and its likelihood-ratio test, plus the number of weighted refits
+    (``rounds``), whether the iteration converged (always, else NotConvergedError naming
+    ``noise.motion_dependent``) and its status line."""
     setting = spec.noise.motion_dependent
     if spec.solver.method == "bcd" or not spec.noise.motion_noise:
         return data, sol, {}
@@ -603,12 +603,14 @@ def fit_motion_noise(spec: ProblemSpec, problem, solver: Solver, sol: Solution, 
     estimated = any(v in ("auto", "free") for c in setting.values() for v in c.values())
     stages = motion_stages(problem.lsq.layout, data.n)
     fits: dict = {}
-    state = {"data": data, "sol": sol, "regressors": None}
+    state = {"data": data, "sol": sol, "regressors": None, "params": params, "estimate": None}
 
-    def propose(params):
+    def propose():
         data, sol = state["data"], state["sol"]
-        regressors = state["regressors"] = noise_regressors(problem, sol.values, data)
-        proposal = {s: dict(c) for s, c in params.items()}
+        if state["regressors"] is None:  # at a refit's solution (the white fit's are computed below)
+            state["regressors"] = noise_regressors(problem, sol.values, data)
+        regressors = state["regressors"]
+        proposal = {s: dict(c) for s, c in state["params"].items()}
         if estimated:
             t0 = time.process_time()
             J, G = solver.jacobians(sol.x, data=problem.data_vector(data))
@@ -624,27 +626,35 @@ def fit_motion_noise(spec: ProblemSpec, problem, solver: Solver, sol: Solution, 
                 try:
                     fit = fit_noise([res[i][n] for n in names], [h[i][n] for n in names], [base[n] for n in names],
                                     {k: [regressors[i][n][k] for n in names] for k in comps}, comps,
-                                    params[sensor], MOTION_NOISE_ALPHA)
+                                    state["params"][sensor], MOTION_NOISE_ALPHA)
                 except NotConvergedError as err:
                     raise NotConvergedError(f"{spec.path}: noise.motion_dependent.{sensor}: {err}") from None
                 fits[sensor] = fit
                 proposal[sensor].update({k: f.value for k, f in fit.items()})
-        return proposal, _sigma_change(data, regressors, proposal, params)
+        previous = _log_sigmas(data, state["estimate"], regressors) if state["estimate"] else None
+        state["params"] = state["estimate"] = proposal
+        return proposal, _log_sigmas(data, proposal, regressors), previous
 
-    def refit(params):
-        data = state["data"] = with_motion_noise(state["data"], params, state["regressors"])
+    def refit(z):
+        data = state["data"] = _with_log_sigmas(state["data"], z, state["regressors"])
         prev = state["sol"]
         sol = state["sol"] = solver.solve(prev.x, data=problem.data_vector(data), lam_g0=prev.lam_g)
+        state["regressors"] = None
         log(f"  weighted refit: {sol.message} in {sol.iterations} iterations, {sol.wall_s:.2f} s, "
             f"χ²/dof {sol.chi2_per_dof:.4g}")
         if not sol.success:
             raise NotConvergedError(f"{spec.path}: the refit with the motion-dependent noise model did not converge: "
                                     f"{sol.message} (χ²/dof before {prev.chi2_per_dof:.4g})")
 
-    outer = relaxed_fixed_point(propose, refit, params, lambda s, k: setting[s][k] in ("auto", "free"),
-                                MOTION_NOISE_TOL, MOTION_NOISE_ROUNDS, log)
+    state["regressors"] = noise_regressors(problem, sol.values, data)
+    z0 = np.log(np.concatenate([data.sigma(kind, n).ravel() for (_, kind), reg in zip(SENSORS, state["regressors"])
+                                for n in reg]))  # the σ's of the white fit
+    outer = accelerated_fixed_point(propose, refit, z0, MOTION_NOISE_TOL, MOTION_NOISE_ROUNDS, log)
     data, sol, params = state["data"], state["sol"], outer.params
     log(f"  motion-dependent noise: {outer.status}")
+    if not outer.converged:
+        raise NotConvergedError(f"{spec.path}: noise.motion_dependent: the outer iteration {outer.status}; "
+                                f"fix the components (numbers) or set noise.motion_dependent: none")
     units = {k: u for k, (_, u) in COMPONENTS.items()}
     out = {"rounds": outer.rounds, "converged": outer.converged, "status": outer.status}
     for sensor, c in params.items():
