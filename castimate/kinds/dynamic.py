@@ -568,7 +568,7 @@ def noise_regressors(problem, values: dict, data: DynamicData) -> tuple[dict, di
 def _log_sigmas(data: DynamicData, params: dict, regressors: tuple[dict, dict]) -> np.ndarray:
     """The log σ of every reading (sensor, triad, sample, axis; the order of ``regressors``) under the
     parameters ``params`` (sensor -> component -> √θ): the state of the outer iteration."""
-    return np.concatenate([np.log(noise_sigma(base[n], params[s], g)).ravel()
+    return np.concatenate([np.log(np.broadcast_to(noise_sigma(base[n], params[s], g), np.shape(g["floor"]))).ravel()
                            for (s, kind), reg in zip(SENSORS, regressors)
                            for base in [data.acc_sigma if kind == "acc" else data.gyro_sigma] for n, g in reg.items()])
 
