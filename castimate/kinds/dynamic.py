@@ -348,7 +348,8 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = quiet, max_restarts: int = 2
         return DynamicOutcome(spec, data, config, problem, solver, sol, attempts, sat, cal, gcal, res_acc, res_gyro,
                               nominal)
     problem, solver, sol, attempts, variance = solve_dynamic(config, data, nominal, spec.solver, spec.path,
-                                                             static_problem, log, max_restarts, start)
+                                                             static_problem, log, max_restarts, start,
+                                                             fisher=not spec.noise.motion_noise)
     data, sol, noise = fit_motion_noise(spec, problem, solver, sol, data, log)
     check_estimates(spec, sol.values, problem.config.names)
     sol, serial = serial_uncertainty(spec, problem, solver, sol, data, log)
@@ -368,7 +369,7 @@ def serial_uncertainty(spec: ProblemSpec, problem, solver: Solver, sol: Solution
     lag-1 autocorrelation per triad and sensor, the bandwidth, the σ inflation and the Fisher σ's."""
     if spec.uncertainty.residual_correlation == "none":
         return sol, {"reported": "fisher", "residual_correlation": "none"}
-    hc = serial_covariance(solver, sol.x, None, problem.data_vector(data))
+    hc = serial_covariance(solver, sol.x, None, problem.data_vector(data), fisher=sol.covariance)
     if hc is None:
         return sol, None
     names = {"accelerometer_sample": ("accelerometer", problem.config.names),
@@ -404,7 +405,7 @@ def serial_uncertainty(spec: ProblemSpec, problem, solver: Solver, sol: Solution
 
 def solve_dynamic(config: DynamicConfig, data: DynamicData, nominal: dict, options: SolverOptions | None = None,
                   path="problem", static_problem=None, log: Log = quiet, max_restarts: int = 2,
-                  start: dict | None = None):
+                  start: dict | None = None, fisher: bool = True):
     """The default solve path of a dynamic problem: attempts from the nominal poses (Gauss-Newton
     first without gyroscopes, then the exact Hessian), restarts out of Schopp's local minima, then
     the process-noise levels re-estimated from the data (:func:`estimate_process_noise`, when
@@ -415,7 +416,8 @@ def solve_dynamic(config: DynamicConfig, data: DynamicData, nominal: dict, optio
     ``start`` (values of a related fit, motion included; groups it lacks at their initial values):
     the first attempt starts there with the exact Hessian, a second one there with Gauss-Newton
     steps first; only if both fail do the attempts from the nominal poses follow (all reported in
-    the attempts)."""
+    the attempts). ``fisher`` False: no Fisher covariance at the attempts' solutions (the noise
+    model refits them; ``options.covariance`` still holds for the process-noise levels' solves)."""
     options = options or SolverOptions()
     attempts, best = [], None
     start_values: dict = {}
@@ -461,7 +463,7 @@ def solve_dynamic(config: DynamicConfig, data: DynamicData, nominal: dict, optio
             if bad:
                 raise InputError(path, "model", f"the data cannot determine {len(bad)} direction(s): "
                                  f"{'; '.join(bad[:3])}; fix these parameters, give them priors, or enable the process model")
-        sol = solver.solve(x0, lam_g0=lam)
+        sol = solver.solve(x0, lam_g0=lam, covariance=None if fisher else False)
         if not sol.success and first is not None and first.success and \
                 solver.newton_decrement(first.x, first.lam_g) < 1e-6:
             # the polish failed at a point that already satisfies the optimality conditions
@@ -638,7 +640,7 @@ def fit_motion_noise(spec: ProblemSpec, problem, solver: Solver, sol: Solution, 
     def refit(z):
         data = state["data"] = _with_log_sigmas(state["data"], z, state["regressors"])
         prev = state["sol"]
-        sol = state["sol"] = solver.solve(prev.x, data=problem.data_vector(data), lam_g0=prev.lam_g)
+        sol = state["sol"] = solver.solve(prev.x, data=problem.data_vector(data), lam_g0=prev.lam_g, covariance=False)
         state["regressors"] = None
         log(f"  weighted refit: {sol.message} in {sol.iterations} iterations, {sol.wall_s:.2f} s, "
             f"χ²/dof {sol.chi2_per_dof:.4g}")
@@ -655,6 +657,9 @@ def fit_motion_noise(spec: ProblemSpec, problem, solver: Solver, sol: Solution, 
     if not outer.converged:
         raise NotConvergedError(f"{spec.path}: noise.motion_dependent: the outer iteration {outer.status}; "
                                 f"fix the components (numbers) or set noise.motion_dependent: none")
+    if sol.covariance is None and solver.options.covariance:  # the refits' (and the white fit's) were skipped
+        cov = solver.covariance(sol.x, data=problem.data_vector(data))
+        sol = replace(sol, covariance=cov, std=std_by_group(solver, cov))
     units = {k: u for k, (_, u) in COMPONENTS.items()}
     out = {"rounds": outer.rounds, "converged": outer.converged, "status": outer.status}
     for sensor, c in params.items():

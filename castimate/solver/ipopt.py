@@ -250,15 +250,18 @@ class Solver:
         """Covariance of the reported parameters ``theta`` (physical units), nuisance marginalised."""
         return uncertainty.covariance(self, x, p_fixed, data)
 
-    def solve(self, x0=None, p_fixed=None, data=None, lam_g0=None) -> Solution:
+    def solve(self, x0=None, p_fixed=None, data=None, lam_g0=None, covariance: bool | None = None) -> Solution:
         """Solve from x0 (default: the groups' initial values); ``lam_g0`` warm-starts the constraint
-        multipliers, e.g. from a Gauss-Newton solution polished with the exact Hessian."""
+        multipliers, e.g. from a Gauss-Newton solution polished with the exact Hessian.
+        ``covariance``: compute the Fisher covariance (default: ``options.covariance``); False for a
+        fit that an outer iteration refits anyway (the noise model's)."""
+        cov = self.options.covariance if covariance is None else covariance
         if self.projection is not None:  # no MUMPS factor storage to keep: glibc's defaults fragment less
-            return self._solve(x0, p_fixed, data, lam_g0)
+            return self._solve(x0, p_fixed, data, lam_g0, cov)
         with _heap_allocation():
-            return self._solve(x0, p_fixed, data, lam_g0)
+            return self._solve(x0, p_fixed, data, lam_g0, cov)
 
-    def _solve(self, x0, p_fixed, data, lam_g0) -> Solution:
+    def _solve(self, x0, p_fixed, data, lam_g0, with_covariance: bool) -> Solution:
         lay, P = self.problem.layout, self.projection
         x0 = lay.x0() if x0 is None else np.asarray(x0, float)
         lbx, ubx = lay.bounds()
@@ -282,7 +285,7 @@ class Solver:
         else:
             x = P.solution(np.asarray(sol["x"]).ravel(), pf)
         values = lay.unpack(x, pf)
-        cov = self.covariance(x, pf, data) if self.options.covariance else None
+        cov = self.covariance(x, pf, data) if with_covariance else None
         std = uncertainty.std_by_group(self, cov) if cov is not None else {}
         residual = self.residuals(x, pf, data)
         cost = 0.5 * float(residual @ residual)

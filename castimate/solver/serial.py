@@ -204,19 +204,20 @@ def _rows(solver, x, pf, d):
 
 
 def serial_covariance(solver, x, p_fixed=None, data=None, lags: int | None = None,
-                      pooling: str = "sample", floor: bool = True) -> SerialCovariance | None:
+                      pooling: str = "sample", floor: bool = True, fisher=None) -> SerialCovariance | None:
     """The HAC covariance of ``solver.theta`` at scaled layout-order x (module docstring), or None
     when no factor block is a time series (``FactorBlock.series``). ``lags``: a fixed L instead of
     Andrews' plug-in (tests). ``pooling="channel"`` (with ``lags``; for comparison only): the
     Bartlett sum of each channel's own scores, no correlation between channels. ``floor``: the
-    σ's are at least the Fisher ones (:func:`at_least`; module docstring)."""
+    σ's are at least the Fisher ones (:func:`at_least`; module docstring). ``fisher``: the Fisher
+    covariance at x (physical units, ``Solution.covariance``) where already computed."""
     if pooling not in ("sample", "channel") or (pooling == "channel" and lags is None):
         raise ValueError(f"pooling {pooling!r}: expected 'sample', or 'channel' with lags")
     if not any(getattr(b.block, "series", None) is not None for b in solver.blocks):
         return None
     pf, d = solver.fixed_and_data(p_fixed, data)
     x = np.asarray(x, float)
-    C_phys = covariance(solver, x, pf, d)
+    C_phys = covariance(solver, x, pf, d) if fisher is None else np.asarray(fisher, float)
     s = solver.problem.layout.x_scale[solver.theta]
     C = C_phys / np.outer(s, s)
     reduce = _elimination(solver, x, pf, d)
