@@ -605,6 +605,7 @@ def fit_motion_noise(spec: ProblemSpec, problem, solver: Solver, sol: Solution, 
     estimated = any(v in ("auto", "free") for c in setting.values() for v in c.values())
     stages = motion_stages(problem.lsq.layout, data.n)
     fits: dict = {}
+    warm: dict = {}  # per sensor, the variance components' fits of the previous round (fit_noise)
     state = {"data": data, "sol": sol, "regressors": None, "params": params, "estimate": None}
 
     def propose():
@@ -628,7 +629,7 @@ def fit_motion_noise(spec: ProblemSpec, problem, solver: Solver, sol: Solution, 
                 try:
                     fit = fit_noise([res[i][n] for n in names], [h[i][n] for n in names], [base[n] for n in names],
                                     {k: [regressors[i][n][k] for n in names] for k in comps}, comps,
-                                    state["params"][sensor], MOTION_NOISE_ALPHA)
+                                    state["params"][sensor], MOTION_NOISE_ALPHA, warm.setdefault(sensor, {}))
                 except NotConvergedError as err:
                     raise NotConvergedError(f"{spec.path}: noise.motion_dependent.{sensor}: {err}") from None
                 fits[sensor] = fit

@@ -84,13 +84,18 @@ def noise_sigma(sigma0, values: dict[str, float], regressors: dict[str, np.ndarr
 
 
 def fit_noise(residual, leverage, sigma0, regressors: dict[str, list], settings: dict[str, str | float],
-              start: dict[str, float] | None = None, alpha: float = 0.01) -> dict[str, ComponentFit]:
+              start: dict[str, float] | None = None, alpha: float = 0.01, warm: dict | None = None
+              ) -> dict[str, ComponentFit]:
     """REML estimate (:func:`castimate.solver.variance.variance_components`) of the components of σ² = σ₀² + Σ θ_m g_m for the triads of one sensor type:
     lists of (N, 3) residuals e (NaN where masked), leverages h (r = 1 − h) and σ₀ (3,) per triad;
     ``regressors`` component -> list of (N, 3) g per triad; ``settings`` component -> ``free``
     (estimated), ``auto`` (estimated, dropped unless the likelihood-ratio test of θ = 0 rejects at
     ``alpha``, least significant first), ``none`` or a fixed parameter √θ. σ₀ is held (it comes from
-    the static segments)."""
+    the static segments). ``warm`` (filled here): the components of every fit made (the full model
+    and those without one component each, for the tests), where the next call starts the same fit,
+    e.g. the outer iteration's next round (from the previous parameters Newton's method took up to
+    23 iterations on real exp_1 for a fit without a component, from its last optimum 3-5)."""
+    warm = {} if warm is None else warm
     flat = lambda xs: np.concatenate([np.ravel(x) for x in xs])  # noqa: E731
     e, r = flat(residual), 1.0 - flat(leverage)
     names = list(settings)
@@ -106,12 +111,17 @@ def fit_noise(residual, leverage, sigma0, regressors: dict[str, list], settings:
     guess = moment_estimate(e, r, G)
 
     def fit(keep, theta=None):
-        if theta is None:
+        key = frozenset(keep)
+        if key in warm:  # the same fit in the outer iteration's previous round
+            theta = warm[key]
+        elif theta is None:
             theta = [fixed.get(k, (start.get(k) or np.sqrt(guess[i])) if k in keep else 0.0) ** 2
                      for i, k in enumerate(names, start=1)]
         theta0 = np.array([1.0] + [t if k in keep or k in fixed else 0.0 for k, t in zip(names, theta)])
         free = [False] + [k in keep for k in names]
-        return variance_components(e, r, G, theta0, free)
+        out = variance_components(e, r, G, theta0, free)
+        warm[key] = out.theta[1:]
+        return out
 
     keep = list(active)
     full = fit(keep)
