@@ -289,3 +289,50 @@ def test_gradient_first_near_the_optimum_keeps_the_reduced_objective_gradient_an
     assert abs(f1 - f2) < 1e-12 * (1 + abs(f2))
     assert relative(g1, g2) < 1e-9
     assert relative(S1, S2) < 1e-9
+
+
+def test_motion_that_no_reading_determines_is_left_out_of_the_reduced_problem(monkeypatch):
+    """At two samples every accelerometer's x (z) axis is masked and no process model ties the
+    samples: the specific force along that axis has no information at all (its stage Hessian is
+    singular), as on MIMU4444 exp_4 where all eight accelerometers sit on a 16 g rail. The
+    projection inverts those stages on their range only; it converged to the full NLP's optimum
+    (Cholesky of the singular stages had put 1e64 into the reduced Hessian: IPOPT stopped with
+    Error_In_Step_Computation)."""
+    import dataclasses
+    import test_assembly
+    from castimate.problem.dynamic import build_dynamic
+
+    def masked(cfg, data):
+        valid = {nm: np.ones((data.t.size, 3), bool) for nm in data.acc}
+        for v in valid.values():
+            v[11, 0] = v[23, 2] = False
+        return build_dynamic(cfg, dataclasses.replace(data, acc_valid=valid))
+
+    monkeypatch.setattr(test_assembly, "build_dynamic", masked)
+    prob = dynamic_case(40, False)
+    ref = Solver(prob.lsq, SolverOptions(tol=1e-12, elimination="none"))
+    new = Solver(prob.lsq, SolverOptions(tol=1e-12))
+    a, b = ref.solve(), new.solve()
+    assert a.success and b.success, (a.message, b.message)
+    assert relative(b.x, a.x) < 1e-9
+    sa, sb = np.sqrt(np.diag(ref.covariance(b.x))), np.sqrt(np.diag(b.covariance))
+    assert np.abs(sb / sa - 1).max() < 1e-6
+
+
+def test_singular_stage_factor_is_the_pseudo_inverse_and_indefinite_stages_are_refused():
+    """_Factor on hand-made 3 x 3 stages: positive definite (Cholesky), singular to rounding (the
+    pseudo-inverse: Linv^T Linv = B^+), and indefinite (LinAlgError, for the damped inner solve)."""
+    from castimate.solver.elimination import _Factor
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(3, 3))
+    pd = A @ A.T + np.eye(3)
+    u = np.array([1.0, 2.0, 2.0]) / 3.0
+    sing = 5.0 * np.outer(u, u) + 2.0 * np.outer([0, 1, -1], [0, 1, -1]) / 2
+    F = _Factor([np.stack([pd, sing])])
+    inv = np.swapaxes(F.Linv, 1, 2) @ F.Linv
+    assert np.allclose(inv[0], np.linalg.inv(pd), rtol=1e-12, atol=1e-14)
+    assert np.allclose(inv[1], np.linalg.pinv(sing), rtol=1e-12, atol=1e-14)
+    v = rng.normal(size=(2, 3, 1))
+    assert np.allclose(F.upper(F.lower(v))[1, :, 0], np.linalg.pinv(sing) @ v[1, :, 0])
+    with pytest.raises(np.linalg.LinAlgError):
+        _Factor([np.stack([pd, np.diag([1.0, 1.0, -1e-3])])])

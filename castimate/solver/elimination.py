@@ -497,12 +497,44 @@ class _Parts:
 
 class _Factor:
     """Cholesky factor L of a family's stage Hessian (block diagonal: per stage; block banded:
-    LAPACK band storage). ``lower(v)`` = L^-1 v, ``upper(v)`` = L^-T v for v (R, m, k)."""
+    LAPACK band storage). ``lower(v)`` = L^-1 v, ``upper(v)`` = L^-T v for v (R, m, k).
+
+    A block-diagonal stage whose Hessian is singular to rounding (a direction no reading
+    determines, e.g. the specific force along an axis that every accelerometer has masked at
+    that sample; with no process model nothing else ties it) is inverted on its range only:
+    Linv = W^-1/2 V^T over the eigenvalues above NULL_TOL times the largest, zero rows for the
+    others, so Linv^T Linv is the pseudo-inverse. Those directions then take no step and add
+    nothing to the reduced problem, as they add nothing to the objective. An eigenvalue below
+    -NULL_TOL times the largest is an indefinite stage: LinAlgError, as from the Cholesky."""
+
+    NULL_TOL = 1e-12
 
     def __init__(self, B):
         self.R, self.m = B[0].shape[0], B[0].shape[1]
         if len(B) == 1:
-            self.Linv = np.linalg.inv(np.linalg.cholesky(B[0]))
+            B0 = B[0]
+            try:
+                L = np.linalg.cholesky(B0)
+                piv = np.einsum("rii->ri", L) ** 2
+                null = (piv <= self.NULL_TOL * np.einsum("rii->ri", B0).max(axis=1, keepdims=True)).any(axis=1)
+            except np.linalg.LinAlgError:
+                L, null = None, np.ones(self.R, bool)
+            if L is None:  # some stage is not positive definite: singular ones are kept, indefinite ones not
+                L = np.zeros_like(B0)
+                ok = np.zeros(self.R, bool)
+                for s0 in range(0, self.R, 1024):
+                    w = np.linalg.eigvalsh(B0[s0: s0 + 1024])
+                    if (w[:, 0] < -self.NULL_TOL * np.abs(w[:, -1])).any():
+                        raise np.linalg.LinAlgError("a stage Hessian is not positive semidefinite")
+                    ok[s0: s0 + 1024] = w[:, 0] > self.NULL_TOL * w[:, -1]
+                L[ok] = np.linalg.cholesky(B0[ok])
+                null = ~ok
+            self.Linv = np.linalg.inv(np.where(null[:, None, None], np.eye(self.m), L))
+            if null.any():
+                w, V = np.linalg.eigh(B0[null])
+                keep = w > self.NULL_TOL * np.abs(w[:, -1:])
+                self.Linv[null] = np.swapaxes(V * np.where(keep, 1.0 / np.sqrt(np.where(keep, w, 1.0)), 0.0)[:, None, :],
+                                              1, 2)
             self.L = None
         else:
             self.L = sla.cholesky_banded(_banded(B, self.m), lower=True, check_finite=False)
