@@ -18,6 +18,12 @@ the beats per chip and session, χ²/dof and the in-plane distance ratio before 
 and CPU time, load average), and writes reports/DIAGNOSE_DYNAMIC.md from every session diagnosed so far:
 rounds, effects added with their statistics, χ²/dof after each, with the noise model, times, and the
 in-plane distance ratio to the nominal layout.
+``python reports/regenerate.py joint`` solves each session's static and dynamic phases as one problem
+(problems/mimu4444_exp<i>_joint.yaml: the intrinsics estimated with the positions, the motion-dependent
+noise model on the dynamic rows) into reports/mimu4444_exp<i>_joint/, and writes reports/JOINT.md beside
+the two-step path (static results as the dynamic problem's intrinsics): χ²/dof, in-plane distance ratio,
+the positions' session-to-session spread against their σ, and the shared gains against the static-only ones
+(``joint-table``: only the table, from the results already there).
 ``python reports/regenerate.py sessions`` solves the real dynamic sessions effect by effect (white
 noise, chip clocks, the motion-dependent noise model; the gyroscope coupling on exp_1) through the
 command line: ``benchmarks/mimu4444_sessions.py``, its table in benchmarks/results/mimu4444_sessions.md.
@@ -33,7 +39,7 @@ import numpy as np
 
 from castimate.cli import main
 from castimate.report.tables import (counts_comparison, dynamic_summary_table, gravity_norm_rms, in_plane_ratio, position_spread,
-                                     session_spread, session_summary)
+                                     session_position_spread, session_spread, session_summary)
 
 ROOT = Path(__file__).resolve().parents[1]
 PROBLEMS, REPORTS = ROOT / "problems", ROOT / "reports"
@@ -286,6 +292,65 @@ def diagnose_dynamic_table() -> None:
     print(f"wrote {REPORTS / 'DIAGNOSE_DYNAMIC.md'}")
 
 
+def joint_all() -> None:
+    """Joint static-plus-dynamic solves of the five sessions beside the two-step path (module docstring)."""
+    import os
+    import time
+
+    for i in range(1, 6):
+        solve_and_report(PROBLEMS / f"mimu4444_exp{i}_dynamic.yaml", f"mimu4444_exp{i}_dynamic")
+        load0, w0, c0 = os.getloadavg()[0], time.perf_counter(), time.process_time()
+        solve_and_report(PROBLEMS / f"mimu4444_exp{i}_joint.yaml", f"mimu4444_exp{i}_joint")
+        (REPORTS / f"mimu4444_exp{i}_joint" / "run.json").write_text(json.dumps({
+            "wall_s": time.perf_counter() - w0, "cpu_s": time.process_time() - c0, "cores": os.cpu_count(),
+            "load_average_1min": {"start": load0, "end": os.getloadavg()[0]}}, indent=1) + "\n")
+    joint_table()
+
+
+def joint_table() -> None:
+    """reports/JOINT.md from the joint, two-step and static results.json (and the joint's run.json)."""
+    sessions = [f"exp_{i}" for i in range(1, 6)]
+    read = lambda name: json.loads((REPORTS / name / "results.json").read_text())  # noqa: E731
+    joint = [read(f"mimu4444_exp{i}_joint") for i in range(1, 6)]
+    two_step = [read(f"mimu4444_exp{i}_dynamic") for i in range(1, 6)]
+    static = [read(f"mimu4444_exp{i}_static") for i in range(1, 6)]
+    gains = lambda r, n: np.linalg.norm(np.asarray(r["triads"][n]["accelerometer"]["T"]), axis=1)  # noqa: E731
+    med = lambda r: np.median([np.mean(t["position_std"]) for t in r["triads"].values() if np.any(t["position_std"])])  # noqa: E731
+    rows = ["| session | χ²/dof (noise model) | noise-model refits (converged) | IPOPT iterations | in-plane ratio: "
+            "two-step → joint | largest position change, joint − two-step [µm] | median position σ [µm]: two-step → "
+            "joint | largest accelerometer gain change vs static-only [%] | wall [s] (CPU [s], load) |",
+            "|---|---|---|---|---|---|---|---|---|"]
+    for i, (s, j, d, st) in enumerate(zip(sessions, joint, two_step, static), 1):
+        noise = j["noise"].get("motion_dependent", {})
+        gain = max(np.abs(gains(j, n) / gains(st, n) - 1).max() for n in j["triads"])
+        moved = max(np.abs(np.subtract(j["triads"][n]["position"], d["triads"][n]["position"])).max() for n in j["triads"])
+        run_ = REPORTS / f"mimu4444_exp{i}_joint" / "run.json"
+        t = json.loads(run_.read_text()) if run_.exists() else {}
+        rows.append(f"| {s} | {j['residuals']['chi2_per_dof']:.3f} | {noise.get('rounds', '–')} "
+                    f"({'yes' if noise.get('converged') else 'no'}) | {j['status']['iterations']} | "
+                    f"{in_plane_ratio(d):.4f} → {in_plane_ratio(j):.4f} | {moved * 1e6:.1f} | "
+                    f"{med(d) * 1e6:.1f} → {med(j) * 1e6:.1f} | {gain * 100:.3f} | "
+                    f"{t.get('wall_s', np.nan):.0f} ({t.get('cpu_s', np.nan):.0f}, "
+                    f"{t.get('load_average_1min', {}).get('start', np.nan):.1f}) |")
+    spread = [("two-step", session_position_spread(two_step)), ("joint", session_position_spread(joint))]
+    lines = ["# MIMU4444: joint static-plus-dynamic problems", "",
+             "Regenerated by `python reports/regenerate.py joint`: `castimate solve problems/mimu4444_exp<i>_joint.yaml` "
+             "(static poses and dynamic phase of one recording in one problem, every triad's intrinsics shared and "
+             "estimated; the motion-dependent noise model on the dynamic rows) beside the two-step path, solved in "
+             "the same run (`problems/mimu4444_exp<i>_dynamic.yaml` into `reports/mimu4444_exp<i>_dynamic/`, "
+             "intrinsics from the static phase's results in `reports/mimu4444_exp<i>_static/`). Gain: the row norms of "
+             "each accelerometer's T. Times: the joint solve through the CLI, on a 2-core machine shared with other "
+             "work (1-minute load average at its start).", "",
+             "\n".join(rows), "",
+             "Positions' session-to-session spread (RMS over the non-reference triads' coordinates of the standard "
+             "deviation over the five sessions) against the RMS reported σ:", "",
+             "| path | spread [µm] | σ [µm] | spread / σ |", "|---|---|---|---|"]
+    lines += [f"| {n} | {a * 1e6:.1f} | {b * 1e6:.1f} | {a / b:.2f} |" for n, (a, b) in spread]
+    lines += ["", "### Positions, joint", "", position_spread(joint, sessions)]
+    (REPORTS / "JOINT.md").write_text("\n".join(lines) + "\n")
+    print(f"wrote {REPORTS / 'JOINT.md'}")
+
+
 def sessions() -> None:
     import subprocess
 
@@ -295,6 +360,10 @@ def sessions() -> None:
 if __name__ == "__main__":
     if sys.argv[1:] == ["timing"]:
         timing_all()
+    elif sys.argv[1:] == ["joint"]:
+        joint_all()
+    elif sys.argv[1:] == ["joint-table"]:
+        joint_table()
     elif sys.argv[1:] == ["sessions"]:
         sessions()
     elif sys.argv[1:2] == ["diagnose-dynamic"]:
