@@ -178,7 +178,8 @@ class Solver:
 
     def residuals(self, x, p_fixed=None, data=None) -> np.ndarray:
         """All whitened residuals (data of the valid instances, then priors) at scaled x."""
-        return self.assembly.residuals(self.nlp_order(x), *self.fixed_and_data(p_fixed, data))[self.keep]
+        r = self.assembly.residuals(self.nlp_order(x), *self.fixed_and_data(p_fixed, data))
+        return r if self.n_residuals == len(self.keep) else r[self.keep]  # no copy when every residual counts
 
     def jacobians(self, x, p_fixed=None, data=None) -> tuple[sp.csr_matrix, sp.csr_matrix]:
         """Sparse Jacobians w.r.t. scaled x of the whitened residuals (data, then priors) and of the
