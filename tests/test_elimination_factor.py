@@ -21,7 +21,7 @@ def test_inverse_of_the_cholesky_factor(m):
     assert (np.triu(X, 1) == 0).all() and (np.einsum("rii->ri", X) > 0).all()
     np.testing.assert_allclose(X @ B @ X.transpose(0, 2, 1), np.broadcast_to(np.eye(m), B.shape), atol=1e-12)
     np.testing.assert_allclose(X, np.linalg.inv(np.linalg.cholesky(B)), rtol=0, atol=1e-12 * np.abs(X).max())
-    np.testing.assert_allclose(_cholesky(B), np.linalg.cholesky(B), rtol=0, atol=1e-12 * np.abs(B).max())
+    np.testing.assert_allclose(_cholesky(B).transpose(2, 0, 1), np.linalg.cholesky(B), rtol=0, atol=1e-12 * np.abs(B).max())
 
 
 @pytest.mark.parametrize("bad", ["indefinite", "nan"])

@@ -514,9 +514,9 @@ class _Factor:
         if len(B) == 1:
             B0 = B[0]
             try:
-                L = _cholesky(B0)
-                piv = np.einsum("rii->ri", L) ** 2
-                null = (piv <= self.NULL_TOL * np.einsum("rii->ri", B0).max(axis=1, keepdims=True)).any(axis=1)
+                L = _cholesky(B0)  # entry-major (m, m, R)
+                piv = np.einsum("iir->ir", L) ** 2
+                null = (piv <= self.NULL_TOL * np.einsum("rii->ri", B0).max(axis=1)[None, :]).any(axis=0)
             except np.linalg.LinAlgError:
                 L, null = None, np.ones(self.R, bool)
             if L is None:  # some stage is not positive definite: singular ones are kept, indefinite ones not
@@ -529,7 +529,10 @@ class _Factor:
                     ok[s0: s0 + 1024] = w[:, 0] > self.NULL_TOL * w[:, -1]
                 L[ok] = np.linalg.cholesky(B0[ok])
                 null = ~ok
-            self.Linv = _lower_inverse(np.where(null[:, None, None], np.eye(self.m), L))
+                L = np.ascontiguousarray(L.transpose(1, 2, 0))
+            if null.any():  # their inverse is replaced below
+                L[:, :, null] = np.eye(self.m)[:, :, None]
+            self.Linv = _lower_inverse(L)
             if null.any():
                 w, V = np.linalg.eigh(B0[null])
                 keep = w > self.NULL_TOL * np.abs(w[:, -1:])
@@ -557,11 +560,11 @@ class _Factor:
 
 
 def _cholesky(B: np.ndarray) -> np.ndarray:
-    """Cholesky factors L (R, m, m), L L^T = B, of a stack of small SPD matrices, all R at a time:
-    column by column on the stack's entries (each a contiguous vector over the stack).
-    np.linalg.cholesky and np.linalg.inv make a LAPACK call per matrix: with :func:`_lower_inverse`
-    at 20 000 x 9 x 9, 15 ms against 39 ms. Raises LinAlgError where a pivot is <= 0 or NaN, as
-    LAPACK's potrf does."""
+    """Cholesky factors of a stack of small SPD matrices B (R, m, m), all R at a time, entry-major:
+    L (m, m, R) with L[:, :, r] L[:, :, r]^T = B[r], computed column by column on the entries (each a
+    contiguous vector over the stack). np.linalg.cholesky and np.linalg.inv make a LAPACK call per
+    matrix: with :func:`_lower_inverse`, 20 000 x 9 x 9 in 15 ms against 39 ms. Raises LinAlgError
+    where a pivot is <= 0 or NaN, as LAPACK's potrf does."""
     R, m, _ = B.shape
     A = np.ascontiguousarray(B.transpose(1, 2, 0))  # (m, m, R)
     L = np.zeros((m, m, R))
@@ -571,19 +574,18 @@ def _cholesky(B: np.ndarray) -> np.ndarray:
             raise np.linalg.LinAlgError("Matrix is not positive definite")
         L[j, j] = np.sqrt(d)
         L[j + 1:, j] = (A[j + 1:, j] - np.einsum("ikr,kr->ir", L[j + 1:, :j], L[j, :j])) / L[j, j]
-    return np.ascontiguousarray(L.transpose(2, 0, 1))
+    return L
 
 
 def _lower_inverse(L: np.ndarray) -> np.ndarray:
-    """L^-1 (R, m, m) of a stack of lower-triangular matrices with nonzero diagonals, row by row
-    on the stack's entries (see :func:`_cholesky`)."""
-    R, m, _ = L.shape
-    T = np.ascontiguousarray(L.transpose(1, 2, 0))
+    """L^-1 (R, m, m) of lower-triangular matrices with nonzero diagonals given entry-major,
+    L (m, m, R) (:func:`_cholesky`), row by row on the entries."""
+    m, _, R = L.shape
     X = np.zeros((m, m, R))
     for i in range(m):
-        X[i, i] = 1.0 / T[i, i]
+        X[i, i] = 1.0 / L[i, i]
         for c in range(i):
-            X[i, c] = -np.einsum("kr,kr->r", T[i, c:i], X[c:i, c]) * X[i, i]
+            X[i, c] = -np.einsum("kr,kr->r", L[i, c:i], X[c:i, c]) * X[i, i]
     return np.ascontiguousarray(X.transpose(2, 0, 1))
 
 
