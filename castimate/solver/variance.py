@@ -155,28 +155,25 @@ def _row_patterns(Jt: sp.csr_matrix) -> list[tuple[np.ndarray, np.ndarray, np.nd
     return out
 
 
-def _border_index(first: np.ndarray, used: np.ndarray, ci: np.ndarray, m: int, c: int) -> np.ndarray:
-    """Flat indices (rows, len(used), len(ci)) into an (N·m, c) array: the rows' stage variables
-    ``used`` (0 ... span·m − 1, from the row's first stage) and the coupled θ columns ``ci``."""
-    return ((first[:, None] * m + used[None, :]) * c)[:, :, None] + ci[None, None, :]
+def _halves(used: np.ndarray, m: int, span: int):
+    """The stage variables ``used`` (0 ... span·m − 1, from a row's first stage) split by stage:
+    (offset of the stage from the first, the positions in ``used``, the variables within the stage)."""
+    for k in range(span):
+        sel = np.flatnonzero(used // m == k)
+        if sel.size:
+            yield k, sel, used[sel] % m
 
 
-def _scatter_add(out: np.ndarray, first: np.ndarray, used: np.ndarray, ci: np.ndarray, vals: np.ndarray, m: int,
-                 c: int) -> None:
-    """out[_border_index(...)] += vals with repeated indices summed: split into batches in which no
-    stage repeats (a pattern is read about once per sample: one batch, a plain indexed add)."""
-    for half in (used < m, used >= m):
-        if not half.any():
-            continue
-        stage = first + (0 if half[0] else 1)
-        u, v = used[half] % m, vals[:, half]
-        order = np.argsort(stage, kind="stable")
-        s = stage[order]
-        start = np.r_[True, s[1:] != s[:-1]]
-        rank = np.arange(s.size) - np.maximum.accumulate(np.where(start, np.arange(s.size), 0))
-        for k in range(int(rank.max(initial=-1)) + 1):
-            sel = order[rank == k]
-            out[_border_index(stage[sel], u, ci, m, c)] += v[sel]
+def _add_by_stage(out: np.ndarray, stage: np.ndarray, vals: np.ndarray) -> None:
+    """out[stage] += vals with repeated stages summed: in batches in which no stage repeats (a
+    pattern of θ columns is read a few times per sample at most), each a plain indexed add."""
+    order = np.argsort(stage, kind="stable")
+    s = stage[order]
+    start = np.r_[True, s[1:] != s[:-1]]
+    rank = np.arange(s.size) - np.maximum.accumulate(np.where(start, np.arange(s.size), 0))
+    for k in range(int(rank.max(initial=-1)) + 1):
+        sel = order[rank == k]
+        out[stage[sel]] += vals[sel]
 
 
 def hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None) -> np.ndarray:
@@ -242,11 +239,14 @@ def hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None) 
               for idx, cols, t in _row_patterns(Jt)]
     # H_θθ and H_mθ (coupled columns, flat (N·m, c)) summed pattern by pattern
     S = np.zeros((len(theta), len(theta)))
-    Hmt = np.zeros(N * m * c)
+    Hmt = np.zeros((N, m, c))
     for idx, cols, t, ci, used in groups:
         S[np.ix_(cols, cols)] += t.T @ t
-        if used.size:
-            _scatter_add(Hmt, first[idx], used, ci, V[idx][:, used, None] * t[:, None, :], m, c)
+        vt = V[idx][:, used, None] * t[:, None, :]
+        for k, sel, u in _halves(used, m, span):
+            D = np.zeros((N, u.size, ci.size))  # the pattern's share, stage by stage
+            _add_by_stage(D, first[idx] + k, vt[:, sel])
+            Hmt[:, u[:, None], ci[None, :]] += D
     Hmt = Hmt.reshape(N * m, c)
     if span == 1:
         Sd = _stage_inverse(A)
@@ -276,7 +276,6 @@ def hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None) 
         Q[:, m:, m:] = Sd[1:] + np.matmul(X3[1:], Bt[1:])
         Q[:, :m, m:] = So + np.matmul(X3[:-1], Bt[1:])
         Q[:, m:, :m] = Q[:, :m, m:].transpose(0, 2, 1)
-    X = X.ravel()
     want = np.arange(n_all) if rows is None else np.unique(np.asarray(rows, int).ravel())
     h = np.zeros(n_all)
     for c0 in range(0, want.size, CHUNK):
@@ -291,8 +290,9 @@ def hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None) 
         if not idx.size:
             continue
         ht = np.einsum("ri,ri->r", t @ P[np.ix_(cols, cols)], t)
-        if used.size:  # −2 v X_s tᵀ
-            Xs = X[_border_index(first[idx], used, ci, m, c)]
+        if used.size:  # −2 v X_s tᵀ, X_s the rows' stages' X on their θ columns
+            Xs = np.concatenate([X3[:, u[:, None], ci[None, :]][first[idx] + k] for k, _, u in _halves(used, m, span)],
+                                axis=1)
             ht -= 2.0 * np.einsum("ri,rik,rk->r", V[idx][:, used], Xs, t)
         h[idx] += ht
     return h if rows is None else h[np.asarray(rows, int).ravel()]
