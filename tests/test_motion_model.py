@@ -364,3 +364,23 @@ def test_motion_keys_reach_the_config(tmp_path):
     assert (m.integration, m.estimate, m.s, m.omega_dot) == ("euler", False, 7.0, 1e3 ** 0.5)
     m = motion_sigmas(_spec(tmp_path, {})())
     assert (m.integration, m.estimate) == ("wiener3", True)
+
+
+@pytest.mark.parametrize("collide", [False, True])
+def test_row_patterns_group_rows_by_their_columns(monkeypatch, collide):
+    """The hat diagonal's grouping of rows by θ pattern: every row of a group has the group's
+    columns and its own values; rows without entries are left out. With a hash that collides
+    (all multipliers 1: columns {0, 3} and {1, 2} sum alike) the exact grouping takes over."""
+    import castimate.solver.variance as var
+    if collide:
+        monkeypatch.setattr(var, "_hash_multipliers", lambda k: np.ones(k, np.uint64))
+    dense = np.array([[1.0, 0, 0, 2], [0, 3, 4, 0], [5, 0, 0, 6], [0, 0, 0, 0], [0, 7, 8, 0], [9, 0, 0, 0]])
+    groups = var._row_patterns(sp.csr_matrix(dense))
+    seen = []
+    for idx, cols, vals in groups:
+        assert np.array_equal(dense[idx][:, cols], vals)
+        mask = np.zeros(dense.shape[1], bool)
+        mask[cols] = True
+        assert np.all(dense[idx][:, ~mask] == 0) and np.all(dense[idx][:, mask] != 0)
+        seen += list(idx)
+    assert sorted(seen) == [0, 1, 2, 4, 5] and len(groups) == 3

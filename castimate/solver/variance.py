@@ -123,35 +123,46 @@ def _stage_inverse(A: np.ndarray) -> np.ndarray:
     return np.linalg.inv(A)
 
 
+def _hash_multipliers(k: int) -> np.ndarray:
+    """Odd random 64-bit multipliers of a row's column indices, position by position (fixed seed)."""
+    return np.random.default_rng(0).integers(1, 2**62, size=k, dtype=np.uint64) | np.uint64(1)
+
+
 def _row_patterns(Jt: sp.csr_matrix) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """The rows of a canonical CSR grouped by their column pattern: per pattern (the rows in order,
     its columns, the rows' values (rows, k)); rows without entries left out. A dynamic problem's
-    border has a few hundred patterns (one per sensor axis and kind of reading), each read at most
-    once per sample. Patterns are hashed, and the hash is checked for exactness."""
+    border has a few hundred patterns (one per sensor axis and kind of reading), each read a few
+    times per sample at most. Patterns are hashed, and the hash is checked for exactness."""
     n = Jt.shape[0]
     nnz = np.diff(Jt.indptr)
-    k = int(nnz.max(initial=0))
+    if not Jt.nnz:
+        return []
     row = np.repeat(np.arange(n), nnz)
     pos = np.arange(Jt.nnz) - Jt.indptr[row]
-    cols = np.full((n, k), -1, np.int64)
-    vals = np.zeros((n, k))
-    cols[row, pos], vals[row, pos] = Jt.indices, Jt.data
-    mult = np.random.default_rng(0).integers(1, 2**62, size=k, dtype=np.uint64) | np.uint64(1)
+    mult = _hash_multipliers(int(nnz.max()))
     with np.errstate(over="ignore"):
-        key = ((cols + 2).astype(np.uint64) * mult).sum(axis=1, dtype=np.uint64)
-    _, first, group = np.unique(key, return_index=True, return_inverse=True)
+        terms = (Jt.indices.astype(np.uint64) + np.uint64(1)) * mult[pos]
+        key = np.zeros(n, np.uint64)
+        has = nnz > 0
+        key[has] = np.add.reduceat(terms, Jt.indptr[:-1][has], dtype=np.uint64)
+    key = np.where(has, key ^ (nnz.astype(np.uint64) << np.uint64(56)), key)
+    _, rep, group = np.unique(key, return_index=True, return_inverse=True)
     group = group.ravel()
-    if not np.array_equal(cols, cols[first[group]]):  # a collision: the exact (slower) grouping
-        _, group = np.unique(cols, axis=0, return_inverse=True)
-        group = group.ravel()
+    r = rep[group]  # each row's representative
+    ok = np.array_equal(nnz, nnz[r]) and np.array_equal(Jt.indices, Jt.indices[Jt.indptr[r][row] + pos])
+    if not ok:  # a collision: one group per distinct pattern, exactly
+        keys = {}
+        group = np.array([keys.setdefault(tuple(Jt.indices[Jt.indptr[i]:Jt.indptr[i + 1]]), len(keys))
+                          for i in range(n)], int)
     order = np.argsort(group, kind="stable")
     ends = np.flatnonzero(np.diff(np.r_[-1, group[order], -2]))
     out = []
     for a, b in zip(ends[:-1], ends[1:]):
         idx = order[a:b]
-        kk = int(nnz[idx[0]])
-        if kk:
-            out.append((idx, cols[idx[0], :kk], vals[idx, :kk]))
+        k = int(nnz[idx[0]])
+        if k:
+            at = Jt.indptr[idx][:, None] + np.arange(k)
+            out.append((idx, Jt.indices[at[0]].astype(np.int64), Jt.data[at]))
     return out
 
 
