@@ -203,7 +203,18 @@ def hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None) 
     reading a stage also read (not a joint problem's static pose directions); H_mθ, H_θθ and the θ
     terms are summed per pattern of θ columns (one per sensor axis and reading kind), on the
     entries a row has: no (rows × n_θ) array is formed.
+
+    Large freed blocks are kept on the heap meanwhile (:func:`castimate.solver.ipopt._heap_allocation`):
+    its arrays of a few 10 MB would otherwise come as fresh pages from the kernel, zeroed on first
+    touch (on MIMU4444 exp_1 joint up to as much system time as user time, about 1 s a call).
     """
+    from .ipopt import _heap_allocation
+    with _heap_allocation():
+        return _hat_diagonal(J, G, stages, rows)
+
+
+def _hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None) -> np.ndarray:
+    """:func:`hat_diagonal` itself."""
     J, G = sp.csr_matrix(J), sp.csr_matrix(G)
     N, m = stages.shape
     mx = stages.ravel()
