@@ -259,7 +259,7 @@ class Solver:
         cov = self.options.covariance if covariance is None else covariance
         if self.projection is not None:  # no MUMPS factor storage to keep: glibc's defaults fragment less
             return self._solve(x0, p_fixed, data, lam_g0, cov)
-        with _heap_allocation():
+        with heap_allocation():
             return self._solve(x0, p_fixed, data, lam_g0, cov)
 
     def _solve(self, x0, p_fixed, data, lam_g0, with_covariance: bool) -> Solution:
@@ -373,7 +373,7 @@ class Stall(ca.Callback):
 
 
 @contextlib.contextmanager
-def _heap_allocation():
+def heap_allocation():
     """Serve large allocations from the heap and keep freed memory, for the duration of a solve
     (glibc only; elsewhere nothing changes). MUMPS allocates and frees its factor storage at every
     factorisation; by glibc's default every block above 32 MB is a fresh mmap whose pages the

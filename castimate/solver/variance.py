@@ -204,12 +204,12 @@ def hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None) 
     terms are summed per pattern of θ columns (one per sensor axis and reading kind), on the
     entries a row has: no (rows × n_θ) array is formed.
 
-    Large freed blocks are kept on the heap meanwhile (:func:`castimate.solver.ipopt._heap_allocation`):
+    Large freed blocks are kept on the heap meanwhile (:func:`castimate.solver.ipopt.heap_allocation`):
     its arrays of a few 10 MB would otherwise come as fresh pages from the kernel, zeroed on first
     touch (on MIMU4444 exp_1 joint up to as much system time as user time, about 1 s a call).
     """
-    from .ipopt import _heap_allocation
-    with _heap_allocation():
+    from .ipopt import heap_allocation
+    with heap_allocation():
         return _hat_diagonal(J, G, stages, rows)
 
 
