@@ -106,6 +106,8 @@ def test_anderson_step_settles_a_linear_two_cycle():
     x0, x1 = np.array([0.0]), np.array([2.0])
     assert anderson_step(x1, F(x1) - x1, [(x0, F(x0) - x0)])[0] == pytest.approx(1.0)
     assert anderson_step(x1, F(x1) - x1, []) is None  # without history: the caller's plain or damped step
+    # steps that hardly differ (refits ending at the solver's tolerance): weights beyond MAX_WEIGHTS, no step
+    assert anderson_step(x1, F(x1) - x1, [(x1 - 1e-6, F(x1) - x1 + 1e-9)]) is None
     Q = np.linalg.qr(np.array([[1.0, 0.4, -0.3], [0.2, 1.0, 0.5], [-0.6, 0.1, 1.0]]))[0]
     M, star = Q @ np.diag([-1.0, 0.5, 0.2]) @ Q.T, np.array([0.1, -0.2, 0.3])
     Phi = lambda z: star + M @ (z - star)  # noqa: E731

@@ -175,16 +175,19 @@ def anderson_step(z: np.ndarray, f: np.ndarray, history: list[tuple[np.ndarray, 
     |f − ΔF γ|₂ and the next iterate is z + f − (ΔZ + ΔF) γ: a multi-secant (quasi-Newton) step
     for f(z) = 0 over all coordinates jointly, which settles a 2-cycle of F (any coupling of the
     coordinates) and extrapolates a slow approach. None without history or when γ is not usable
-    (Σ|γ| above :data:`MAX_WEIGHTS`). Non-finite coordinates are left out of the fit and keep F.
+    (Σ|γ| above :data:`MAX_WEIGHTS`). Coordinates non-finite in any round are left out of the fit
+    and keep F. All coordinates enter the fit with equal weight: leaving out the 1 % whose steps
+    were largest (the readings at poorly determined samples) made them cycle, 10 refits instead of
+    6 on real exp_2.
 
     >>> float(anderson_step(np.array([1.0]), np.array([-1.0]), [(np.array([0.0]), np.array([1.0]))])[0])
     0.5
     """
     if not history:
         return None
-    ok = np.isfinite(z) & np.isfinite(f)
     zs = [h[0] for h in history] + [z]
     fs = [h[1] for h in history] + [f]
+    ok = np.logical_and.reduce([np.isfinite(v) for v in zs + fs])
     dZ = np.column_stack([(b - a)[ok] for a, b in pairwise(zs)])
     dF = np.column_stack([(b - a)[ok] for a, b in pairwise(fs)])
     gamma = np.linalg.lstsq(dF, f[ok], rcond=1e-8)[0]
@@ -262,8 +265,9 @@ def accelerated_fixed_point(propose, refit, z: np.ndarray, tol: float, max_round
             history = []
         step, how = anderson_step(z, f, history[-memory:]), "Anderson"
         if step is None:
-            beta = DAMPING if grew else 1.0
-            step, how = z + beta * f, "plain" if beta == 1 else f"damped ×{beta:g} (the step grew: restarted)"
+            beta = DAMPING if grew or history else 1.0
+            step, how = z + beta * f, "plain" if beta == 1 else f"damped ×{beta:g} (" + (
+                "the step grew: restarted)" if grew else "the secant model's weights too large)")
         if rounds:  # the white fit's step (components switched on) starts no secant
             history = (history + [(z, f)])[-memory:]
         last_norm, last_support = norm, support
