@@ -326,3 +326,22 @@ def test_in_plane_ratio_hand_computed():
     # 0.02 + 0.01 + √(0.02² + 0.01²) + 0.0195 + √(0.0005² + 0.01²)
     want = (0.02 + 0.01 + np.hypot(0.02, 0.01) + 0.0195 + np.hypot(0.0005, 0.01)) / (0.04 + 0.01 * np.sqrt(2))
     assert in_plane_ratio(res) == pytest.approx(want, rel=1e-12)
+
+
+def test_in_plane_ratio_from_the_sensing_elements_hand_computed():
+    """With axis offsets, each coordinate comes from the element sensing along it: a flipped triad (chip x
+    along −body y, chip y along −body x) takes its x from its y element and its y from its x element."""
+    from castimate.models.effects import along_sensing_axes
+    from castimate.report.tables import in_plane_ratio
+
+    flipped = [[0, -1, 0], [-1, 0, 0], [0, 0, -1]]
+    r, delta = np.array([0.01, 0.02, 0.003]), np.array([1e-3, 2e-3, 3e-3, 4e-3, 5e-3, 6e-3])
+    np.testing.assert_allclose(along_sensing_axes(r, delta, np.eye(3)), [0.01, 0.022, 0.009], rtol=1e-14)
+    np.testing.assert_allclose(along_sensing_axes(r, delta, flipped), [0.011, 0.02, 0.009], rtol=1e-14)
+    res = {"triads": {
+        "a": {"position": [0, 0, 0], "nominal_position": [0, 0, 0], "R_nominal": np.eye(3)},
+        "b": {"position": [0.018, 0, 0], "nominal_position": [0.02, 0, 0], "R_nominal": flipped,
+              "parameters": {"axis_offsets": {"value": [0.002, 0.001, 0, 0, 0, 0]}}}}}
+    # the x element of b (sensing along body y) at (0.018, 0), its y element (sensing along body x) at (0.020, 0.001)
+    assert in_plane_ratio(res) == pytest.approx(0.9, rel=1e-12)
+    assert in_plane_ratio(res, sensing_axes=True) == pytest.approx(1.0, rel=1e-12)

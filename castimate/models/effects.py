@@ -22,6 +22,7 @@ Arguments are CasADi symbols or numbers; nothing here knows about problems or da
 from __future__ import annotations
 
 import casadi as ca
+import numpy as np
 
 
 def polynomial(c, m1, m2):
@@ -57,6 +58,26 @@ def axis_offsets(T, delta, omega, omega_dot):
         return ca.mtimes(T, ca.cross(omega, ca.cross(omega, d)) + ca.cross(omega_dot, d))
 
     return ca.vertcat(0, extra(delta[0:3])[1], extra(delta[3:6])[2])
+
+
+def sensing_elements(r, delta):
+    """Positions (3×3, rows: the x, y, z sensing elements; body frame, m) of an accelerometer triad at
+    r with the sensing-element offsets delta = [δ_y (3), δ_z (3)] of :func:`axis_offsets` (numbers)."""
+    r, delta = np.asarray(r, float), np.asarray(delta, float)
+    return np.stack([r, r + delta[0:3], r + delta[3:6]])
+
+
+def along_sensing_axes(r, delta, R):
+    """The triad's position taken coordinate by coordinate from the sensing element that measures it:
+    body coordinate c from the element whose sensing axis (row of the nominal rotation R, the reading
+    being T R f) is closest to body axis c. That element's readings carry −|ω⊥|² p_c, the centripetal
+    term along its own axis; its coordinates across that axis rest on the tangential and cross terms
+    (ω̇×p, ω_c ω_c' p_c') alone. With :func:`axis_offsets` free, r is the x element's position, so
+    the coordinates of r across the x element's axis are of the second kind (issue 11, exp_1's
+    in-plane ratio)."""
+    P = sensing_elements(r, delta)
+    element = np.argmax(np.abs(np.asarray(R, float)), axis=0)  # per body axis c, the element sensing along it
+    return P[element, np.arange(3)]
 
 
 def sample_age(age, h_dot, h_ddot=None):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..models.effects import along_sensing_axes
 from ..problem.compensation import linear_inverse
 
 DEG = 180 / np.pi
@@ -76,11 +77,24 @@ def gravity_norm_rms(acc_si: np.ndarray, T: np.ndarray, b: np.ndarray, g: float)
     return float(np.sqrt(np.mean((np.linalg.norm(f, axis=1) - g) ** 2)))
 
 
-def in_plane_ratio(res: dict) -> float:
+def sensing_axis_positions(res: dict) -> dict[str, np.ndarray]:
+    """Per triad of a results document, its position coordinate by coordinate from the accelerometer
+    sensing element that measures it (:func:`castimate.models.effects.along_sensing_axes`): with
+    ``accelerometer.axis_offsets`` free, ``position`` is the x element's. Without offsets: ``position``."""
+    out = {}
+    for n, t in res["triads"].items():
+        delta = t.get("parameters", {}).get("axis_offsets", {}).get("value")
+        out[n] = np.asarray(t["position"], float) if delta is None else \
+            along_sensing_axes(t["position"], delta, t["R_nominal"])
+    return out
+
+
+def in_plane_ratio(res: dict, sensing_axes: bool = False) -> float:
     """Σ of the estimated in-plane (x, y) distances between triads over Σ of the nominal ones, over the pairs
-    apart in x or y: the array's scale (1 when the geometry's scale is right)."""
+    apart in x or y: the array's scale (1 when the geometry's scale is right). ``sensing_axes``: each
+    coordinate from the sensing element along it (:func:`sensing_axis_positions`), not the x element's."""
     names = list(res["triads"])
-    pos = {n: np.asarray(res["triads"][n]["position"]) for n in names}
+    pos = sensing_axis_positions(res) if sensing_axes else {n: np.asarray(res["triads"][n]["position"]) for n in names}
     nom = {n: np.asarray(res["triads"][n]["nominal_position"]) for n in names}
     pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1:] if np.linalg.norm(nom[a][:2] - nom[b][:2]) > 1e-3]
     return float(sum(np.linalg.norm(pos[a][:2] - pos[b][:2]) for a, b in pairs)
