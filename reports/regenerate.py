@@ -241,12 +241,14 @@ def diagnose_dynamic_table() -> None:
             "## Per session", "",
             "| session | rounds | effects added (in order) | χ²/dof: declared → after each added effect (white σ₀) | "
             "+ noise model | held-out error (whitened RMS) | in-plane ratio: declared → refined (white) → noise model | "
-            "wall [s] | CPU [s] | load average (start → end, 2 cores) |", "|---|---|---|---|---|---|---|---|---|---|"]
+            "noise model, each coordinate from the element sensing it | "
+            "wall [s] | CPU [s] | load average (start → end, 2 cores) |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     steps = ["", "## Effects added: score test, likelihood ratio, held-out error", "",
              "| session | round | effect | k | score F | likelihood-ratio F | p | level α/m | χ²/dof before → after | "
              "held-out before → after | folds not converged | round wall [s] (CPU [s]) |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     rejected = ["", "## Candidates refitted and rejected", "", "| session | round | effect | reason |", "|---|---|---|---|"]
+    beats = ["", "## Chip-clock beats ν [Hz] found per session (accelerometer.clock_beat)", ""]
     for i in range(1, 6):
         out = REPORTS / f"mimu4444_exp{i}_dynamic_diagnose"
         if not (out / "diagnose.json").exists():
@@ -279,16 +281,25 @@ def diagnose_dynamic_table() -> None:
                 else:
                     rejected.append(f"| exp_{i} | {r_i} | {x['effect']} | {x['reason']} |")
         noise = d.get("with_motion_noise", {}).get("chi2_per_dof")
+        outer = res.get("noise", {}).get("motion_dependent") or {}
+        unconverged = f" (outer iteration **not converged**: limit of {outer.get('rounds')} refits)" \
+            if outer.get("converged") is False else ""
         tot = d.get("times", {}).get("total", {})
         load = runinfo.get("load_average_1min", {})
         cv = lambda m: (m.get("cross_validation") or {}).get("rms_whitened")  # noqa: E731
         head.append(f"| exp_{i} | {len(d['rounds'])} | {', '.join(d['added']) or 'nothing'} | "
-                    f"{' → '.join(f(c) for c in chi)} | {f(noise, 3)} | {f(cv(d['before']))} → {f(cv(d['after']))} | "
+                    f"{' → '.join(f(c) for c in chi)} | {f(noise, 3)}{unconverged} | {f(cv(d['before']))} → {f(cv(d['after']))} | "
                     f"{ratio('before'):.4f} → {ratio('after'):.4f} → {in_plane_ratio(res):.4f} | "
+                    f"{in_plane_ratio(res, sensing_axes=True):.4f} | "
                     f"{runinfo.get('wall_s', tot.get('wall_s', np.nan)):.0f} | "
                     f"{runinfo.get('cpu_s', tot.get('cpu_s', np.nan)):.0f} | "
                     f"{load.get('start', np.nan):.1f} → {load.get('end', np.nan):.1f} |")
-    (REPORTS / "DIAGNOSE_DYNAMIC.md").write_text("\n".join(head + steps + rejected) + "\n")
+        nu = res.get("effects", {}).get("regressors", {}).get("clock_beats")
+        if nu:
+            if len(beats) == 3:
+                beats += ["| session | " + " | ".join(nu) + " |", "|---|" + "---|" * len(nu)]
+            beats.append(f"| exp_{i} | " + " | ".join(f"{b['frequency_Hz']:+.4f}" for b in nu.values()) + " |")
+    (REPORTS / "DIAGNOSE_DYNAMIC.md").write_text("\n".join(head + steps + rejected + beats) + "\n")
     print(f"wrote {REPORTS / 'DIAGNOSE_DYNAMIC.md'}")
 
 
