@@ -216,6 +216,32 @@ def test_stall_stops_after_iterations_that_do_not_move_x():
     assert not s.stalled and s.eval([x] + rest) == [0]
 
 
+def test_stall_asks_the_newton_decrement_after_three_idle_iterations():
+    """After EARLY = 3 idle iterations the callback asks for the Newton decrement once: below 1e-15
+    it stops there, above it the count goes on to 10 (hand-made iterates and decrements)."""
+    from castimate.solver.ipopt import Stall
+    asked = []
+    for dec, stop_at in ((1e-22, 3), (1e-9, 10)):
+        s = Stall(3, 0, 0, lambda x, lam, d=dec: asked.append(d) or d)
+        x = np.array([1.0, -2.0, 3.0])
+        rest = [np.zeros(1), np.zeros(0), np.zeros(3), np.zeros(0), np.zeros(0)]
+        assert s.eval([x] + rest) == [0]
+        flags = [s.eval([x] + rest)[0] for _ in range(stop_at)]
+        assert flags == [0] * (stop_at - 1) + [1] and s.stalled and s.idle == stop_at
+    assert asked == [1e-22, 1e-9]  # once per solve, at the third idle iteration
+
+
+def test_warm_refit_at_its_optimum_stops_after_three_idle_iterations():
+    """A solve started at its own optimum (a refit whose weights did not change) stops on the
+    Newton decrement after 3 idle iterations, not 10, with the same optimum."""
+    prob = CASES["static"]()
+    solver = Solver(prob.lsq, SolverOptions(tol=1e-14))
+    a = solver.solve()
+    b = solver.solve(a.x, lam_g0=a.lam_g)
+    assert b.success and b.iterations <= 5, (b.message, b.iterations)
+    assert relative(b.x, a.x) < 1e-12
+
+
 @pytest.mark.parametrize("kind", ["dynamic", "dynamic_no_process_model", "static"])
 def test_hessian_left_pending_equals_the_eager_one(kind):
     """Without ``hessian`` the reduced evaluation leaves the Schur complement pending; asked for
