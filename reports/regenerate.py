@@ -58,6 +58,18 @@ def solve_and_report(problem: Path, name: str) -> dict:
     return json.loads((out / "results.json").read_text())
 
 
+def timed(out: Path, job, *args) -> None:
+    """Run ``job(*args)`` and write out/run.json: its wall and CPU time, the cores and the 1-minute load average."""
+    import os
+    import time
+
+    load0, w0, c0 = os.getloadavg()[0], time.perf_counter(), time.process_time()
+    job(*args)
+    (out / "run.json").write_text(json.dumps({
+        "wall_s": time.perf_counter() - w0, "cpu_s": time.process_time() - c0, "cores": os.cpu_count(),
+        "load_average_1min": {"start": load0, "end": os.getloadavg()[0]}}, indent=1) + "\n")
+
+
 def simulated_positions(names: list[str]) -> str:
     rows = []
     for name in names:
@@ -217,16 +229,9 @@ def _in_plane(positions: dict[str, np.ndarray], nominal: dict[str, list]) -> flo
 
 def diagnose_dynamic(sessions=range(1, 6)) -> None:
     """Diagnose of each real dynamic session through the CLI, timed, then the table (module docstring)."""
-    import os
-    import time
-
     for i in sessions:
         out = REPORTS / f"mimu4444_exp{i}_dynamic_diagnose"
-        load0, w0, c0 = os.getloadavg(), time.perf_counter(), time.process_time()
-        run("diagnose", str(PROBLEMS / f"mimu4444_exp{i}_dynamic.yaml"), "-o", str(out))
-        (out / "run.json").write_text(json.dumps({
-            "wall_s": time.perf_counter() - w0, "cpu_s": time.process_time() - c0, "cores": os.cpu_count(),
-            "load_average_1min": {"start": load0[0], "end": os.getloadavg()[0]}}, indent=1) + "\n")
+        timed(out, run, "diagnose", str(PROBLEMS / f"mimu4444_exp{i}_dynamic.yaml"), "-o", str(out))
     diagnose_dynamic_table()
 
 
@@ -308,16 +313,10 @@ def diagnose_dynamic_table() -> None:
 
 def joint_all() -> None:
     """Joint static-plus-dynamic solves of the five sessions beside the two-step path (module docstring)."""
-    import os
-    import time
-
     for i in range(1, 6):
         solve_and_report(PROBLEMS / f"mimu4444_exp{i}_dynamic.yaml", f"mimu4444_exp{i}_dynamic")
-        load0, w0, c0 = os.getloadavg()[0], time.perf_counter(), time.process_time()
-        solve_and_report(PROBLEMS / f"mimu4444_exp{i}_joint.yaml", f"mimu4444_exp{i}_joint")
-        (REPORTS / f"mimu4444_exp{i}_joint" / "run.json").write_text(json.dumps({
-            "wall_s": time.perf_counter() - w0, "cpu_s": time.process_time() - c0, "cores": os.cpu_count(),
-            "load_average_1min": {"start": load0, "end": os.getloadavg()[0]}}, indent=1) + "\n")
+        name = f"mimu4444_exp{i}_joint"
+        timed(REPORTS / name, solve_and_report, PROBLEMS / f"{name}.yaml", name)
     joint_table()
 
 
