@@ -228,6 +228,7 @@ def test_stall_asks_the_newton_decrement_after_three_idle_iterations():
         assert s.eval([x] + rest) == [0]
         flags = [s.eval([x] + rest)[0] for _ in range(stop_at)]
         assert flags == [0] * (stop_at - 1) + [1] and s.stalled and s.idle == stop_at
+        assert s.early == (dec if stop_at == 3 else None)  # the value that stopped it, for Solver.solve
     assert asked == [1e-22, 1e-9]  # once per solve, at the third idle iteration
 
 

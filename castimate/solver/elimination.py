@@ -40,6 +40,8 @@ CPU and 714 MB against 13.6 s and 2.7 GB (load 4.5).
 
 from __future__ import annotations
 
+import contextlib
+
 import casadi as ca
 import numpy as np
 import scipy.linalg as sla
@@ -1174,6 +1176,17 @@ class Projection:
     def hessian(self, theta, pf, data) -> np.ndarray:
         """The reduced Hessian S at theta (:meth:`reduced`)."""
         return self.reduced(theta, pf, data)[2]
+
+    @contextlib.contextmanager
+    def kept(self):
+        """The state of the solve under way (the evaluation cache, the predictor's anchor, the
+        factors pending for the Schur complement) restored on exit: for a side computation at an
+        iterate, e.g. the stall test's Newton decrement (:class:`castimate.solver.ipopt.Stall`)."""
+        state = {k: getattr(self, k) for k in ("_cache", "_anchor", "_factors", "_pending", "_lazy", "_last_dec")}
+        try:
+            yield
+        finally:
+            self.__dict__.update(state)
 
     def reset(self, x0: np.ndarray, data) -> np.ndarray:
         """Start a solve at layout-order x0 with the data vector (None: the blocks' own); returns

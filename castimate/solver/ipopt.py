@@ -304,7 +304,8 @@ class Solver:
             # and went on to max_iter (6 s) before Stall stopped it. Converged if the constraints hold
             # and a further Newton step could not change χ² by more than 1e-6 (Newton decrement with
             # the Gauss-Newton Hessian).
-            decrement = self.newton_decrement(x, lam, pf, data)
+            # the stall test's, if it stopped the solve at this iterate on the decrement
+            decrement = self.stall.early if self.stall.early is not None else self.newton_decrement(x, lam, pf, data)
             if decrement < 1e-6:
                 success, message = True, f"Converged to machine precision (Newton decrement {decrement:.1e})"
         return Solution(
@@ -331,13 +332,9 @@ class Solver:
         """The Newton decrement at IPOPT's iterate x_nlp (its variables, in NLP order), with the fixed
         values and data of the solve under way (:class:`Stall`)."""
         P, pf = self.projection, self._pf
-        if P is not None:  # the decrement's elimination must not disturb the solve's (its caches, factors)
-            kept = {k: getattr(P, k) for k in ("_cache", "_anchor", "_factors", "_pending", "_lazy", "_last_dec")}
-            try:
+        if P is not None:  # the decrement's elimination must not disturb the solve's
+            with P.kept():
                 return self.newton_decrement(P.solution(x_nlp, pf), lam_g, pf, P.data)
-            finally:
-                for k, v in kept.items():
-                    setattr(P, k, v)
         x = np.empty(self.n_x)
         x[self.perm] = x_nlp
         return self.newton_decrement(x, lam_g, pf, self.assembly.data)
@@ -369,6 +366,7 @@ class Stall(ca.Callback):
 
     def reset(self):
         self._last, self.idle, self.stalled = None, 0, False
+        self.early = None  # the Newton decrement that stopped the solve after EARLY idle iterations
 
     def get_n_in(self):
         return len(self._sp)
@@ -393,9 +391,11 @@ class Stall(ca.Callback):
         else:
             self.idle = 0
         self._last = x.copy()
-        self.stalled = self.idle >= self.ITERATIONS or (
-            self.idle == self.EARLY and self.decrement is not None
-            and self.decrement(x, np.asarray(arg[4]).ravel()) < self.DECREMENT)
+        self.stalled = self.idle >= self.ITERATIONS
+        if self.idle == self.EARLY and self.decrement is not None:
+            d = self.decrement(x, np.asarray(arg[4]).ravel())
+            if d < self.DECREMENT:
+                self.stalled, self.early = True, d
         return [1 if self.stalled else 0]
 
 
