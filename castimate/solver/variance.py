@@ -175,16 +175,13 @@ def _halves(used: np.ndarray, m: int, span: int):
             yield k, sel, used[sel] % m
 
 
-def _add_by_stage(out: np.ndarray, stage: np.ndarray, vals: np.ndarray) -> None:
-    """out[stage] += vals with repeated stages summed: in batches in which no stage repeats (a
-    pattern of θ columns is read a few times per sample at most), each a plain indexed add."""
-    order = np.argsort(stage, kind="stable")
-    s = stage[order]
-    start = np.r_[True, s[1:] != s[:-1]]
-    rank = np.arange(s.size) - np.maximum.accumulate(np.where(start, np.arange(s.size), 0))
-    for k in range(int(rank.max(initial=-1)) + 1):
-        sel = order[rank == k]
-        out[stage[sel]] += vals[sel]
+def _split_columns(A: sp.csr_matrix, k: int) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+    """A canonical CSR's columns < k and ≥ k (shifted by k), both canonical: a row's first entries are
+    its columns < k (the same as ``A[:, :k], A[:, k:]``, without scipy's general column slicing)."""
+    left = A.indices < k
+    ptr = np.r_[0, np.cumsum(left)][A.indptr]  # the entries < k up to each row
+    return (sp.csr_matrix((A.data[left], A.indices[left], ptr), shape=(A.shape[0], k)),
+            sp.csr_matrix((A.data[~left], A.indices[~left] - k, A.indptr - ptr), shape=(A.shape[0], A.shape[1] - k)))
 
 
 def hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None) -> np.ndarray:
@@ -200,9 +197,9 @@ def hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None) 
     With the covariance written out, a row j = (v on its stage(s) s, t on θ) has
     j P jᵀ = v Q_s vᵀ − 2 v X_s tᵀ + t P_θ tᵀ, Q_s = Σ_s + B_s P_θ B_sᵀ the stages' covariance and
     X = B P_θ (−X their covariance with θ). B, X and H_mθ only have the columns of the θ's that rows
-    reading a stage also read (not a joint problem's static pose directions); H_mθ, H_θθ and the θ
-    terms are summed per pattern of θ columns (one per sensor axis and reading kind), on the
-    entries a row has: no (rows × n_θ) array is formed.
+    reading a stage also read (not a joint problem's static pose directions); H_mθ is one sparse
+    product, H_θθ and the θ terms are summed per pattern of θ columns (one per sensor axis and
+    reading kind), on the entries a row has: no (rows × n_θ) array is formed.
 
     Large freed blocks are kept on the heap meanwhile (:func:`castimate.solver.ipopt.heap_allocation`):
     its arrays of a few 10 MB would otherwise come as fresh pages from the kernel, zeroed on first
@@ -218,13 +215,18 @@ def _hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None)
     J, G = sp.csr_matrix(J), sp.csr_matrix(G)
     N, m = stages.shape
     mx = stages.ravel()
-    theta = np.setdiff1d(np.arange(J.shape[1]), mx)
-    if G.shape[0] and abs(G[:, mx]).sum() > 0:
+    on_stage = np.zeros(J.shape[1], bool)
+    on_stage[mx] = True
+    theta = np.flatnonzero(~on_stage)
+    if np.any(on_stage[G.indices] & (G.data != 0)):
         raise ValueError("constraints on the stage variables")
-    # one column permutation (stages first, then θ), then contiguous slices: CSR rows stay cheap to take
-    Jp = J[:, np.r_[mx, theta]]
-    Jp.sum_duplicates()  # canonical: sorted, unique column indices per row (used below)
-    Jm, Jt = Jp[:, :mx.size], Jp[:, mx.size:]
+    # one column permutation (stages first, then θ), canonical (sorted, unique column indices per
+    # row, used below), split into the stage and the θ columns: each row's stage entries come first
+    perm = np.empty(J.shape[1], np.int64)
+    perm[mx], perm[theta] = np.arange(mx.size), mx.size + np.arange(theta.size)
+    Jp = sp.csr_matrix((J.data.copy(), perm[J.indices], J.indptr.copy()), shape=J.shape)  # sorted in place below
+    Jp.sum_duplicates()
+    Jm, Jt = _split_columns(Jp, mx.size)
     Hmm = (Jm.T @ Jm).tocsc()
     H = Hmm.tocoo()
     w = int(np.abs(H.row // m - H.col // m).max(initial=1))
@@ -253,23 +255,21 @@ def _hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None)
     V = np.zeros((n_all, span * m))
     V[Jk.row, rel * m + Jk.col % m] = Jk.data  # unique entries (canonical CSR)
     # the θ columns that rows reading a stage also read: the border's coupled part
-    coupled = np.unique(Jt[reads].indices)
+    coupled = np.zeros(Jt.shape[1], bool)
+    coupled[Jt.indices[np.repeat(reads, np.diff(Jt.indptr))]] = True
+    coupled = np.flatnonzero(coupled)
     c = coupled.size
     cmap = np.full(Jt.shape[1], -1)
     cmap[coupled] = np.arange(c)
     groups = [(idx, cols, t, cmap[cols], np.flatnonzero(np.any(V[idx] != 0, axis=0)))
               for idx, cols, t in _row_patterns(Jt)]
-    # H_θθ and H_mθ (coupled columns, flat (N·m, c)) summed pattern by pattern
+    # H_θθ summed pattern by pattern; H_mθ (coupled columns, flat (N·m, c)) as one sparse product
     S = np.zeros((len(theta), len(theta)))
-    Hmt = np.zeros((N, m, c))
     for idx, cols, t, ci, used in groups:
         S[np.ix_(cols, cols)] += t.T @ t
-        vt = V[idx][:, used, None] * t[:, None, :]
-        for k, sel, u in _halves(used, m, span):
-            D = np.zeros((N, u.size, ci.size))  # the pattern's share, stage by stage
-            _add_by_stage(D, first[idx] + k, vt[:, sel])
-            Hmt[:, u[:, None], ci[None, :]] += D
-    Hmt = Hmt.reshape(N * m, c)
+    on = cmap[Jt.indices] >= 0
+    Jc = sp.csr_matrix((Jt.data[on], cmap[Jt.indices[on]], np.r_[0, np.cumsum(on)][Jt.indptr]), shape=(n_all, c))
+    Hmt = (Jm.T.tocsr() @ Jc).toarray()
     if span == 1:
         Sd = _stage_inverse(A)
         B = np.matmul(Sd, Hmt.reshape(N, m, c)).reshape(N * m, c)
@@ -298,7 +298,9 @@ def _hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None)
         Q[:, m:, m:] = Sd[1:] + np.matmul(X3[1:], Bt[1:])
         Q[:, :m, m:] = So + np.matmul(X3[:-1], Bt[1:])
         Q[:, m:, :m] = Q[:, :m, m:].transpose(0, 2, 1)
-    want = np.arange(n_all) if rows is None else np.unique(np.asarray(rows, int).ravel())
+    want = np.arange(n_all) if rows is None else np.asarray(rows, int).ravel()
+    if want.size > 1 and not np.all(want[1:] > want[:-1]):  # unordered or repeated rows
+        want = np.unique(want)
     h = np.zeros(n_all)
     for c0 in range(0, want.size, CHUNK):
         r = want[c0:c0 + CHUNK]
@@ -315,7 +317,7 @@ def _hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None)
         if used.size:  # −2 v X_s tᵀ, X_s the rows' stages' X on their θ columns
             Xs = np.concatenate([X3[:, u[:, None], ci[None, :]][first[idx] + k] for k, _, u in _halves(used, m, span)],
                                 axis=1)
-            ht -= 2.0 * np.einsum("ri,rik,rk->r", V[idx][:, used], Xs, t)
+            ht -= 2.0 * np.einsum("rk,rk->r", np.matmul(V[idx][:, None, used], Xs)[:, 0], t)
         h[idx] += ht
     return h if rows is None else h[np.asarray(rows, int).ravel()]
 
