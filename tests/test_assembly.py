@@ -276,3 +276,37 @@ def test_projection_residuals_by_stage_equal_the_reference(process_model):
     other = prob.lsq.data * 1.01
     a, b = new.residuals(x, data=other), ref.residuals(x, data=other)
     np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())
+
+
+def _sample_ages_case():
+    from test_elimination import dynamic_sample_ages
+    return dynamic_sample_ages()
+
+
+@pytest.mark.parametrize("case", ["dynamic", "sample_ages"])
+def test_jacobian_structure_reused_at_another_point_and_data(case):
+    """``Solver.jacobians`` plans its CSR at the first call; at a second point with other data the
+    reused structure still gives that point's Jacobian (finite differences of the residuals there),
+    canonical (sorted, unique column indices per row). With sample ages a block reads the
+    neighbouring sample, at the ends the same one twice: those entries are summed."""
+    prob = dynamic_case() if case == "dynamic" else _sample_ages_case()
+    solver = Solver(prob.lsq, SolverOptions(jit=False))
+    lay = prob.lsq.layout
+    rng = np.random.default_rng(7)
+    solver.jacobians(lay.x0())
+    x = lay.x0() * (1 + 0.05 * rng.standard_normal(lay.n_x))
+    data = prob.lsq.data * (1 + 0.01 * rng.standard_normal(prob.lsq.data.size))
+    Jc = solver.jacobians(x, data=data)[0]
+    J = Jc.toarray()
+    ref = Jc.copy()
+    ref.has_canonical_format = False
+    ref.sum_duplicates()
+    assert np.array_equal(ref.indices, Jc.indices) and np.array_equal(ref.indptr, Jc.indptr)
+    expect = (Jc.T @ Jc).toarray()  # the Fisher information the assembly sums from the local Jacobians
+    np.testing.assert_allclose(solver.information(x, data=data).toarray(), expect, rtol=1e-10,
+                               atol=1e-10 * np.abs(expect).max())
+    for j in rng.choice(x.size, 12, replace=False):
+        e = np.zeros(x.size)
+        e[j] = 1e-6
+        fd = (solver.residuals(x + e, data=data) - solver.residuals(x - e, data=data)) / 2e-6
+        np.testing.assert_allclose(J[:, j], fd, rtol=1e-5, atol=1e-6 * max(1.0, np.abs(fd).max()))

@@ -57,6 +57,7 @@ class Solver:
         self.keep = np.concatenate(keep + [np.ones(len(pi), bool)])
         self.n_data_residuals = int(self.keep.sum()) - len(pi)
         self.n_residuals = int(self.keep.sum())
+        self._jacobian_plan = None  # :meth:`jacobians`' CSR structure, made at its first call
 
         # constraints |row|^2 = 1, rows grouped by width for vectorisation; with the projection
         # only the rows on calibration variables (the families' own are kept inside it)
@@ -185,24 +186,59 @@ class Solver:
         """Sparse Jacobians w.r.t. scaled x of the whitened residuals (data, then priors) and of the
         constraints (in the order of ``Layout.unit_norm_rows``)."""
         pf, data = self.fixed_and_data(p_fixed, data)
+        local = self.assembly.local(self.nlp_order(x), pf, data, "jac")
+        if self._jacobian_plan is None:
+            self._jacobian_plan = self._plan_jacobian([J.size for J in local])
+        take, factor, indices, indptr, dest = self._jacobian_plan
+        vals = np.concatenate([J.ravel() for J in local] + [np.ones(1)])[take] * factor
+        if dest is not None:
+            vals = np.bincount(dest, weights=vals, minlength=indices.size)
+        J = sp.csr_matrix((vals, indices, indptr), shape=(self.n_residuals, self.n_x))
+        J.has_sorted_indices = J.has_canonical_format = True
+        return J, self.constraint_jacobian(x, pf)
+
+    def _plan_jacobian(self, sizes: list[int]):
+        """Where the entries of :meth:`jacobians`' CSR come from, the same at every point: the
+        positions in the blocks' local Jacobians (raveled, concatenated, then a 1 for the priors'
+        constant entries), the factors (x_scale, 1/σ of a prior), the CSR's indices and indptr, in
+        canonical order, and None, or where a block reads one x twice, the CSR position each entry is
+        summed onto."""
         n, scale = self.n_x, self.problem.layout.x_scale
-        rows, cols, vals = [], [], []
-        row0 = 0
-        for b, Jb in zip(self.blocks, self.assembly.local(self.nlp_order(x), pf, data, "jac")):
+        rows, cols, take, factor = [], [], [], []
+        row0 = off = 0
+        for b, size in zip(self.blocks, sizes):
             N, f = b.block.n, b.f
-            Jl = Jb.reshape(N, len(f.act), f.m)
             t, a = np.nonzero(b.w_idx[:, f.act] < n)  # a indexes the active components
             gi = b.w_idx[t, f.act[a]]
             for i in range(f.m):
                 rows.append(row0 + t * f.m + i)
                 cols.append(gi)
-                vals.append(Jl[t, a, i] * scale[gi])
+                take.append(off + (t * len(f.act) + a) * f.m + i)
+                factor.append(scale[gi])
             row0 += N * f.m
+            off += size
         pi, _, ps = self.prior
-        rows.append(row0 + np.arange(len(pi))), cols.append(pi), vals.append(scale[pi] / ps)
-        J = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                          shape=(len(self.keep), n))[np.flatnonzero(self.keep)]
-        return J, self.constraint_jacobian(x, pf)
+        rows.append(row0 + np.arange(len(pi))), cols.append(pi)
+        take.append(np.full(len(pi), off)), factor.append(scale[pi] / ps)
+        rows, cols = np.concatenate(rows), np.concatenate(cols)
+        new_row = np.cumsum(self.keep) - 1  # the reported rows (valid instances, priors)
+        on = np.flatnonzero(self.keep[rows])
+        # scipy's COO -> CSR (linear time) on the entries' numbers gives the canonical order
+        take, factor = np.concatenate(take)[on], np.concatenate(factor)[on]
+        rows, cols = new_row[rows[on]], cols[on]
+        P = sp.csr_matrix((np.arange(1.0, on.size + 1), (rows, cols)), shape=(self.n_residuals, n))
+        P.sum_duplicates()
+        if P.nnz == on.size:  # each entry its own: gathered in CSR order
+            order = P.data.astype(np.int64) - 1
+            return take[order], factor[order], P.indices, P.indptr, None
+        # a block reads one variable twice (e.g. a sample and its neighbour are the same variable):
+        # the entries are summed onto their CSR position
+        key = rows.astype(np.int64) * n + cols
+        order = np.argsort(key, kind="stable")
+        first = np.r_[True, key[order][1:] != key[order][:-1]]
+        dest = np.empty(on.size, np.int64)
+        dest[order] = np.cumsum(first) - 1
+        return take, factor, P.indices, P.indptr, dest
 
     def constraint_jacobian(self, x, pf) -> sp.csr_matrix:
         lay, n = self.problem.layout, self.n_x
