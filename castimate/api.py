@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -64,9 +65,10 @@ def load(source: Problem, base_dir: str | Path = ".") -> ProblemSpec:
     if isinstance(source, ProblemSpec):
         return source
     if isinstance(source, dict):
-        text = json.dumps(source, sort_keys=True, default=str)
         base = as_path(base_dir, "castimate.load", "base_dir", "a directory path")
-        return parse_problem(source, base / "<dict>", hashlib.sha256(text.encode()).hexdigest())
+        spec = parse_problem(source, base / "<dict>")  # first: a key that is not a string is named there
+        text = json.dumps(source, sort_keys=True, default=str)
+        return replace(spec, sha256=hashlib.sha256(text.encode()).hexdigest())
     return load_problem(as_path(source, "castimate.load", "source", "a problem file path, a dict or a ProblemSpec"))
 
 

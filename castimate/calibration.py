@@ -96,8 +96,16 @@ class Calibration:
         for k in keys:
             if k not in BY_KEY:
                 raise InputError(path, "effects.included", f"expected effects of {', '.join(BY_KEY)}, found {k!r}")
-        reg = fx.get("regressors", {})
-        time = reg.get("time", {})
+        reg = fx.get("regressors") or {}
+        time = reg.get("time") or {}
+        undone = [k for k in keys if BY_KEY[k].sample_wise]  # checked by read_results, needed here
+        for what, key, have in ((TIME, "time", {"t_mid_s", "t_half_s"} <= set(time)),
+                                (TEMPERATURE, "temperature_mean_K", bool(reg.get("temperature_mean_K")))):
+            uses = [k for k in undone if what in BY_KEY[k].needs]
+            if uses and not have:
+                raise InputError(path, f"effects.regressors.{key}", f"missing; expected the session's "
+                                 f"{'t_mid_s and t_half_s' if what == TIME else 'mean temperature per triad'} that "
+                                 f"{', '.join(uses)} {'is' if len(uses) == 1 else 'are'} relative to")
         regressors = Regressors(float(time.get("t_mid_s", 0.0)), float(time.get("t_half_s", 1.0)),
                                 dict(reg.get("temperature_mean_K", {})))
         units = doc.get("units", {})

@@ -158,11 +158,12 @@ def cmd_batch(args) -> int:
     from .io.atomic import StagedOutput, write_atomic
     from .io.results import write_json
     from .report.scale import render_batch
-    from .scale.batch import load_template, recordings_of, run_batch
+    from .scale.batch import check_threshold, load_template, recordings_of, run_batch
     from .scale.engine import check_workers, dask_client
 
     out = Path(args.output)
     check_workers(args.workers)
+    check_threshold(args.outlier_threshold)
     load_template(args.template)
     names = ("summary.csv", "summary.json", "summary.html")
     with StagedOutput(out, names=names, inputs=(args.template, *recordings_of(args.recordings))) as stage:

@@ -282,7 +282,7 @@ def parse_problem(raw: Any, path: Path, sha256: str = "") -> ProblemSpec:
     model = _model(c, top.get("model"), array, kind, path.parent, joint=data.static_range is not None)
     noise = _noise(c, top.get("noise"), array, kind)
     solver = _solver(c, top.get("solver"))
-    motion = _motion(c, top.get("motion")) if kind == "dynamic_array" else None
+    motion = parse_motion(c, top.get("motion")) if kind == "dynamic_array" else None
     if data.segments == "rows" and noise.accelerometer is None:
         c.fail("noise.accelerometer", "data with one row per pose (segments: rows) needs the σ of each row; found auto")
     if data.segments == "rows" and noise.gyroscope is None and any(t.gyroscope for t in array.triads):
@@ -529,6 +529,10 @@ def _model(c: Check, m, array: ArraySpec, kind: str = "static_array", base: Path
             ssec = c.mapping(tsec.get(sensor), f"model.triads.{name}.{sensor}", tuple(groups) + tuple(effects[sensor]))
             for g, e in effects[sensor].items():
                 n = len(e.group.components)
+                if g in ssec and e.relative and name == array.reference and ssec[g] != "fixed":
+                    c.fail(f"model.triads.{name}.{sensor}.{g}", f"{sensor}.{g} is relative to the reference triad "
+                           f"{name}, whose own is zero by definition (a gauge); expected fixed or no entry, found "
+                           f"{shown(ssec[g])}")
                 if g in ssec:
                     settings[name, sensor, g] = GroupSetting(**_group_setting(
                         c, ssec[g], f"model.triads.{name}.{sensor}.{g}", n,
@@ -559,7 +563,8 @@ MOTION_LEVELS = {"wiener3": ("density_s", "density_omega"), "wiener2": ("density
                  "euler": ("sigma_s", "sigma_omega_dot", "sigma_integration")}
 
 
-def _motion(c: Check, m) -> MotionSpec:
+def parse_motion(c: Check, m) -> MotionSpec:
+    """The ``motion`` section of a problem (or scenario) file, checked."""
     levels = ("sigma_s", "sigma_omega_dot", "sigma_integration", "density_s", "density_omega")
     m = c.mapping(m, "motion", ("integration", "process_noise", "process_model") + levels)
     kw = {k: c.number(v, f"motion.{k}", positive=True, lo=MOTION_LEVEL_MIN[k], hi=MOTION_SIGMA_MAX,
@@ -632,8 +637,16 @@ def _noise(c: Check, n, array: ArraySpec, kind: str = "static_array") -> NoiseSp
     return NoiseSpec(**out)
 
 
+#: SolverOptions fields that are not problem-file keys (set by the library for its own fits).
+SOLVER_INTERNAL = ("covariance",)
+#: Upper bounds of the solver's tolerances: IPOPT's ``tol`` on the scaled KKT error (a larger one stops short of
+#: the optimum and reports it converged); ``identifiability_tol``, an eigenvalue of the Fisher information relative
+#: to its largest (a larger one calls directions undetermined that the data determine within 100 x the best).
+SOLVER_TOL_MAX = {"tol": 1e-2, "identifiability_tol": 1e-2}
+
+
 def _solver(c: Check, s) -> SolverOptions:
-    names = tuple(f.name for f in fields(SolverOptions))
+    names = tuple(f.name for f in fields(SolverOptions) if f.name not in SOLVER_INTERNAL)
     s = c.mapping(s, "solver", names)
     kw = {}
     for k, v in s.items():
@@ -659,5 +672,5 @@ def _solver(c: Check, s) -> SolverOptions:
                 c.fail(w, f"expected an integer from 0 to 12, found {v!r}")
             kw[k] = c.number(v, w, integer=True, hi=10 ** 7)
         else:
-            kw[k] = c.number(v, w, positive=True, hi=1e6)
+            kw[k] = c.number(v, w, positive=True, hi=SOLVER_TOL_MAX.get(k, 1e6))
     return SolverOptions(**kw)

@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError, NotConvergedError
+from ..problem.effects import BY_KEY, DYNAMIC, RATE
 from ..problem.graph import Solution
 from ..solver.ipopt import Solver
 from .ctext import c_comment, c_double, casadi_sources
@@ -77,6 +78,17 @@ def _sha(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
+def sample_coupling_effects(spec) -> list[str]:
+    """The included effects of a dynamic problem whose term couples neighbouring samples: a reading's
+    rate u̇ is T ḟ from the neighbouring samples' motion for an accelerometer (T_g ω̇ of the sample for
+    a gyroscope), its second derivative from the neighbours for both (``model.sample_age: second_order``)."""
+    if spec.kind != DYNAMIC:
+        return []
+    second = spec.model.sample_age == "second_order"
+    return [k for k in spec.model.effects if RATE in BY_KEY[k].needs
+            and (second or BY_KEY[k].sensor == "accelerometer")]
+
+
 def reference(spec, options: CodegenOptions = CodegenOptions()) -> Reference:
     """The problem instance the C solver is emitted for, solved by IPOPT, through the kind's
     pipeline (:class:`castimate.kinds.Kind`): a static problem with all its poses (Nilsson 2014);
@@ -93,6 +105,12 @@ def reference(spec, options: CodegenOptions = CodegenOptions()) -> Reference:
     if options.motion_only and spec.motion.process_model:
         raise InputError(spec.path, "motion.process_model", "the motion estimator treats every sample on its own "
                          "(Carlsson 2017); expected process_model: false, found true")
+    coupled = sample_coupling_effects(spec)
+    if coupled:
+        raise InputError(spec.path, "model", f"{', '.join(coupled)} take{'s' if len(coupled) == 1 else ''} the reading's "
+                         f"{'second derivative' if spec.model.sample_age == 'second_order' else 'rate'} from the "
+                         "neighbouring samples' motion, which couples the samples; the C solver "
+                         "eliminates one sample at a time and needs them independent: leave them out for codegen")
     kind = kind_of(spec)
     data = kind.load(spec)
     config = kind.configure(spec, data)

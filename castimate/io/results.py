@@ -164,4 +164,13 @@ def _check_structure(c: Check, doc: dict) -> None:
         eff = c.mapping(doc["effects"], "effects", None, required=("included",))
         if not isinstance(eff["included"], list) or not all(isinstance(x, str) for x in eff["included"]):
             c.fail("effects.included", f"expected a list of effect names, found {shown(eff['included'])}")
-        c.mapping(eff.get("regressors"), "effects.regressors", None)
+        reg = c.mapping(eff.get("regressors"), "effects.regressors", None)
+        w = "effects.regressors.time"
+        time = c.mapping(reg.get("time"), w, None)
+        if "t_mid_s" in time:
+            c.number(time["t_mid_s"], f"{w}.t_mid_s", unit="s")
+        if "t_half_s" in time:  # τ = (t - t_mid_s) / t_half_s
+            c.number(time["t_half_s"], f"{w}.t_half_s", positive=True, unit="s")
+        w = "effects.regressors.temperature_mean_K"
+        for name, v in c.mapping(reg.get("temperature_mean_K"), w, None).items():
+            c.number(v, f"{w}.{name}", positive=True, unit="K")

@@ -679,11 +679,11 @@ def _static_phase(spec: ProblemSpec, full: Recording, config: DynamicConfig, log
 
     Returns the static problem and the dynamic config with the mounting rotations recovered from
     those poses, so both phases share one set of triads."""
-    from .static import static_config
+    from .static import static_config, time_range_part
     from ..problem.static import build_static
 
     t0, t1 = spec.data.static_range
-    part = full.select((full.t >= t0) & (full.t <= t1))
+    part = time_range_part(spec, full, spec.data.static_range, "data.static.time_range")
     det = detect_static(part, spec.data.detection, triads=spec.array.names)
     avg = average_poses(part, det, triads=spec.array.names)
     if avg.n_poses < 3:

@@ -37,18 +37,23 @@ from ..prepare.plausibility import (Declared, check_accelerometer_units, check_c
 # Data
 # ---------------------------------------------------------------------------------------------
 
+def time_range_part(spec: ProblemSpec, rec: Recording, time_range: tuple[float, float], key: str) -> Recording:
+    """The samples of ``rec`` within ``time_range`` (s, both ends included), refused naming ``key`` if
+    fewer than two."""
+    keep = (rec.t >= time_range[0]) & (rec.t <= time_range[1])
+    if keep.sum() < 2:
+        raise InputError(spec.path, key, f"keeps {int(keep.sum())} samples; the recording spans "
+                                         f"{rec.t[0]:.3f}-{rec.t[-1]:.3f} s")
+    return rec.select(keep)
+
+
 def load_recording(spec: ProblemSpec) -> Recording:
     """Read the problem's data file in SI units and keep the declared time range."""
     d = spec.data
     rec = read_recording(d.format, d.path, acc_units=d.acc_units, gyro_units=d.gyro_units, gyro_path=d.gyro_path,
                          rate=d.rate)
     if d.time_range is not None:
-        keep = (rec.t >= d.time_range[0]) & (rec.t <= d.time_range[1])
-        if keep.sum() < 2:
-            raise InputError(spec.path, "data.time_range",
-                             f"keeps {int(keep.sum())} samples; the recording spans "
-                             f"{rec.t[0]:.3f}-{rec.t[-1]:.3f} s")
-        rec = rec.select(keep)
+        rec = time_range_part(spec, rec, d.time_range, "data.time_range")
     for i, t in enumerate(spec.array.triads):
         if t.name not in rec.acc:
             raise InputError(spec.path, f"array.triads[{i}].name",

@@ -173,6 +173,10 @@ def angular_excitation(omega: np.ndarray, t: np.ndarray) -> np.ndarray:
     return cross(wd) + Wx @ Wx
 
 
+#: Fewest samples whose angular motion can determine positions (ω̇ from neighbours, a 3x3 information).
+MIN_DYNAMIC_SAMPLES = 5
+
+
 def position_error(omega: np.ndarray, t: np.ndarray, acc_sigma: float) -> tuple[float, float, float]:
     """Predicted error (m) of a triad's position relative to the reference, from the angular rate (N, 3).
 
@@ -181,7 +185,7 @@ def position_error(omega: np.ndarray, t: np.ndarray, acc_sigma: float) -> tuple[
     systematic part is MODEL_ERROR / RMS |W|: an error of the intrinsics that no amount of data
     averages out moves a position by that much.
     """
-    if len(t) < 5:
+    if len(t) < MIN_DYNAMIC_SAMPLES:
         return np.inf, np.inf, 0.0
     W = angular_excitation(omega, t)
     rms = float(np.sqrt(np.mean(np.sum(W ** 2, axis=(1, 2)))))
@@ -218,6 +222,9 @@ def check_dynamic_information(rec: Recording, reference: str, free_position: boo
     size = float(np.max(np.linalg.norm(nominal[:, None] - nominal[None], axis=-1)))
     if size <= 0:
         return
+    if len(rec.t) < MIN_DYNAMIC_SAMPLES:
+        raise InputError(declared.data, "t", f"expected at least {MIN_DYNAMIC_SAMPLES} samples of motion to determine "
+                                             f"the positions, found {len(rec.t)} (in data.time_range, if given)")
     err, sd, rms = position_error(rec.gyro[reference], rec.t, acc_sigma)
     what = (f"the angular motion in {declared.data} ({len(rec.t)} samples, RMS |[w_dot]x + [w]x^2| = {rms:.3g} s^-2) "
             f"predicts a position error of {1e3 * err:.3g} mm (noise σ {1e3 * sd:.3g} mm; {MODEL_ERROR:g} m/s^2 of "

@@ -170,12 +170,18 @@ def summarise(template: str, names: list[str], recordings: list[str], results: l
     return BatchSummary(template, names, recordings, results, batch_spread(params, chi2) if params else [], threshold)
 
 
+def check_threshold(threshold: float) -> float:
+    """``--outlier-threshold``: a positive, finite number of σ's (infinity would flag nothing)."""
+    if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not 0 < threshold < float("inf"):
+        raise InputError("--outlier-threshold", "", f"expected a positive finite number of σ's, found {threshold!r}")
+    return threshold
+
+
 def run_batch(client, template_path: str | Path, patterns: list[str], log, threshold: float = OUTLIER_THRESHOLD,
               diagnose: bool = False) -> BatchSummary:
     """Check the template and recordings here, then calibrate every recording on the cluster
     (``diagnose``: through ``castimate diagnose``, adding the effects each recording demands)."""
-    if not threshold > 0:
-        raise InputError("--outlier-threshold", "", f"expected a positive number of σ's, found {threshold!r}")
+    check_threshold(threshold)
     template = load_template(template_path)
     recordings = recordings_of(patterns)
     template.problem(recordings[0])  # a bad template fails here, once, not on every worker

@@ -287,11 +287,15 @@ def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDra
     Angles in the scenario file are in degrees (max_omega in deg/s, max_omega_dot in deg/s^2,
     orientation_error and saturation in deg and deg/s); lengths in metres.
     """
+    from ..spec import parse_motion
     from .dynamic import (carlsson_geometry, dynamic_measurements, euler_consistent, schopp_geometry, sinusoid_motion,
                           smooth_random_motion)
 
     s = c.mapping(raw, "", DYNAMIC_KEYS, required=("kind", "geometry"))
     seed, rng = _seed(c, s)
+    msec = c.mapping(s.get("motion"), "motion", ("integration", "process_noise", "sigma_s", "sigma_omega_dot",
+                                                 "sigma_integration", "density_s", "density_omega", "process_model"))
+    parse_motion(c, msec)  # the values too: the problem file written at the end carries them
     geometry = c.choice(s["geometry"], "geometry", ("carlsson", "schopp"))
     N = c.number(s.get("samples", 1000), "samples", positive=True, integer=True, hi=MAX_SAMPLES)
     rate = c.number(s.get("rate", 100.0), "rate", positive=True, hi=1e5, unit="Hz")
@@ -377,8 +381,6 @@ def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDra
         rec = Recording(t=motion.t, acc={n: np.round(v / lsb["accelerometer"]) for n, v in acc.items()},
                         gyro={n: np.round(v / lsb["gyroscope"]) for n, v in gy.items()}, source="simulation")
         rails = [-2 ** (adc["bits"] - 1), 2 ** (adc["bits"] - 1) - 1]
-    msec = c.mapping(s.get("motion"), "motion", ("integration", "process_noise", "sigma_s", "sigma_omega_dot",
-                                                 "sigma_integration", "density_s", "density_omega", "process_model"))
     problem: dict[str, Any] = {
         "kind": "dynamic_array",
         "data": {"path": "data.csv", "format": "csv"},

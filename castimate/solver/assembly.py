@@ -675,6 +675,11 @@ def _scatter(plan: dict, sb, v: np.ndarray, t0, t1, j0, j1, sources: np.ndarray,
         stage[d + j0: d + j1] += (S @ V.T).T
 
 
+class EvaluationError(RuntimeError):
+    """A function evaluated in a :class:`Callback` has no value at this point (e.g. the eliminated
+    nuisance variables did not converge): IPOPT takes it as an evaluation error and cuts its step back."""
+
+
 class Callback(ca.Callback):
     """A numpy function as a CasADi function, computed in place on CasADi's own buffers."""
 
@@ -699,7 +704,10 @@ class Callback(ca.Callback):
         return True
 
     def eval_buffer(self, arg, res):
-        self._fn([np.frombuffer(a, float) for a in arg], [np.frombuffer(r, float) for r in res])
+        try:
+            self._fn([np.frombuffer(a, float) for a in arg], [np.frombuffer(r, float) for r in res])
+        except EvaluationError:
+            return 1  # IPOPT's evaluation error, as raising would be, without CasADi printing a traceback
         return 0
 
     # reverse mode of a scalar function of (x, p) from its gradient in x: IPOPT's interface builds

@@ -50,7 +50,7 @@ from scipy.linalg import blas, lapack
 
 from ..jit import compile_functions
 from ..problem.parameters import Layout
-from .assembly import CHUNK, LOCAL, Block, NotStaged, StagedBlock, exact_hessian
+from .assembly import CHUNK, LOCAL, Block, EvaluationError, NotStaged, StagedBlock, exact_hessian
 
 
 STAGE_CHUNK = 4096  # instances per call of a stage function (whole stage groups)
@@ -1165,7 +1165,7 @@ class Projection:
                 self.shortcuts += 1
                 break
         else:
-            raise RuntimeError("the nuisance variables did not converge")
+            raise EvaluationError("the nuisance variables did not converge")
         pending = self._pending
         self._anchor = (theta.copy(), Xs, [(F, pending[0].Hsc[fi], Z) for fi, (F, _, Z) in enumerate(pending[1])], False)
         self._cache = self._lazy = {"key": key, "X": Xs, "phi": f - 0.5 * dec, "g": g, "S": None, "data": data}

@@ -1,0 +1,284 @@
+"""Bad input of the dynamic kind and its tools: ONE line naming the file, the key path or column, what
+was expected and what was found (``castimate.errors.InputError``), never a traceback or a silent answer.
+
+The cases come from a sweep of the dynamic problem keys (timing effects, solver options, the joint
+static phase), scenario files, results.json of calibrations with effects, ``codegen`` and ``batch``
+options, and the Python API. The data: a tiny simulated session (4 IMUs of the Carlsson board with
+gyroscopes, 300 samples, no process model), so the file runs in seconds; no case solves.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+import castimate
+from castimate.calibration import Calibration
+from castimate.codegen import CodegenOptions
+from castimate.codegen.solvers import reference
+from castimate.errors import InputError
+from castimate.io.readers import read_csv, write_csv
+from castimate.scale.batch import check_threshold
+from castimate.simulate.scenarios import simulate_scenario
+from castimate.spec import load_problem
+
+SCENARIO = ("kind: dynamic_array\nseed: 2017\ngeometry: carlsson\nimus: 4\nsamples: 300\nmax_omega: 1500\n"
+            "max_omega_dot: 2000\nmotion: {process_model: false}\n")
+
+
+def expect_error(fn, source, where: str, found: str) -> InputError:
+    """``fn()`` raises an InputError on one line: "<source>: <where>: ...<found>..."."""
+    loc = f"{source}: {where}: " if where else f"{source}: "
+    with pytest.raises(InputError, match=re.escape(loc) + ".*" + re.escape(found)) as e:
+        fn()
+    assert "\n" not in str(e.value)
+    assert e.value.where == where
+    return e.value
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory) -> Path:
+    """The simulated session: data.csv (imu1, imu11, imu22, imu32 with gyroscopes) and problem.yaml."""
+    d = tmp_path_factory.mktemp("dyn")
+    (d / "scenario.yaml").write_text(SCENARIO)
+    simulate_scenario(d / "scenario.yaml", d)
+    return d
+
+
+@pytest.fixture
+def doc(sim) -> dict:
+    """A valid dynamic problem on the session (absolute data path), with timing effects free."""
+    doc = yaml.safe_load((sim / "problem.yaml").read_text())
+    doc["data"]["path"] = str(sim / "data.csv")
+    doc["model"].update({"accelerometer": {"age": "free"}, "gyroscope": {"delay": "free", "bias": "fixed"}})
+    return doc
+
+
+def write(path: Path, doc: dict) -> Path:
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return path
+
+
+def test_valid_problem_loads(doc, tmp_path):
+    spec = load_problem(write(tmp_path / "p.yaml", doc))
+    assert spec.model.effects == ("accelerometer.age", "gyroscope.delay")
+
+
+# ============================================================================ problem file keys
+
+
+@pytest.mark.parametrize("solver, where, found", [
+    # SolverOptions.covariance is the library's switch for its own fits; from a file it made
+    # `castimate solve` fail with an internal KeyError (no σ's to report)
+    ({"covariance": False}, "solver.covariance", "unknown key; expected one of elimination, hessian"),
+    # tol 1e5 was accepted and the fit reported converged, 8e-9 off the optimum's cost
+    ({"tol": 1e5}, "solver.tol", "expected a number at most 0.01, found 100000.0"),
+    # a relative eigenvalue of 0.9 was accepted and named 24 well-determined directions undetermined
+    ({"identifiability_tol": 0.9}, "solver.identifiability_tol", "expected a number at most 0.01, found 0.9"),
+    ({"identifiability_tol": 0}, "solver.identifiability_tol", "expected a positive finite number, found 0"),
+], ids=["covariance", "tol_huge", "identifiability_tol_above_1e-2", "identifiability_tol_zero"])
+def test_solver_options(doc, tmp_path, solver, where, found):
+    doc["solver"] = solver
+    p = write(tmp_path / "p.yaml", doc)
+    expect_error(lambda: load_problem(p), p, where, found)
+
+
+@pytest.mark.parametrize("effect", ["age", "clock_drift"])
+def test_relative_effect_on_the_reference_triad(doc, tmp_path, effect):
+    """A timing effect relative to the reference triad, asked free on the reference itself: silently
+    dropped before (the fit was the one without it), now refused."""
+    doc["model"]["triads"] = {"imu1": {"accelerometer": {effect: "free"}}}
+    p = write(tmp_path / "p.yaml", doc)
+    e = expect_error(lambda: load_problem(p), p, f"model.triads.imu1.accelerometer.{effect}",
+                     "expected fixed or no entry, found 'free'")
+    assert "relative to the reference triad imu1" in str(e)
+    doc["model"]["triads"] = {"imu1": {"accelerometer": {effect: {"initial": 1e-3}}}}  # a value it would ignore
+    expect_error(lambda: load_problem(write(p, doc)), p, f"model.triads.imu1.accelerometer.{effect}",
+                 "found {'initial': 0.001}")
+    doc["model"]["triads"] = {"imu1": {"accelerometer": {effect: "fixed"}}, "imu11": {"accelerometer": {effect: "free"}}}
+    assert f"accelerometer.{effect}" in load_problem(write(p, doc)).model.effects
+
+
+def test_static_phase_outside_the_recording(doc, tmp_path):
+    """data.static.time_range keeping no sample blamed the data file's time column ("0 samples are
+    too few for a 10 s window"); it names the key and the recording's span, as data.time_range does."""
+    doc["data"]["static"] = {"time_range": [-5, -1]}
+    p = write(tmp_path / "p.yaml", doc)
+    expect_error(lambda: castimate.solve(p), p, "data.static.time_range",
+                 "keeps 0 samples; the recording spans 0.000-2.990 s")
+
+
+def test_too_few_samples(doc, sim, tmp_path):
+    """Four samples: the excitation check named data.time_range (not in the file) and predicted an
+    error of "inf mm"; it says how many samples there are and how many it needs."""
+    rec = read_csv(sim / "data.csv")
+    data = tmp_path / "data.csv"
+    write_csv(data, rec.select(np.arange(len(rec.t)) < 4))
+    doc["data"]["path"] = str(data)
+    p = write(tmp_path / "p.yaml", doc)
+    expect_error(lambda: castimate.solve(p), data, "t", "expected at least 5 samples of motion to determine the "
+                                                          "positions, found 4")
+
+
+def test_dict_with_a_key_that_is_not_a_string(doc, sim):
+    """castimate.load(dict) hashed the dict first: a key like 1 raised a bare TypeError."""
+    doc["model"][1] = 2
+    expect_error(lambda: castimate.load(doc, base_dir=sim), sim / "<dict>", "model.1", "unknown key; expected one of")
+
+
+# ============================================================================ scenario files
+
+
+@pytest.mark.parametrize("motion, where, found", [
+    ("{process_model: maybe}", "motion.process_model", "expected true or false, found 'maybe'"),
+    ("{density_s: -1}", "motion.density_s", "expected a positive finite number, found -1"),
+    ("{integration: rk4}", "motion.integration", "expected one of wiener3, wiener2, trapezoid, euler, found 'rk4'"),
+    ("{sigma_s: 30}", "motion.sigma_s", "is a level of integration trapezoid or euler"),
+])
+def test_scenario_motion_values(tmp_path, motion, where, found):
+    """Only the scenario's motion keys were checked: the values went unchecked into the problem file
+    it wrote, and `castimate solve` refused that generated file instead of simulate the scenario."""
+    sc = tmp_path / "scenario.yaml"
+    sc.write_text(SCENARIO.replace("motion: {process_model: false}", f"motion: {motion}"))
+    expect_error(lambda: simulate_scenario(sc, tmp_path / "out"), sc, where, found)
+    assert not (tmp_path / "out").exists()
+
+
+# ============================================================================ results.json regressors
+
+
+@pytest.fixture(scope="module")
+def drift_results(sim, tmp_path_factory) -> dict:
+    """A results.json of a calibration with a sample-wise, time-dependent effect (gyroscope.bias_drift),
+    its parameters written by hand on the simulated array's identity calibration."""
+    eye = np.eye(3).tolist()
+    triads = {n: {"accelerometer": {"T": eye, "b": [0, 0, 0]}, "gyroscope": {"T": eye, "b": [0, 0, 0]},
+                  "R_nominal": eye,
+                  "parameters": {"gyroscope.bias_drift": {"value": [1e-3, 0, 0, 0, 0, 0],
+                                                          "components": ["x1", "y1", "z1", "x2", "y2", "z2"]}}}
+              for n in ("imu1", "imu11")}
+    return {"format": "castimate.results/1", "kind": "dynamic_array", "status": {"success": True},
+            "triads": triads, "effects": {"included": ["gyroscope.bias_drift"],
+                                          "regressors": {"time": {"t_mid_s": 1.0, "t_half_s": 2.0},
+                                                         "temperature_mean_K": {}}}}
+
+
+def _with(results: dict, tmp_path: Path, regressors) -> Path:
+    doc = json.loads(json.dumps(results))
+    if regressors is None:
+        del doc["effects"]["regressors"]
+    else:
+        doc["effects"]["regressors"] = regressors
+    p = tmp_path / "results.json"
+    p.write_text(json.dumps(doc))
+    return p
+
+
+def test_drift_regressors_applied(drift_results, tmp_path):
+    """Hand-computed: b_g(τ) = c τ with c = 1e-3 rad/s, τ = (t - 1) / 2: at t = 5 the x rate reads 2e-3 high."""
+    cal = Calibration.read(_with(drift_results, tmp_path, drift_results["effects"]["regressors"]))
+    acc, gyro = {"imu1": np.array([[0.0, 0.0, 9.81]])}, {"imu1": np.array([[2e-3, 0.0, 0.0]])}
+    _, omega = cal.apply(acc, gyro, t=np.array([5.0]))
+    assert np.allclose(omega["imu1"], 0.0, atol=1e-15)
+
+
+@pytest.mark.parametrize("regressors, where, found", [
+    # t_half_s 0: apply returned NaN for every rate (a RuntimeWarning the only sign)
+    ({"time": {"t_mid_s": 1, "t_half_s": 0}}, "effects.regressors.time.t_half_s",
+     "expected a positive finite number, found 0"),
+    # a string: ValueError, an internal error of the command
+    ({"time": {"t_mid_s": 1, "t_half_s": "abc"}}, "effects.regressors.time.t_half_s", "found 'abc'"),
+    ({"time": {"t_mid_s": [1], "t_half_s": 2}}, "effects.regressors.time.t_mid_s", "expected a finite number, found [1]"),
+    ({"time": 5}, "effects.regressors.time", "expected a mapping, found int 5"),  # AttributeError before
+    ({"time": {"t_mid_s": 1, "t_half_s": 2}, "temperature_mean_K": [300]}, "effects.regressors.temperature_mean_K",
+     "expected a mapping, found list [300]"),
+    ({"time": {"t_mid_s": 1, "t_half_s": 2}, "temperature_mean_K": {"imu1": "hot"}},
+     "effects.regressors.temperature_mean_K.imu1", "expected a positive finite number, found 'hot'"),
+    # absent: the drift was applied with τ = t (t_mid 0, t_half 1), silently wrong
+    (None, "effects.regressors.time", "missing; expected the session's t_mid_s and t_half_s that "
+                                      "gyroscope.bias_drift is relative to"),
+    ({"time": {"t_mid_s": 1}}, "effects.regressors.time", "missing; expected the session's t_mid_s and t_half_s"),
+], ids=["t_half_zero", "t_half_text", "t_mid_list", "time_not_mapping", "temperature_list", "temperature_text",
+        "absent", "t_half_absent"])
+def test_results_regressors(drift_results, tmp_path, regressors, where, found):
+    p = _with(drift_results, tmp_path, regressors)
+    expect_error(lambda: Calibration.read(p), p, where, found)
+
+
+def test_results_without_regressors_need_none(drift_results, tmp_path):
+    """Effects that are not undone sample by sample (timing) need no time normalisation."""
+    doc = json.loads(json.dumps(drift_results))
+    doc["effects"] = {"included": ["gyroscope.delay"]}
+    for t in doc["triads"].values():
+        t["parameters"] = {"gyroscope.delay": {"value": [1e-3], "components": ["d"]}}
+    p = tmp_path / "results.json"
+    p.write_text(json.dumps(doc))
+    assert Calibration.read(p).effects == ("gyroscope.delay",)
+
+
+# ============================================================================ codegen, batch
+
+
+@pytest.mark.parametrize("order, effect, found", [
+    ("first_order", "accelerometer.age", "accelerometer.age takes the reading's rate from the neighbouring samples"),
+    ("second_order", "gyroscope.delay", "gyroscope.delay takes the reading's second derivative from the neighbouring"),
+])
+def test_codegen_effects_that_couple_samples(doc, tmp_path, order, effect, found):
+    """The C solver eliminates one sample at a time. An accelerometer's timing effect (or any, to second
+    order) couples the samples: the error named motion.process_model (false in the file), after a solve."""
+    sensor, name = effect.split(".")
+    doc["model"]["accelerometer"], doc["model"]["gyroscope"] = {}, {"bias": "fixed"}
+    doc["model"][sensor][name] = "free"
+    doc["model"]["sample_age"] = order
+    p = write(tmp_path / "p.yaml", doc)
+    expect_error(lambda: reference(load_problem(p), CodegenOptions(window=20, motion_only=True)), p, "model", found)
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), -1.0, 0.0, True])
+def test_batch_outlier_threshold(value):
+    """Checked before the Dask cluster starts (it was checked after, on the workers' time)."""
+    expect_error(lambda: check_threshold(value), "--outlier-threshold", "", f"found {value!r}")
+
+
+# ============================================================================ solver output
+
+
+def test_evaluation_error_is_quiet_and_takes_the_same_path(tmp_path):
+    """An objective that has no value at a trial point (the eliminated motion did not converge)
+    printed a Python traceback and a CasADi warning per evaluation on stderr (hundreds in a hard
+    dynamic solve, exit code 3 after them). Raising EvaluationError returns IPOPT's evaluation error
+    quietly: the same iterates as raising, no traceback."""
+    script = tmp_path / "run.py"
+    script.write_text(
+        "import sys, casadi as ca, numpy as np\n"
+        "from castimate.solver.assembly import Callback, EvaluationError\n"
+        "points = []\n"
+        "def f(a, o):\n"
+        "    x = a[0]; points.append(x.copy())\n"
+        "    if 2.5 < x[0] < 4:\n"
+        "        raise (EvaluationError if sys.argv[1] == 'quiet' else RuntimeError)('no value here')\n"
+        "    o[0][0] = (x[0] - 3) ** 4 + (x[1] - 1) ** 2 + x[0] * x[1]\n"
+        "x, p = ca.MX.sym('x', 2), ca.MX.sym('p', 1)\n"
+        "e = (x[0] - 3) ** 4 + (x[1] - 1) ** 2 + x[0] * x[1]\n"
+        "grad = ca.Function('grad', [x, p], [e, ca.gradient(e, x)])  # the gradient has a value everywhere\n"
+        "cb = Callback('f', [ca.Sparsity.dense(2), ca.Sparsity.dense(1)], [ca.Sparsity.dense(1)], f, grad)\n"
+        "S = ca.nlpsol('s', 'ipopt', {'x': x, 'p': p, 'f': cb(x, p)},\n"
+        "              {'ipopt.print_level': 0, 'print_time': 0, 'ipopt.sb': 'yes', 'ipopt.max_iter': 30,\n"
+        "               'ipopt.hessian_approximation': 'limited-memory'})\n"
+        "S(x0=[0.0, 0.0], p=0.0)\n"
+        "print(S.stats()['return_status'], len(points), repr(float(np.sum(points))))\n")
+    root = Path(__file__).resolve().parents[1]
+    runs = {mode: subprocess.run([sys.executable, str(script), mode], capture_output=True, text=True, cwd=root,
+                                 env={"PYTHONPATH": str(root)}, timeout=120) for mode in ("quiet", "raise")}
+    assert runs["quiet"].returncode == 0 and runs["raise"].returncode == 0, runs["quiet"].stderr[-2000:]
+    assert "Traceback" in runs["raise"].stderr  # what it was
+    assert "Traceback" not in runs["quiet"].stderr and "WARNING" not in runs["quiet"].stderr
+    assert runs["quiet"].stdout == runs["raise"].stdout  # same status, evaluations and iterates
+    assert int(runs["quiet"].stdout.split()[1]) > 5
