@@ -10,7 +10,9 @@ Each simulated problem is solved side by side in one run, on the same data, by
    path (``elimination="none"``: the full NLP, its KKT system factorised by MUMPS); the local
    functions are compiled to C and cached on disk (``castimate.jit``), so the timed builds are
    warm, and for ``schopp`` and ``carlsson_1k`` once more from an empty cache (cold: the build
-   includes gcc);
+   includes gcc); the default once more with ``SolverOptions(threads=2)`` (the compiled local
+   functions on two worker threads, both cores of the benchmark machine; BLAS stays single-threaded
+   in every worker, see below);
 2. ``scipy.optimize.least_squares`` (``method="trf"``, ``tr_solver="lsmr"`` with tolerances 1e-12) on
    the same whitened residual, written here in numpy with an analytic sparse Jacobian: positions
    (and for Schopp the orientations) plus ω, ω̇, s of every sample, with the process-model rows
@@ -369,7 +371,7 @@ def peak_mb() -> float:
 
 
 def worker_castimate(d: dict, progress: Progress, hessian: str = "exact", cold: bool = False,
-                     polish: bool = False, elimination: str = "motion") -> dict:
+                     polish: bool = False, elimination: str = "motion", threads: int = 1) -> dict:
     """castimate's build and solve. The local functions are compiled to C and cached on disk
     (castimate.jit): ``cold`` starts from an empty cache, so the build includes gcc; otherwise a
     32-sample problem of the same structure is built first (untimed), so that the timed build
@@ -397,8 +399,9 @@ def worker_castimate(d: dict, progress: Progress, hessian: str = "exact", cold: 
     t_build = time.perf_counter() - t0
     progress("Solver", build_dynamic_s=t_build)
     t0 = time.perf_counter()
-    solver = Solver(prob.lsq, SolverOptions(hessian=hessian, elimination=elimination))
-    first = Solver(prob.lsq, SolverOptions(hessian="gauss_newton", elimination=elimination)) if polish else None
+    solver = Solver(prob.lsq, SolverOptions(hessian=hessian, elimination=elimination, threads=threads))
+    first = Solver(prob.lsq, SolverOptions(hessian="gauss_newton", elimination=elimination, threads=threads)) \
+        if polish else None
     t_solver = time.perf_counter() - t0
     cpu_build = time.process_time() - c0
     progress("solve", solver_s=t_solver)
@@ -499,6 +502,7 @@ def worker_bcd(d: dict, progress: Progress) -> dict:
 
 
 WORKERS = {"castimate": worker_castimate, "castimate_gn": lambda d, p: worker_castimate(d, p, "gauss_newton"),
+           "castimate_threads": lambda d, p: worker_castimate(d, p, threads=2),
            "castimate_ref": lambda d, p: worker_castimate(d, p, elimination="none"),
            "castimate_cold": lambda d, p: worker_castimate(d, p, cold=True),
            "castimate_polish": lambda d, p: worker_castimate(d, p, polish=True),
@@ -625,6 +629,10 @@ def summarise(case: str, d: dict, runs: dict) -> dict:
             r["max_diff_reference"] = ref_m
         if r.get("position_std") is not None:
             r["median_position_std_um"] = float(np.median(np.asarray(r["position_std"])[1:]) * 1e6)
+    one, two = runs.get("castimate", {}), runs.get("castimate_threads", {})
+    if one.get("position_std") is not None and two.get("position_std") is not None:
+        two["identical"] = bool(np.array_equal(one["positions"], two["positions"])
+                                and np.array_equal(one["position_std"], two["position_std"]))
     diffs = [r["max_diff_um"] for m, r in runs.items() if m != ref_m and r.get("max_diff_um") is not None]
     return {"case": case, "kind": d["kind"], "triads": len(d["names"]), "samples": int(d["t"].size),
             "max_omega_deg_s": float(d["max_omega_deg_s"]), "max_omega_dot_deg_s2": float(d["max_omega_dot_deg_s2"]),
@@ -633,6 +641,7 @@ def summarise(case: str, d: dict, runs: dict) -> dict:
 
 
 METHOD_LABEL = {"castimate": "castimate (IPOPT exact Hessian, motion eliminated)",
+                "castimate_threads": "castimate (IPOPT exact Hessian, motion eliminated, 2 threads)",
                 "castimate_ref": "castimate reference (full NLP, KKT by MUMPS; elimination: none)",
                 "castimate_gn": "castimate (IPOPT Gauss-Newton, motion eliminated)",
                 "castimate_cold": "castimate (exact Hessian, empty compile cache)",
@@ -751,7 +760,7 @@ def targets(results: list[dict]) -> list[str]:
     out = []
     for c in results:
         runs = c["runs"]
-        for m in ("castimate", "castimate_gn", "castimate_polish", "castimate_ref", "castimate_cold"):
+        for m in ("castimate", "castimate_threads", "castimate_gn", "castimate_polish", "castimate_ref", "castimate_cold"):
             r = runs.get(m)
             if r is None:
                 continue
@@ -786,6 +795,9 @@ def targets(results: list[dict]) -> list[str]:
             rel = float(np.abs(a - b).max() / np.abs(b).max())
             out.append(f"{c['case']}: same optimum as the reference to 1e-9 relative: "
                        f"{'met' if rel <= 1e-9 else 'NOT MET'} (positions {rel:.1e})")
+        same = runs.get("castimate_threads", {}).get("identical")
+        if same is not None:
+            out.append(f"{c['case']}: 2 threads give castimate's positions and σ's bit for bit: {'yes' if same else 'NO'}")
     return out
 
 
@@ -992,7 +1004,14 @@ def main(argv=None) -> int:
     ap.add_argument("--data-root", type=Path, default=REPO.parent / "shared" / "data",
                     help="the shared data directory, where the problem files' relative data paths do not resolve")
     ap.add_argument("--real-cap-s", type=float, default=300.0, help="stop a real-data solve after this many seconds")
+    ap.add_argument("--methods", default=None,
+                    help=f"comma-separated subset of the methods {', '.join(WORKERS)} (default: all that apply), "
+                         "e.g. castimate,castimate_threads to skip the slow peers")
     args = ap.parse_args(argv)
+    if args.methods is not None:
+        args.methods = {m.strip() for m in args.methods.split(",") if m.strip()}
+        if args.methods - set(WORKERS):
+            ap.error(f"unknown methods {sorted(args.methods - set(WORKERS))}")
     cases = [c.strip() for c in args.cases.split(",") if c.strip()]
     unknown = set(cases) - set(CASES)
     if unknown:
@@ -1019,9 +1038,10 @@ def main(argv=None) -> int:
                 x = np.random.default_rng(1).standard_normal(m.n_x) * 0.1
                 x[: m.n_pos] = d2["nominal"][1:].ravel()
                 print(f"   numpy Jacobian vs finite differences: {m.check_jacobian(x):.1e}", flush=True)
-            methods = ["castimate", "castimate_ref", "castimate_gn"] + (["castimate_polish"] if kind == "schopp" else []) \
+            methods = ["castimate", "castimate_threads", "castimate_ref", "castimate_gn"] + (["castimate_polish"] if kind == "schopp" else []) \
                 + ["scipy"] + (["bcd"] if kind == "carlsson" else []) \
                 + (["castimate_cold"] if case in ("schopp", "carlsson_1k") else [])
+            methods = [m for m in methods if args.methods is None or m in args.methods]
             runs = {}
             for method in methods:
                 r = run_worker(path, method, tmp, args.cap_s, args.mem_cap_gb * 1024)

@@ -670,6 +670,8 @@ def _solver(c: Check, s) -> SolverOptions:
                 c.fail(w, f"expected a positive integer, found {v!r}")
             if k == "print_level" and not 0 <= kw[k] <= 12:
                 c.fail(w, f"expected an integer from 0 to 12, found {v!r}")
+            if k == "threads" and not 1 <= kw[k] <= 256:
+                c.fail(w, f"expected an integer from 1 to 256, found {v!r}")
             kw[k] = c.number(v, w, integer=True, hi=10 ** 7)
         else:
             kw[k] = c.number(v, w, positive=True, hi=SOLVER_TOL_MAX.get(k, 1e6))

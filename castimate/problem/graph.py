@@ -49,6 +49,11 @@ class SolverOptions:
         Compute the Fisher covariance and the σ's at the solution (default). ``False`` leaves
         ``Solution.covariance`` None and ``Solution.std`` empty: for fits whose estimates alone are
         used, e.g. the folds of a cross-validation (not a problem-file key).
+    threads
+        Worker threads for the compiled local functions of the eliminated problem (``elimination:
+        motion``): 1 (default) evaluates them in the calling thread; more run chunks of samples
+        in parallel (the compiled code runs without Python's lock) with identical results. Leave
+        it at 1 where several solves already share the cores (``castimate batch``, ``montecarlo``).
     """
 
     method: str = "ipopt"
@@ -61,6 +66,7 @@ class SolverOptions:
     jit: bool = True
     elimination: str = "motion"
     covariance: bool = True
+    threads: int = 1
 
     def ipopt(self) -> dict:
         return {

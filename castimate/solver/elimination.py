@@ -40,7 +40,12 @@ CPU and 714 MB against 13.6 s and 2.7 GB (load 4.5).
 
 from __future__ import annotations
 
+import collections
 import contextlib
+import functools
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
 
 import casadi as ca
 import numpy as np
@@ -54,6 +59,18 @@ from .assembly import CHUNK, LOCAL, Block, EvaluationError, NotStaged, StagedBlo
 
 
 STAGE_CHUNK = 4096  # instances per call of a stage function (whole stage groups)
+
+
+def _pool(threads: int) -> ThreadPoolExecutor:
+    """The worker threads of :meth:`Projection.stage_calls` and of :meth:`_Factor.lower` (one pool
+    per thread count, for the process's lifetime; a forked child, e.g. a Dask worker, makes its own:
+    the parent's threads do not exist there)."""
+    return _pool_of(threads, os.getpid())
+
+
+@functools.lru_cache(maxsize=None)
+def _pool_of(threads: int, pid: int) -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(max_workers=threads, thread_name_prefix="castimate-stages")
 
 
 class Family:
@@ -419,7 +436,7 @@ class _StageFunctions:
         """(reduced (Lr,), per stage group (nJ, L)) of stage groups with stage inputs zs (nJ, ns);
         ``out``: the (nJ, L) C-contiguous array to write the latter into."""
         nJ = zs.shape[0]
-        key = (mode, nJ)
+        key = (mode, nJ, threading.get_ident())  # a buffer holds its arguments and work: one per thread
         if key not in self._buffers:
             self._buffers[key] = self.fns[mode].map(f"stages_{nJ}", "serial", nJ, [0], [0]).buffer()
         buf, run = self._buffers[key]
@@ -548,12 +565,22 @@ class _Factor:
         else:
             self.L = sla.cholesky_banded(_banded(B, self.m), lower=True, check_finite=False)
 
-    def lower(self, v, inplace: bool = False):
+    def lower(self, v, inplace: bool = False, threads: int = 1):
+        """``threads``: the slabs of an in-place product on that many worker threads (numpy's
+        matmul runs without the GIL); the same products, so the same result."""
         if self.L is None:
             if not inplace:
                 return np.matmul(self.Linv, v)
-            for s0 in range(0, self.R, 1024):  # in place, a slab of stages at a time
+
+            def slab(s0):  # in place, a slab of stages at a time
                 v[s0: s0 + 1024] = np.matmul(self.Linv[s0: s0 + 1024], v[s0: s0 + 1024])
+
+            starts = range(0, self.R, 1024)
+            if threads > 1 and len(starts) > 1:
+                list(_pool(threads).map(slab, starts))
+            else:
+                for s0 in starts:
+                    slab(s0)
             return v
         k = v.shape[2]
         return _tbtrs(self.L, np.asfortranarray(v.reshape(-1, k))).reshape(self.R, self.m, k)
@@ -628,6 +655,7 @@ class Projection:
     Scaled variables throughout (x = value / scale); stage values Xs: one (R, m) array per family.
     """
 
+    threads = 1  # worker threads of the stage functions (:meth:`stage_calls`; SolverOptions.threads)
     shortcut = True  # accept the gradient at the Newton point (False: a full evaluation there, as a reference)
     # the largest Newton decrement (relative to 1 + f) from which the Hessian is accepted one step
     # early: any (a failed attempt costs one gradient evaluation, a quarter of a full one; the
@@ -748,14 +776,9 @@ class Projection:
             R = np.empty((b.block.n, size)) if into is None else into[off: off + b.block.n * size].reshape(b.block.n, size)
             off += b.block.n * size
             if which == "res" and i in whole:  # a stage group at a time: the calibration inputs gathered once
-                sf, sb = whole[i].stage_fns, whole[i].st[1]
-                K, W = sb.K, b.w_idx
-                Zc = np.take(w, W[:K, :nc])
-                step = max(1, STAGE_CHUNK // K)
-                for j0 in range(0, sb.J, step):
-                    j1 = min(sb.J, j0 + step)
-                    sf("vec", Zc, np.take(w, W[j0 * K: j1 * K: K, nc:]), D[j0 * K: j1 * K].reshape(j1 - j0, -1),
-                       out=R[j0 * K: j1 * K].reshape(j1 - j0, -1))  # written in place
+                sb = whole[i].st[1]
+                for _ in self.stage_calls(whole[i].stage_fns, "vec", w, b.w_idx, D, sb.K, sb.J, nc, out=R):
+                    pass  # written in place
                 out.append(R)
                 continue
             for t0 in range(0, b.block.n, CHUNK):
@@ -763,6 +786,42 @@ class Projection:
                 b.f(fn, _inputs(w, b.w_idx[t0:t1], nc) + [D[t0:t1]], [R[t0:t1]])
             out.append(R)
         return out
+
+    def stage_calls(self, sf, mode, w, W, D, K, J, nc, out=None):
+        """The stage functions ``sf`` of a staged block over its J stage groups (K instances each;
+        index matrix W, data D, w the layout's values), a chunk of STAGE_CHUNK instances per call:
+        yields (j0, j1, (reduced, per stage group)) in chunk order. ``out``: the (J K, ...) array
+        the per-instance results are written into (mode "vec").
+
+        With ``threads`` > 1 the calls run on that many worker threads (the compiled code runs
+        without the GIL), at most two chunks per thread ahead of the consumer; every chunk is the
+        same call with the same inputs and the consumer adds them up in the same order, so the
+        results are identical to one thread's."""
+        Zc = np.take(w, W[:K, :nc])
+        step = max(1, STAGE_CHUNK // K)
+        spans = [(j0, min(J, j0 + step)) for j0 in range(0, J, step)]
+
+        def call(j0, j1):
+            o = None if out is None else out[j0 * K: j1 * K].reshape(j1 - j0, -1)
+            return sf(mode, Zc, np.take(w, W[j0 * K: j1 * K: K, nc:]), D[j0 * K: j1 * K].reshape(j1 - j0, -1), out=o)
+
+        if self.threads <= 1 or len(spans) < 2:
+            for j0, j1 in spans:
+                yield j0, j1, call(j0, j1)
+            return
+        pool, pending = _pool(self.threads), collections.deque()
+        try:
+            for j0, j1 in spans:
+                pending.append((j0, j1, pool.submit(call, j0, j1)))
+                if len(pending) > 2 * self.threads:
+                    a, b, fut = pending.popleft()
+                    yield a, b, fut.result()
+            while pending:
+                a, b, fut = pending.popleft()
+                yield a, b, fut.result()
+        finally:  # an error in one chunk: the others finish before their inputs go away
+            for *_, fut in pending:
+                fut.cancel() or fut.exception()
 
     def residuals(self, x, pf, data):
         """Every whitened residual (the blocks', instance by instance, then the priors'), written
@@ -803,14 +862,8 @@ class Projection:
                     W, D = W[u.order], D[u.order]
                 K, J, base = sb.K, sb.J, sb.base
                 if u.stage_fns is not None:  # a stage group at a time, summed in compiled code
-                    sf, nc = u.stage_fns, f.n_cal
-                    Zc = np.take(w, W[:K, :nc])
-                    step = max(1, STAGE_CHUNK // K)
-                    for j0 in range(0, J, step):
-                        j1 = min(J, j0 + step)
-                        red, T = sf(mode, Zc, np.take(w, W[j0 * K: j1 * K: K, nc:]),
-                                    D[j0 * K: j1 * K].reshape(j1 - j0, -1))
-                        sf.add(parts, mode, red, T, j0, j1, base, fi)
+                    for j0, j1, (red, T) in self.stage_calls(u.stage_fns, mode, w, W, D, K, J, f.n_cal):
+                        u.stage_fns.add(parts, mode, red, T, j0, j1, base, fi)
                     continue
                 if mode == "inner":
                     fn, plan = u.inner
@@ -1003,7 +1056,7 @@ class Projection:
                 Hsc = parts.Hsc[fi]
                 if Z is not None:
                     Hsc = np.einsum("rmk,rmc->rkc", Z, Hsc)
-                Y = F.lower(Hsc, inplace=True).reshape(-1, c)  # (R m', c), in Hsc's storage
+                Y = F.lower(Hsc, inplace=True, threads=self.threads).reshape(-1, c)  # (R m', c), in Hsc's storage
                 S -= blas.dsyrk(1.0, Y.T, trans=0) if Y.flags.c_contiguous else Y.T @ Y
                 g -= Y.T @ y.reshape(-1)
             factors.append((F, Y, Z))

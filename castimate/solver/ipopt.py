@@ -35,10 +35,14 @@ class Solver:
         self.blocks = [Block(b, lay) for b in problem.blocks if b.n]
         if options.elimination not in ("motion", "none"):
             raise ValueError(f"unknown elimination {options.elimination!r}")
+        if not isinstance(options.threads, int) or options.threads < 1:
+            raise ValueError(f"solver threads: expected a positive integer, found {options.threads!r}")
         # the nuisance rows eliminated by variable projection (compiles the blocks), or None
         self.projection, self.elimination_note = Projection.build(self.blocks, lay, options.hessian, options.jit) \
             if options.elimination == "motion" else (None, "full NLP (elimination: none)")
         P = self.projection
+        if P is not None:
+            P.threads = options.threads
         self.stages, self.staged = st, staged = Stages.find(lay, self.blocks) if P is None else (None, {})
         cache: dict = {}
         off = 0

@@ -1,0 +1,122 @@
+"""SolverOptions.threads: the eliminated problem's stage functions on worker threads give the
+same assembly, bit for bit, and the same solve as in the calling thread."""
+
+import threading
+
+import numpy as np
+import pytest
+
+from castimate.problem.graph import SolverOptions
+from castimate.solver import elimination
+from castimate.solver.ipopt import Solver
+from test_assembly import dynamic_case
+
+
+def _point(prob, seed=5):
+    lay = prob.lsq.layout
+    rng = np.random.default_rng(seed)
+    return lay.x0() * (1 + 0.01 * rng.standard_normal(lay.n_x)), lay.p0()
+
+
+def _arrays(parts):
+    """Every array of an assembly (elimination._Parts)."""
+    out = [a for a in (parts.gc, parts.hcc) if a is not None] + list(parts.G) + sum(parts.B, [])
+    return out + list(parts.Hsc or []) + sum(parts.Bgn or [], [])
+
+
+@pytest.mark.parametrize("process_model", [True, False])
+def test_assembly_on_threads_is_identical(monkeypatch, process_model):
+    monkeypatch.setattr(elimination, "STAGE_CHUNK", 24)  # many calls per block, several in flight
+    prob = dynamic_case(90, process_model)
+    P = Solver(prob.lsq, SolverOptions(threads=3)).projection
+    assert P.threads == 3 and P.stage_fns
+    x, pf = _point(prob)
+    th, Xs = P.split(x)
+    seen = set()
+    call = elimination._StageFunctions.__call__
+
+    def spy(self, *a, **k):
+        seen.add(threading.current_thread().name)
+        return call(self, *a, **k)
+
+    monkeypatch.setattr(elimination._StageFunctions, "__call__", spy)
+    for mode in ("full", "grad", "info", "inner", "res"):
+        P.threads = 3
+        a = P.assemble(th, Xs, pf, None, mode)
+        P.threads = 1
+        b = P.assemble(th, Xs, pf, None, mode)
+        assert a.f == b.f
+        for ea, eb in zip(_arrays(a), _arrays(b), strict=True):
+            np.testing.assert_array_equal(ea, eb)
+    P.threads = 3
+    r3 = P.residuals(x, pf, None)
+    P.threads = 1
+    np.testing.assert_array_equal(r3, P.residuals(x, pf, None))
+    assert any(n.startswith("castimate-stages") for n in seen)  # the threads did run the calls
+
+
+def test_solve_on_threads_is_identical(monkeypatch):
+    monkeypatch.setattr(elimination, "STAGE_CHUNK", 24)
+    prob = dynamic_case(90, True)
+    one = Solver(prob.lsq, SolverOptions(threads=1)).solve()
+    two = Solver(prob.lsq, SolverOptions(threads=2)).solve()
+    assert one.success and two.success
+    assert one.iterations == two.iterations and one.cost == two.cost
+    np.testing.assert_array_equal(one.x, two.x)
+    np.testing.assert_array_equal(one.covariance, two.covariance)
+
+
+def test_an_error_in_a_chunk_reaches_the_caller(monkeypatch):
+    monkeypatch.setattr(elimination, "STAGE_CHUNK", 24)
+    prob = dynamic_case(90, False)
+    P = Solver(prob.lsq, SolverOptions(threads=2)).projection
+    x, pf = _point(prob)
+    th, Xs = P.split(x)
+    call, calls = elimination._StageFunctions.__call__, []
+
+    def failing(self, mode, zc, zs, D, out=None):
+        calls.append(1)
+        if len(calls) == 3:
+            raise FloatingPointError("chunk 3")
+        return call(self, mode, zc, zs, D, out)
+
+    monkeypatch.setattr(elimination._StageFunctions, "__call__", failing)
+    with pytest.raises(FloatingPointError, match="chunk 3"):
+        P.assemble(th, Xs, pf, None, "full")
+
+
+@pytest.mark.parametrize("threads", [0, -1, 1.5])
+def test_threads_must_be_a_positive_integer(threads):
+    prob = dynamic_case(20, False)
+    with pytest.raises(ValueError, match=f"solver threads: expected a positive integer, found {threads!r}"):
+        Solver(prob.lsq, SolverOptions(threads=threads))
+
+
+def test_lower_in_place_on_threads():
+    """_Factor.lower in place, slabs of 1024 stages on worker threads: L^-1 v of every stage (against
+    numpy's solve), the same as in one thread."""
+    rng = np.random.default_rng(7)
+    A = rng.standard_normal((2600, 5, 5))
+    B = A @ A.transpose(0, 2, 1) + 0.1 * np.eye(5)
+    F = elimination._Factor([B])
+    v = rng.standard_normal((2600, 5, 4))
+    one, two = F.lower(v.copy(), inplace=True), F.lower(v.copy(), inplace=True, threads=2)
+    np.testing.assert_array_equal(one, two)
+    np.testing.assert_allclose(two, np.linalg.solve(np.linalg.cholesky(B), v), rtol=1e-10, atol=1e-12)
+
+
+def test_a_forked_child_gets_its_own_pool():
+    """The pool is per process: a child forked after the parent's threads started (a Dask worker)
+    would otherwise queue work on threads that do not exist in it and wait forever."""
+    import multiprocessing
+
+    parent = elimination._pool(2)
+    assert parent.submit(lambda: 1).result() == 1
+    ctx = multiprocessing.get_context("fork")
+    with ctx.Pool(1) as p:
+        assert p.apply_async(_work_in_child).get(timeout=60) == 45
+
+
+def _work_in_child():
+    pool = elimination._pool(2)
+    return sum(pool.map(int, range(10)))
