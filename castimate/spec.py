@@ -37,7 +37,7 @@ from .io.units import UnitConversion, parse_units
 from .prepare.masks import SaturationOptions
 from .prepare.options import DetectionOptions
 from .problem.graph import SolverOptions
-from .problem.effects import DYNAMIC, RETIRED, STATIC, effects_for
+from .problem.effects import BOARD, DYNAMIC, RETIRED, STATIC, effects_for
 from .problem.parameters import GroupDef
 from .problem.triads import POSITION, QUATERNION_MISALIGNMENT, SENSOR_GROUPS, GroupSetting
 
@@ -533,6 +533,9 @@ def _model(c: Check, m, array: ArraySpec, kind: str = "static_array", base: Path
                     c.fail(f"model.triads.{name}.{sensor}.{g}", f"{sensor}.{g} is relative to the reference triad "
                            f"{name}, whose own is zero by definition (a gauge); expected fixed or no entry, found "
                            f"{shown(ssec[g])}")
+                if g in ssec and e.board:
+                    c.fail(f"model.triads.{name}.{sensor}.{g}", f"is one group for the whole array (every triad's "
+                           f"chip); set it under model.{sensor}.{g}, not per triad")
                 if g in ssec:
                     settings[name, sensor, g] = GroupSetting(**_group_setting(
                         c, ssec[g], f"model.triads.{name}.{sensor}.{g}", n,
@@ -552,6 +555,16 @@ def _model(c: Check, m, array: ArraySpec, kind: str = "static_array", base: Path
                            f"(free: {list(s['free'])})")
                 settings[name, sensor, g] = GroupSetting(**s)
     included = {(sensor, g) for (_, sensor, g) in settings if g in effects.get(sensor, {})}
+    for sensor in SENSOR_GROUPS:
+        for g, e in effects[sensor].items():
+            if (sensor, g) not in included:
+                continue
+            if e.instead_of and tuple(e.instead_of.split(".")) in included:
+                c.fail(f"model.{sensor}.{g}", f"describes what {e.instead_of} does, shared by the array's chips; "
+                       f"include one of the two, not both")
+            if e.board and BOARD in array.names:
+                c.fail(f"model.{sensor}.{g}", f"names its one group {BOARD}.{e.key}, which a triad called "
+                       f"{BOARD!r} would clash with; rename that triad")
     keys = tuple(e.key for sensor in SENSOR_GROUPS for g, e in effects[sensor].items() if (sensor, g) in included)
     order = c.choice(m.get("sample_age", "first_order"), "model.sample_age", SAMPLE_AGE_ORDERS)
     return ModelSpec(gravity, direction, mis, settings, intrinsics, keys, reuse, order)

@@ -243,9 +243,11 @@ def diagnose_dynamic_table() -> None:
             "problems/mimu4444_exp<i>_dynamic.yaml (both rails masked axis by axis, white noise σ₀ of the static "
             "segments while searching, then the declared motion-dependent noise model on the refined model). "
             "Every refit and cross-validation fold starts from the fit it extends (warm path). With "
-            "accelerometer.axis_offsets added, a triad's position is its x sensing element's; the next column takes "
-            "each coordinate from the element sensing along it (castimate.report.tables.sensing_axis_positions; "
-            "`python benchmarks/mimu4444_inplane.py`).", "",
+            "sensing-element offsets added (accelerometer.chip_axis_offsets, one group in the chip frame for the "
+            "board, which diagnose tries before the per-triad accelerometer.axis_offsets), a triad's position is its "
+            "x sensing element's; the next column takes each coordinate from the element sensing along it "
+            "(castimate.report.tables.sensing_axis_positions; `python benchmarks/mimu4444_inplane.py`, "
+            "`python benchmarks/mimu4444_chip_offsets.py`).", "",
             "## Per session", "",
             "| session | rounds | effects added (in order) | χ²/dof: declared → after each added effect (white σ₀) | "
             "+ noise model | held-out error (whitened RMS) | in-plane ratio: declared → refined (white) → noise model | "

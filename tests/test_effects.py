@@ -214,7 +214,7 @@ def dynamic_effect_case(seed=4, n=600, effects=None, reshape_motion=None, positi
         **{f"{nm}.gyroscope.delay": np.array([1e-3 * rng.standard_normal()]) for nm in names}}
     gyro = {"T_g": Rs, "b_g": np.zeros((K, 3)), "sigma": 1e-3, "saturation": None}
     acc, gy, _ = dynamic_measurements(motion, true - true[0], Rs, np.zeros((K, 3)), rng, 0.04, gyro=gyro, names=names,
-                                      effects=effects)
+                                      effects=effects, mounting=R)
     fixed = GroupSetting(free=(False,) * 3)
     keys = sorted({".".join(k.split(".")[1:]) for k in effects})
     free = {k.split(".")[1]: GroupSetting(free=(True,) * len(BY_KEY[k].group.components)) for k in keys}

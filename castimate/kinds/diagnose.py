@@ -39,9 +39,9 @@ from . import CrossValidation, Log, Residuals, kind_of, quiet
 from .dynamic import CLOCK_BEAT, estimate_clocks, implied_ages
 from ..problem.clocks import Beat, estimate_beats, periodogram
 from ..errors import CastimateError, InputError
-from ..problem.effects import BY_KEY, EFFECTS, TEMPERATURE, Effect
+from ..problem.effects import BY_KEY, EFFECTS, TEMPERATURE, Effect, group_names
 from ..spec import ProblemSpec, motion_noise_setting
-from ..problem.triads import GroupSetting, group_name
+from ..problem.triads import GroupSetting
 from ..solver.ipopt import Solver
 
 
@@ -322,11 +322,20 @@ class Stopwatch:
             self.times[stage] = (w0 + time.perf_counter() - w, c0 + time.process_time() - c)
 
 
-def candidates(session: Session, model: Model) -> list[Effect]:
-    """Library effects the model lacks and the session can inform."""
+def candidates(session: Session, model: Model, tried=()) -> list[Effect]:
+    """Library effects the model lacks and the session can inform. An effect that another
+    re-parameterises (``Effect.instead_of``: per-triad sensing-element offsets, which the chip model's
+    shared ones replace) waits until that one was ``tried`` (passed over in an earlier round: not
+    significant, or refitted and rejected); neither is a candidate once the other is in the model."""
     out = []
+    replacing = {e.instead_of: e.key for e in EFFECTS if e.instead_of}
     for e in EFFECTS:
         if session.spec.kind not in e.kinds or e.key in model.effects:
+            continue
+        if e.instead_of in model.effects or replacing.get(e.key) in model.effects:
+            continue
+        if e.key in replacing and session.spec.kind in BY_KEY[replacing[e.key]].kinds \
+                and replacing[e.key] not in tried:
             continue
         if e.sensor == "gyroscope" and not model.outcome.problem.gyro_triads:
             continue
@@ -341,8 +350,10 @@ def score_test(session: Session, model: Model, effect: Effect) -> ScoreTest:
     solver = session.augmented(model, model.effects + (effect.key,))
     lay = solver.problem.layout
     x = lay.x0(model.outcome.solution.values)
-    k = sum(len(lay.x_indices(group_name(n, effect.sensor, effect.name)))
-            for n in session.spec.array.names if group_name(n, effect.sensor, effect.name) in lay)
+    k = sum(len(lay.x_indices(g)) for g in group_names(effect, session.spec.array.names) if g in lay)
+    if k == 0:
+        return ScoreTest(effect.key, 0, np.nan, np.nan, np.nan, -np.inf,
+                         "not determined by these data: the triads' mountings leave every parameter a gauge")
     if effect.key == CLOCK_BEAT:
         # ν and φ were searched over a grid: test only if some chip's periodogram peak stands out
         # of the noise at all the frequencies searched (Bonferroni over the chips at ALPHA)
@@ -445,13 +456,16 @@ def diagnose(spec: ProblemSpec, log: Log = quiet, alpha: float = ALPHA, session:
     log("fitting the declared model")
     model = before = session.fit()
     log(f"  χ²/dof = {model.s2:.3g} ({model.dof} dof)")
-    rounds = []
+    rounds, tried, waited = [], set(), None
     for _ in range(max_rounds):
-        cands = candidates(session, model)
+        cands = [e for e in candidates(session, model, tried) if waited is None or e.key in waited]
+        # a round of effects that waited (below) counts the round before's candidates in its Bonferroni level
+        m = len(cands) + (len(rounds[-1].tests) if waited is not None else 0)
+        waited = None
         if not cands:
             break
         mark = dict(clock.times)
-        level = alpha / len(cands)
+        level = alpha / m
         with clock("score tests"):
             tests = sorted((score_test(session, model, e) for e in cands), key=lambda t: -t.z)
         for t in tests:
@@ -468,7 +482,13 @@ def diagnose(spec: ProblemSpec, log: Log = quiet, alpha: float = ALPHA, session:
         rounds.append(Round(tests, refits, level, _since(clock, mark)))
         log("  round " + f"{len(rounds)}: " + ", ".join(f"{k} {w:.0f} s ({c:.0f} s CPU)" for k, (w, c) in rounds[-1].times.items()))
         accepted = [r for r in refits if r.accepted]
+        # passed over: not significant (or not testable), or refitted and rejected
+        tried |= {t.effect for t in tests if not t.p < level} | {r.effect for r in refits if not r.accepted}
         if not accepted:
+            # an effect that waited for the one replacing it (candidates) is tested in one more round, alone
+            waited = {e.key for e in candidates(session, model, tried)} - {e.key for e in cands}
+            if waited:
+                continue
             break
         model = accepted[0].model
     if model is before:

@@ -9,7 +9,8 @@ non-orthogonality, misalignment):
 - a gain that varies with temperature (:func:`relative_gain_change`);
 - a quadratic scale nonlinearity per axis (:func:`scale_nonlinearity`);
 - per-axis sensing-element offsets inside an accelerometer triad, the "size effect"
-  (:func:`axis_offsets`);
+  (:func:`axis_offsets`), per triad in the body frame or shared by every chip of one model in the
+  chip's own frame (:func:`chip_axis_offsets`);
 - the age of a triad's sample: a chip's constant age, drifting or a sawtooth at the beat between the
   chip's clock and the board's read-out, and a gyroscope's delay behind its accelerometer
   (:func:`sample_age`);
@@ -58,6 +59,73 @@ def axis_offsets(T, delta, omega, omega_dot):
         return ca.mtimes(T, ca.cross(omega, ca.cross(omega, d)) + ca.cross(omega_dot, d))
 
     return ca.vertcat(0, extra(delta[0:3])[1], extra(delta[3:6])[2])
+
+
+def chip_to_body(Rbar, d):
+    """[R̄ᵀ d_y, R̄ᵀ d_z]: sensing-element offsets d = [d_y (3), d_z (3)] given in a chip's own frame
+    (m), as the body-frame offsets δ of :func:`axis_offsets` of a triad mounted with the nominal
+    rotation R̄ (body -> triad). CasADi symbols or numbers (then a numpy array)."""
+    if isinstance(Rbar, (ca.SX, ca.MX, ca.DM)) or isinstance(d, (ca.SX, ca.MX, ca.DM)):
+        return ca.vertcat(ca.mtimes(Rbar.T, d[0:3]), ca.mtimes(Rbar.T, d[3:6]))
+    R, d = np.asarray(Rbar, float), np.asarray(d, float).ravel()
+    return np.concatenate([R.T @ d[0:3], R.T @ d[3:6]])
+
+
+def chip_axis_offsets(T, Rbar, d, omega, omega_dot):
+    """Size effect of a chip model: its y and z sensing elements sit at d_y, d_z (the chip's own frame,
+    m) from its x element, the same in every chip of that model. A triad mounted with the nominal
+    rotation R̄ (body -> triad) then has the body-frame offsets R̄ᵀ d (:func:`chip_to_body`), and the
+    physics is that of :func:`axis_offsets`.
+
+    Shared by every triad of a board, d cannot absorb a per-triad scale difference as per-triad
+    offsets can (issue 11: on MIMU4444 the per-triad offsets grow with the distance from the
+    reference triad). With free positions the data leave some directions of d undetermined
+    (:func:`chip_offsets_gauge`): on a board with chips on both sides, d_z."""
+    return axis_offsets(T, chip_to_body(Rbar, d), omega, omega_dot)
+
+
+def chip_offsets_gauge(rotations, free_positions=None, tol: float = 1e-9) -> np.ndarray:
+    """(m, 6) orthonormal rows: the directions of the chip-frame offsets d of :func:`chip_axis_offsets`
+    that a board of triads with the nominal rotations ``rotations`` (body -> triad) cannot determine,
+    with the specific force s free per sample and the positions ``free_positions`` ((K, 3) bool; default
+    all but the first triad's) free.
+
+    Each element senses along its axis a = R̄ᵀ e_j at p = r + δ_j: a (ω, ω̇)-dependent reading
+    aᵀ (s + L p), L = [ω]×² + [ω̇]× (which spans every 3×3 matrix over a motion). The undetermined changes
+    are the (d, Δr_k, V) with aᵀ L (Δr_k + Δδ_j) = aᵀ V vec(L) for every element and L, s changed by
+    V vec(L): for instance all z-sensing elements moved together, which moves d_z and, through the
+    bottom-side chips' x and y elements, d_y and their positions. Triads of one mounting leave all of d
+    to s; the MIMU4444's two sides leave the 3 directions Δd_z arbitrary with Δd_y = (I − R̄_bottom) Δd_z,
+    so only d_y − (I − R̄_bottom) d_z is determined."""
+    Rs = [np.asarray(R, float) for R in rotations]
+    K = len(Rs)
+    free = np.ones((K, 3), bool) if free_positions is None else np.asarray(free_positions, bool)
+    if free_positions is None:
+        free[0] = False
+    pos = [(k, c) for k in range(K) for c in range(3) if free[k, c]]
+    n = 6 + len(pos) + 27  # d, the free position components, V (3 x 9)
+    rows = []
+    for k, R in enumerate(Rs):
+        for j in range(3):
+            a = R[j]  # the element's sensing axis in the body frame
+            for i in range(9):
+                L = np.eye(9)[i].reshape(3, 3)
+                row = np.zeros(n)
+                aL = a @ L
+                if j > 0:
+                    row[3 * (j - 1):3 * j] = aL @ R.T  # aᵀ L R̄ᵀ Δd_j
+                for m, (kk, c) in enumerate(pos):
+                    if kk == k:
+                        row[6 + m] = aL[c]
+                row[6 + len(pos) + np.arange(3) * 9 + i] = -a  # -aᵀ V e_i
+                rows.append(row)
+    _, sv, Vt = np.linalg.svd(np.array(rows))
+    sv = np.concatenate([sv, np.zeros(n - len(sv))])
+    null = Vt[sv <= tol * max(sv.max(), 1.0)][:, :6]
+    if not len(null):
+        return np.zeros((0, 6))
+    U, w, _ = np.linalg.svd(null.T, full_matrices=False)
+    return U[:, w > tol].T
 
 
 def sensing_elements(r, delta):

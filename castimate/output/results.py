@@ -12,6 +12,7 @@ import numpy as np
 
 from ..io.readers import input_units
 from ..io.results import FORMAT
+from ..problem.effects import BOARD
 
 
 def _units(spec, **extra) -> dict:
@@ -153,6 +154,8 @@ def dynamic_results(outcome) -> dict:
                   **({"motion_dependent": outcome.motion_noise} if outcome.motion_noise else {})},
         "uncertainty": _uncertainty(serial),
         "triads": triads,
+        # the groups shared by every triad (problem.effects.BOARD: the chip model's sensing-element offsets)
+        **({"array": {"parameters": board}} if (board := _parameters(lay, sol, BOARD, fisher)) else {}),
         "residuals": {"chi2": sol.chi2, "dof": sol.dof, "chi2_per_dof": sol.chi2_per_dof,
                       "rms": {n: rms(r) for n, r in outcome.residual_acc.items()}, "rms_unit": "m/s^2",
                       "gyro_rms": {n: rms(r) for n, r in outcome.residual_gyro.items()}},

@@ -27,7 +27,8 @@ from . import effects as fxs
 from .compensation import linear_inverse
 from .parameters import XYZ
 from .triads import (ACC_FACTOR_GROUPS, GYRO_FACTOR_GROUPS, N_SAMPLE_REGRESSORS, GroupSetting, Regressors, TriadConfig,
-                     accelerometer_matrix, effect_context, effect_params, group_name, gyroscope_matrix, triad_groups)
+                     accelerometer_matrix, board_groups, effect_context, effect_params, group_name, gyroscope_matrix,
+                     triad_groups)
 
 OMEGA, OMEGA_DOT, S = "motion.omega", "motion.omega_dot", "motion.s"
 OMEGA_DDOT = "motion.omega_ddot"  # a state of the wiener3 process model only
@@ -196,7 +197,8 @@ def accelerometer_sample_factor(config: DynamicConfig) -> ca.Function:
         u_dot = accelerometer_rate()(T, r, w, wd, prev, nxt, inv_span)
         if config.age_order == 2:
             u_ddot = accelerometer_rate_of_rate()(T, r, w, wd, s, prev, nxt, inv_span, inv_h2)
-    ctx = effect_context(reg, u=ca.mtimes(T, f), T=T, omega=w, omega_dot=wd, u_dot=u_dot, u_ddot=u_ddot)
+    ctx = effect_context(reg, u=ca.mtimes(T, f), T=T, omega=w, omega_dot=wd, u_dot=u_dot, u_ddot=u_ddot,
+                         Rbar=ca.reshape(R, 3, 3))
     res = (y - tri.triad_output(T, b, f) - fxs.total(effects, c, ctx)) / sigma
     return ca.Function("accelerometer_sample", [ca.vertcat(*z), ca.vertcat(y, sigma, R, reg, inv_span, inv_h2)], [res])
 
@@ -494,6 +496,7 @@ def build_dynamic(config: DynamicConfig, data: DynamicData, start: dict | None =
     for t in config.triads:
         groups += triad_groups(config, t, t.name in gyro_triads)
         groups.append(position_group(config, t))
+    groups += board_groups(config)
     groups += [Group.make(OMEGA, XYZ, start[OMEGA], rows=N, unit="rad/s", nuisance=True),
                Group.make(OMEGA_DOT, XYZ, start[OMEGA_DOT], rows=N, scale=10.0, unit="rad/s^2", nuisance=True),
                Group.make(S, XYZ, start[S], rows=N, unit="m/s^2", nuisance=True)]
@@ -514,8 +517,9 @@ def build_dynamic(config: DynamicConfig, data: DynamicData, start: dict | None =
         config = replace(config, regressors=Regressors.from_times(data.t, data.temp))
     prev, nxt = _neighbours(N)
 
-    def effect_inputs(sensor, names, k):
-        return [(tuple(group_name(t, e.sensor, e.name) for t in names), k) for e in fxs.acting_on(config.effects, sensor)]
+    def effect_inputs(sensor, names, k):  # a board effect's one group feeds every instance (rows None)
+        return [(fxs.group_names(e, ())[0], None) if e.board else (tuple(fxs.group_names(e, names)), k)
+                for e in fxs.acting_on(config.effects, sensor)]
 
     # One instance per (sample, triad), sample-major and including masked samples (zero residual,
     # not valid): the Solver assembles such blocks sample by sample (see solve.py, "Stages").

@@ -14,6 +14,7 @@ Regressors an effect term may use (:class:`Context`):
 - ``u``: the triad's noise-free linear reading (T f or T_g ω), sensor frame;
 - ``f``: the specific force in the triad's frame (gyroscope g-sensitivity);
 - ``T``, ``omega``, ``omega_dot``: the triad matrix and the motion (size effect);
+- ``Rbar``: the triad's nominal mounting rotation, body -> triad (offsets given in a chip's frame);
 - ``u_dot``: the time derivative of ``u`` (time offsets and sample ages): T_g ω̇ for a gyroscope,
   T ḟ for an accelerometer (``models.motion.specific_force_rate``, with ṡ and ω̈ from the
   neighbouring samples' motion);
@@ -33,6 +34,14 @@ How an entry is undone when a calibration is applied is derived from its symboli
 form); one that does is removed by Newton steps on the CasADi expression
 (:mod:`castimate.problem.compensation`). Entries with ``sample_wise=False`` describe where or when a
 triad senses (sensing-element offsets, time offsets, sample ages); they are not undone sample by sample.
+
+Most groups are per triad (``imu3.accelerometer.axis_offsets``). An entry with ``board=True`` is one
+group for the whole array, ``array.<sensor>.<name>`` (:func:`group_names`), shared by every triad as
+a property of the chip model they all are: ``accelerometer.chip_axis_offsets``, the sensing elements'
+offsets in the chip's own frame, is the same physics as ``axis_offsets`` (one term,
+:func:`castimate.models.effects.axis_offsets`) with 6 parameters for the board instead of 6 per triad.
+It replaces ``axis_offsets`` (:attr:`Effect.instead_of`): a problem includes one of the two, and
+diagnose tries the shared one first.
 
 Timing (issue 11, item 4): a triad's sample is a(t) old when the board reads it, so it reads u(t − a)
 ≈ u − a u̇ + ½ a² ü (:func:`castimate.models.effects.sample_age`): every timing effect adds to the
@@ -81,6 +90,7 @@ class Context:
     u_dot: Any = None
     beat: Any = None
     u_ddot: Any = None
+    Rbar: Any = None
 
 
 @dataclass(frozen=True)
@@ -117,6 +127,15 @@ class Effect:
         of a reading's timing effects and adds one :func:`castimate.models.effects.sample_age` term of
         the sum (its second order is not a sum of the effects' own); ``term`` is that term for the
         effect alone.
+    board
+        One group for the whole array (``array.<sensor>.<name>``), shared by every triad: a property
+        of the chip model, not of one chip.
+    instead_of
+        The key of a per-triad effect this one re-parameterises: a problem includes one of the two,
+        and diagnose tries this one first.
+    gauge
+        For a board effect: ``(nominal rotations of the triads) -> (m, n)`` the directions of its
+        parameters those mountings leave undetermined (fixed by :func:`castimate.problem.triads.board_groups`).
     """
 
     name: str
@@ -130,6 +149,9 @@ class Effect:
     sample_wise: bool = True
     shared: bool = False
     age: Callable[[Any, Context], Any] | None = None
+    board: bool = False
+    instead_of: str = ""
+    gauge: Callable[[Any], Any] | None = None
 
     @property
     def key(self) -> str:
@@ -160,7 +182,7 @@ def probe_context() -> Context:
     sym = ca.SX.sym
     return Context(tau=(sym("tau"), sym("tau2")), temp=(sym("dT"), sym("dT2")), u=sym("u", 3), f=sym("f", 3),
                    T=sym("T", 3, 3), omega=sym("omega", 3), omega_dot=sym("omega_dot", 3), u_dot=sym("u_dot", 3),
-                   beat=sym("beat"), u_ddot=sym("u_ddot", 3))
+                   beat=sym("beat"), u_ddot=sym("u_ddot", 3), Rbar=sym("Rbar", 3, 3))
 
 
 def _timing(name: str, sensor: str, group: GroupDef, age: Callable[[Any, Context], Any], **kw) -> Effect:
@@ -195,6 +217,13 @@ EFFECTS: tuple[Effect, ...] = (
            relative=True, sample_wise=False,
            title="accelerometer sensing-element offsets (size effect): y and z elements relative to x, "
                  "relative to the reference triad's"),
+    Effect("chip_axis_offsets", "accelerometer",
+           GroupDef(("yx", "yy", "yz", "zx", "zy", "zz"), (0.0,) * 6, 1e-3, "m"),
+           lambda c, x: fx.chip_axis_offsets(x.T, x.Rbar, c, x.omega, x.omega_dot), kinds=(DYNAMIC,),
+           needs=(MOTION,), sample_wise=False, board=True, instead_of="accelerometer.axis_offsets",
+           gauge=fx.chip_offsets_gauge,
+           title="accelerometer sensing-element offsets of the chip model (size effect): y and z elements relative "
+                 "to x in the chip's frame, shared by every triad of the board"),
     _timing("age", "accelerometer", GroupDef(("a",), (0.0,), 1e-3, "s"), lambda c, x: c, relative=True, shared=True,
             title="chip sample age: the IMU's accelerometer and gyroscope read the motion a late "
                  "(constant, relative to the reference triad's)"),
@@ -228,6 +257,15 @@ RETIRED = {
                              "(d = -dt of the gyroscope + dt of the accelerometer); the chip's age, shared by both "
                              "sensors, is accelerometer.age",
 }
+
+
+#: The array-wide groups' prefix: ``array.<sensor>.<name>`` (no triad may be called so).
+BOARD = "array"
+
+
+def group_names(e: Effect, triads) -> list[str]:
+    """The parameter groups of effect ``e`` in a problem of ``triads``: one per triad, or the board's one."""
+    return [f"{BOARD}.{e.key}"] if e.board else [f"{t}.{e.key}" for t in triads]
 
 
 def effects_for(sensor: str, kind: str) -> dict[str, Effect]:

@@ -173,13 +173,47 @@ def triad_groups(config, t: TriadConfig, with_gyro: bool) -> list[Group]:
         out.append(_group(group_name(t.name, "accelerometer", gname), gd, setting))
     reference = t.name == config.reference
     for e in fxs.included(config.effects, "accelerometer"):
-        out.append(_effect_group(t.name, e, t.accelerometer, reference))
+        if not e.board:
+            out.append(_effect_group(t.name, e, t.accelerometer, reference))
     if with_gyro:
         for gname, gd in GYROSCOPE_GROUPS.items():
             out.append(_group(group_name(t.name, "gyroscope", gname), gd, t.gyroscope[gname]))
         for e in fxs.included(config.effects, "gyroscope"):
-            out.append(_effect_group(t.name, e, t.gyroscope, reference))
+            if not e.board:
+                out.append(_effect_group(t.name, e, t.gyroscope, reference))
     return out
+
+
+def board_groups(config) -> list[Group]:
+    """The array-wide groups of the included board effects (``Effect.board``), with the setting every
+    triad carries (the problem file gives one, for the whole array). The directions the triads'
+    mountings and free positions leave undetermined (``Effect.gauge``) are removed by fixing components
+    at their initial value, from the last component back (for the chip model's offsets on a board with
+    chips on both sides: d_z, the z element taken at the x element; the fitted d_y is then
+    d_y − (I − R̄_bottom) d_z, :func:`castimate.models.effects.chip_offsets_gauge`)."""
+    out = []
+    for sensor in ("accelerometer", "gyroscope"):
+        for e in (e for e in fxs.included(config.effects, sensor) if e.board):
+            t = next(t for t in config.triads if e.name in ((t.accelerometer if sensor == "accelerometer"
+                                                               else t.gyroscope) or {}))
+            s = (t.accelerometer if sensor == "accelerometer" else t.gyroscope)[e.name]
+            free = np.array(s.free, bool)
+            if e.gauge is not None:
+                G = e.gauge([t.R_nominal for t in config.triads],
+                            np.array([(False,) * 3 if t.name == config.reference else
+                                      (t.position_setting or GroupSetting(free=(True,) * 3)).free
+                                      for t in config.triads], bool))
+                fixed = list(np.flatnonzero(~free))
+                for i in reversed(range(len(free))):
+                    if free[i] and _rank(G[:, fixed + [i]]) > _rank(G[:, fixed]):
+                        free[i] = False
+                        fixed.append(i)
+            out.append(_group(fxs.group_names(e, ())[0], e.group, replace(s, free=tuple(bool(f) for f in free))))
+    return out
+
+
+def _rank(A: np.ndarray) -> int:
+    return int(np.linalg.matrix_rank(A, 1e-6)) if A.size else 0
 
 
 def _effect_group(triad: str, e: fxs.Effect, settings: dict[str, GroupSetting], reference: bool) -> Group:
@@ -236,7 +270,9 @@ def fixed_config(config, values: dict[str, np.ndarray]):
             return None
         out = {}
         for g in settings:
-            v = np.atleast_1d(values[group_name(t.name, sensor, g)])
+            key = f"{sensor}.{g}"
+            v = np.atleast_1d(values[fxs.group_names(fxs.BY_KEY[key], (t.name,))[0] if key in fxs.BY_KEY
+                                     else group_name(t.name, sensor, g)])
             out[g] = GroupSetting(free=(False,) * len(v), initial=tuple(float(x) for x in v))
         return out
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..models.effects import along_sensing_axes
+from ..models.effects import along_sensing_axes, chip_to_body
 from ..problem.compensation import linear_inverse
 
 DEG = 180 / np.pi
@@ -80,10 +80,14 @@ def gravity_norm_rms(acc_si: np.ndarray, T: np.ndarray, b: np.ndarray, g: float)
 def sensing_axis_positions(res: dict) -> dict[str, np.ndarray]:
     """Per triad of a results document, its position coordinate by coordinate from the accelerometer
     sensing element that measures it (:func:`castimate.models.effects.along_sensing_axes`): with
-    ``accelerometer.axis_offsets`` free, ``position`` is the x element's. Without offsets: ``position``."""
+    ``accelerometer.axis_offsets`` free, ``position`` is the x element's; ``accelerometer.chip_axis_offsets`` (the
+    array's, in the chip frame) gives each triad's through its nominal rotation. Without offsets: ``position``."""
     out = {}
+    chip = res.get("array", {}).get("parameters", {}).get("chip_axis_offsets", {}).get("value")
     for n, t in res["triads"].items():
         delta = t.get("parameters", {}).get("axis_offsets", {}).get("value")
+        if chip is not None:
+            delta = chip_to_body(t["R_nominal"], chip)
         out[n] = np.asarray(t["position"], float) if delta is None else \
             along_sensing_axes(t["position"], delta, t["R_nominal"])
     return out

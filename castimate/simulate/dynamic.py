@@ -473,8 +473,8 @@ SENSORS = ("accelerometer", "gyroscope")
 
 def dynamic_measurements(motion: Motion, positions, T, b, rng: np.random.Generator, acc_sigma, gyro=None,
                          names: list[str] | None = None, effects: dict | None = None, *, delay: dict | None = None,
-                         pink: dict | None = None, adc: dict | None = None, jitter: float = 0.0
-                         ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], dict[str, np.ndarray]]:
+                         pink: dict | None = None, adc: dict | None = None, jitter: float = 0.0,
+                         mounting: dict | None = None) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], dict[str, np.ndarray]]:
     """Raw readings of K triads rigidly attached to the moving body.
 
     Accelerometers: y = T_k (s + ω×(ω×r_k) + ω̇×r_k) + b_k + v, v ~ N(0, acc_sigma²) (a scalar, or an
@@ -504,6 +504,9 @@ def dynamic_measurements(motion: Motion, positions, T, b, rng: np.random.Generat
     ``accelerometer.clock_drift``: both sensors of the triad read the true signal at t − a(t), the
     gyroscope at t − a(t) − d with ``gyroscope.delay`` d, :func:`effects.sample_shift`), and the sample-wise ones
     that need no temperature or specific force at the gyroscope (drifts over the record, scale terms).
+
+    ``mounting`` (name -> body -> chip rotation): where the chip model's sensing-element offsets
+    ``array.accelerometer.chip_axis_offsets`` (chip frame, in ``effects``) sit in the body frame.
 
     ``jitter`` [s] (RMS): every chip's sampling instant jitters at random from sample to sample
     (:func:`castimate.simulate.effects.jitter_ages`, independent per chip, shared by its
@@ -540,7 +543,8 @@ def dynamic_measurements(motion: Motion, positions, T, b, rng: np.random.Generat
         effects.update({f"{n}.accelerometer.jitter": fx.jitter_ages(jitter, N, rng) for n in names})
     acc: dict[str, np.ndarray] = {}
     for k, n in enumerate(names):
-        u = sensed_specific_force(effects, n, motion.t, force_at, positions[k], T[k], delay.get("accelerometer", 0.0))
+        u = sensed_specific_force(effects, n, motion.t, force_at, positions[k], T[k], delay.get("accelerometer", 0.0),
+                                  (mounting or {}).get(n))
         acc[n] = convert("accelerometer", u + b[k] + fx.sample_terms(effects, n, "accelerometer", u, None, tau, zero)
                          + sig[k] * rng.standard_normal((N, 3))
                          + fx.pink_noise(rng, N, pink.get("accelerometer", 0.0)))[0]

@@ -142,16 +142,29 @@ def shifted(t: np.ndarray, x: np.ndarray, dt) -> np.ndarray:
     return CubicSpline(t, x, axis=0)(t + dt) if np.any(dt) else x
 
 
+#: The truth key of the chip model's sensing-element offsets (chip frame, shared by every triad).
+CHIP_AXIS_OFFSETS = "array.accelerometer.chip_axis_offsets"
+
+
 def sensed_specific_force(values: dict, name: str, t: np.ndarray, specific_force_at, position: np.ndarray,
-                          T: np.ndarray, delay: float = 0.0) -> np.ndarray:
+                          T: np.ndarray, delay: float = 0.0, mounting: np.ndarray | None = None) -> np.ndarray:
     """(N, 3) T f as the accelerometer triad senses it, exactly: each axis at its own sensing
     element (the y and z elements at position + δ_y, + δ_z, the axis offsets) and instant (t + Δt,
     Δt minus the chip's sample age, :func:`sample_shift`, and the sensor's ``delay`` [s], its filter's
     group delay: it reads the signal at t − delay).
-    ``specific_force_at(r, dt)`` gives the true specific force (N, 3) at body position r at the times t + dt."""
+    ``specific_force_at(r, dt)`` gives the true specific force (N, 3) at body position r at the times t + dt.
+    The chip model's offsets :data:`CHIP_AXIS_OFFSETS` (d_y, d_z in the chip's frame, every triad's) put the
+    elements at position + Mᵀ d_y, + Mᵀ d_z with the triad's ``mounting`` M (body -> chip); added to its own."""
     dt = sample_shift(values, name, "accelerometer", t) - delay
     y = specific_force_at(position, dt) @ T.T
     delta = values.get(f"{name}.accelerometer.axis_offsets")
+    chip = values.get(CHIP_AXIS_OFFSETS)
+    if chip is not None:
+        if mounting is None:
+            raise ValueError(f"{CHIP_AXIS_OFFSETS} needs the mounting rotation of {name}")
+        M, chip = np.asarray(mounting, float), np.asarray(chip, float)
+        in_body = np.concatenate([M.T @ chip[0:3], M.T @ chip[3:6]])
+        delta = in_body if delta is None else np.asarray(delta, float) + in_body
     if delta is not None:
         for axis, d in ((1, delta[0:3]), (2, delta[3:6])):
             y[:, axis] = (specific_force_at(position + d, dt) @ T.T)[:, axis]
