@@ -219,3 +219,40 @@ def test_joint_spec_errors(tmp_path, static, where, message):
     with pytest.raises(InputError, match=re.escape(message)) as e:
         load_problem(path)
     assert e.value.where == where
+
+
+def test_session_read_once_and_its_static_segments_found_once(shared_data, tmp_path, monkeypatch):
+    """A joint problem with noise: auto and rotation: auto reads its data file once and finds the
+    whole recording's static segments once (the noise and the mounting rotations both use them; the
+    static phase's poses are found in its own time range): same σ's and rotations as found apart."""
+    from pathlib import Path
+    import castimate.kinds.dynamic as kd
+    import castimate.kinds.static as ks
+    from castimate.spec import load_problem
+    problem = Path(__file__).resolve().parents[1] / "problems" / "mimu4444_exp1_joint.yaml"
+    raw = yaml.safe_load(problem.read_text())
+    raw["data"]["path"] = str(shared_data / "mimu4444" / "exp_1" / "data.bin")
+    path = tmp_path / "joint.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    spec = load_problem(path)
+    calls = {"read": 0, "detect": 0}
+
+    def counted(name, fn):
+        def wrapper(*args, **kwargs):
+            calls[name] += 1
+            return fn(*args, **kwargs)
+        return wrapper
+    monkeypatch.setattr(kd, "read_recording", counted("read", kd.read_recording))
+    monkeypatch.setattr(ks, "read_recording", counted("read", ks.read_recording))
+    monkeypatch.setattr(kd, "detect_static", counted("detect", kd.detect_static))
+    inputs = kd.dynamic_inputs(spec)
+    assert calls == {"read": 1, "detect": 2}  # the whole recording's segments, the static phase's poses
+    monkeypatch.undo()
+    full = kd.read_full(spec)
+    acc, gyro = kd.noise_from_static(spec, full, kd.quiet)  # each with its own detection
+    config = kd.dynamic_config(spec, full, kd.quiet)
+    for n in spec.array.names:
+        assert np.array_equal(inputs.data.acc_sigma[n], acc[n]) and np.array_equal(inputs.data.gyro_sigma[n], gyro[n])
+    assert [t.R_nominal.tolist() for t in inputs.config.triads] == [t.R_nominal.tolist() for t in config.triads]
+    rec = ks.load_recording(spec)
+    assert np.array_equal(inputs.data.t, rec.t) and all(np.array_equal(inputs.data.acc[n], rec.acc[n]) for n in rec.acc)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -55,38 +55,52 @@ def read_full(spec: ProblemSpec) -> Recording:
                           rate=d.rate)
 
 
-def noise_from_static(spec: ProblemSpec, full: Recording, log: Log) -> tuple[dict, dict]:
-    """Per-sample σ (3,) per triad: from the problem file, else from the static segments of the whole recording."""
+def full_static(spec: ProblemSpec, full: Recording, cache: dict | None = None, averages: bool = False):
+    """The static segments of the whole recording (Detection), or with ``averages`` their averages
+    (PoseAverages), each found once per ``cache`` and detection settings (the noise and the mounting
+    rotations both come from them)."""
+    cache = {} if cache is None else cache
+    key = (repr(spec.data.detection), tuple(spec.array.names))
+    if ("detection", key) not in cache:
+        cache["detection", key] = detect_static(full, spec.data.detection, triads=spec.array.names)
+    if averages and ("averages", key) not in cache:
+        cache["averages", key] = average_poses(full, cache["detection", key], triads=spec.array.names)
+    return cache["averages" if averages else "detection", key]
+
+
+def noise_from_static(spec: ProblemSpec, full: Recording, log: Log, cache: dict | None = None) -> tuple[dict, dict]:
+    """Per-sample σ (3,) per triad: from the problem file, else from the static segments of the whole
+    recording (:func:`full_static`, kept in ``cache``)."""
     names = spec.array.names
     acc, gyro = spec.noise.accelerometer, spec.noise.gyroscope
     out_a = {n: np.full(3, acc[n]) for n in names} if acc else None
     out_g = {n: np.full(3, gyro[n]) for n in names if n in full.gyro} if gyro else None
     if out_a is None or (out_g is None and full.gyro):
-        det = detect_static(full, spec.data.detection, triads=names)
-        if not det.segments:
+        if not full_static(spec, full, cache).segments:
             raise InputError(spec.path, "noise.accelerometer" if out_a is None else "noise.gyroscope",
                              "auto needs static segments in the recording to estimate the noise; none were found; "
                              "give σ per sample instead")
-        avg = average_poses(full, det, triads=names)
+        avg = full_static(spec, full, cache, averages=True)
         log(f"noise estimated from {avg.n_poses} static segments of the recording")
         out_a = out_a or dict(avg.acc_sigma_sample)
         out_g = out_g if out_g is not None else dict(avg.gyro_sigma_sample)
     return out_a, out_g or {}
 
 
-def dynamic_config(spec: ProblemSpec, full: Recording, log: Log) -> DynamicConfig:
-    """Triads with nominal rotations, positions and settings; intrinsics start from a static results.json."""
+def dynamic_config(spec: ProblemSpec, full: Recording, log: Log, cache: dict | None = None) -> DynamicConfig:
+    """Triads with nominal rotations, positions and settings; intrinsics start from a static results.json.
+    Mounting rotations (``rotation: auto``) from the recording's static segments (:func:`full_static`,
+    kept in ``cache``)."""
     intr = read_intrinsics(spec)
     s, mis = spec.model.settings, spec.model.misalignment
     ref_spec = next(t for t in spec.array.triads if t.name == spec.array.reference)
     auto = [t.name for t in spec.array.triads if isinstance(t.rotation, str) and t.rotation == "auto" and t.name not in intr]
     means = None
     if auto:  # recover mounting rotations from the recording's static segments
-        det = detect_static(full, spec.data.detection, triads=spec.array.names)
-        if len(det.segments) < 3:
+        if len(full_static(spec, full, cache).segments) < 3:
             raise InputError(spec.path, "array.triads", f"rotation: auto for {', '.join(auto)} needs static segments "
                              "(or model.intrinsics); the recording has fewer than 3")
-        means = average_poses(full, det, triads=spec.array.names).acc_mean
+        means = full_static(spec, full, cache, averages=True).acc_mean
     R_ref = intr[ref_spec.name].R_nominal if ref_spec.name in intr else \
         (np.eye(3) if isinstance(ref_spec.rotation, str) else ref_spec.rotation)
     triads = []
@@ -225,6 +239,7 @@ class DynamicInput:
     data: DynamicData
     saturation: dict  # "<triad>.<sensor>" -> masked counts per rail (RailMask.counts), source and rails
     regressors: Regressors  # of the whole session, also for parts of it (cross-validation folds)
+    cache: dict = field(default_factory=dict, compare=False)  # the whole recording's static segments (full_static)
 
 
 @dataclass
@@ -244,13 +259,14 @@ def load_dynamic(spec: ProblemSpec, log: Log = quiet) -> DynamicInput:
     full = read_full(spec)
     for note in full.notes:
         log(f"  {note}")
-    rec = load_recording(spec)
+    rec = load_recording(spec, full)
     check_plausible(spec, rec, "dynamic", log)
     timed = [k for k in spec.model.effects if {RATE, MOTION} & set(BY_KEY[k].needs)]
     if spec.motion.process_model or timed:
         check_uniform_sampling(rec.t, declared(spec), "the process model (motion.process_model)" if not timed
                                else f"{timed[0]} (model.{timed[0]})")
-    acc_sigma, gyro_sigma = noise_from_static(spec, full, log)
+    cache: dict = {}
+    acc_sigma, gyro_sigma = noise_from_static(spec, full, log, cache)
     names = spec.array.names
     opt = spec.data.saturation
     sat, acc_valid, gyro_valid = {}, {}, {}
@@ -277,7 +293,7 @@ def load_dynamic(spec: ProblemSpec, log: Log = quiet) -> DynamicInput:
     data = DynamicData(rec.t, {n: rec.acc[n] for n in names}, acc_sigma,
                        {n: rec.gyro[n] for n in names if n in rec.gyro}, gyro_sigma, acc_valid, gyro_valid,
                        {n: rec.temp[n] for n in names if n in rec.temp})
-    return DynamicInput(full, data, sat, Regressors.from_times(data.t, data.temp))
+    return DynamicInput(full, data, sat, Regressors.from_times(data.t, data.temp), cache)
 
 
 def dynamic_inputs(spec: ProblemSpec, log: Log = quiet, loaded: DynamicInput | None = None) -> DynamicInputs:
@@ -285,7 +301,7 @@ def dynamic_inputs(spec: ProblemSpec, log: Log = quiet, loaded: DynamicInput | N
     :func:`load_dynamic` (read here if not given)."""
     loaded = loaded or load_dynamic(spec, log)
     full, data, sat = loaded.full, loaded.data, loaded.saturation
-    config = replace(dynamic_config(spec, full, log), regressors=loaded.regressors)
+    config = replace(dynamic_config(spec, full, log, loaded.cache), regressors=loaded.regressors)
     static_problem = None
     if spec.data.static_range is not None:
         static_problem, config = _static_phase(spec, full, config, log)

@@ -47,11 +47,13 @@ def time_range_part(spec: ProblemSpec, rec: Recording, time_range: tuple[float, 
     return rec.select(keep)
 
 
-def load_recording(spec: ProblemSpec) -> Recording:
-    """Read the problem's data file in SI units and keep the declared time range."""
+def load_recording(spec: ProblemSpec, full: Recording | None = None) -> Recording:
+    """Read the problem's data file in SI units and keep the declared time range. ``full``: that file
+    already read (the whole recording, not changed here), instead of reading it again."""
     d = spec.data
-    rec = read_recording(d.format, d.path, acc_units=d.acc_units, gyro_units=d.gyro_units, gyro_path=d.gyro_path,
-                         rate=d.rate)
+    rec = full.select(np.ones(len(full.t), bool)) if full is not None else \
+        read_recording(d.format, d.path, acc_units=d.acc_units, gyro_units=d.gyro_units, gyro_path=d.gyro_path,
+                       rate=d.rate)
     if d.time_range is not None:
         rec = time_range_part(spec, rec, d.time_range, "data.time_range")
     for i, t in enumerate(spec.array.triads):
