@@ -256,6 +256,35 @@ def test_hat_diagonal_of_a_joint_problem_matches_the_dense_hat_matrix(coupled_st
     assert np.abs(hat_diagonal(sp.csr_matrix(J), sp.csr_matrix(G), stages, some) - h[some]).max() < 1e-10
 
 
+def _dense_hat(J, G):
+    n, c = J.shape[1], G.shape[0]
+    P = np.linalg.inv(np.block([[J.T @ J, G.T], [G, np.zeros((c, c))]]))[:n, :n]
+    return np.einsum("ri,ij,rj->r", J, P, J)
+
+
+@pytest.mark.parametrize("coupled_stages", [False, True])
+def test_hat_diagonal_structure_kept_across_calls(coupled_stages):
+    """With a ``cache``, the second call at other values of the same sparsity reuses the first
+    call's structure and still equals the dense hat matrix's diagonal; a Jacobian of another
+    sparsity (one more static row) or other rows wanted replace it."""
+    J, G, stages = joint_jacobian(coupled_stages)
+    J2, G2, _ = joint_jacobian(coupled_stages, seed=12)  # same pattern, other values
+    assert np.array_equal(J != 0, J2 != 0)
+    cache = {}
+    assert np.abs(hat_diagonal(sp.csr_matrix(J), sp.csr_matrix(G), stages, None, cache) - _dense_hat(J, G)).max() < 1e-10
+    plan = cache["plan"]
+    got = hat_diagonal(sp.csr_matrix(J2), sp.csr_matrix(G2), stages, None, cache)
+    assert cache["plan"] is plan
+    assert np.abs(got - _dense_hat(J2, G2)).max() < 1e-10
+    J3 = np.vstack([J2, J2[-1:]])  # a repeated static row: another structure
+    got = hat_diagonal(sp.csr_matrix(J3), sp.csr_matrix(G2), stages, None, cache)
+    assert cache["plan"] is not plan and np.abs(got - _dense_hat(J3, G2)).max() < 1e-10
+    some = np.array([len(J3) - 1, 4, 0])
+    plan = cache["plan"]
+    got = hat_diagonal(sp.csr_matrix(J3), sp.csr_matrix(G2), stages, some, cache)
+    assert cache["plan"] is not plan and np.abs(got - _dense_hat(J3, G2)[some]).max() < 1e-10
+
+
 def test_known_process_noise_recovered():
     """A motion that is a sample of the wiener3 model (ω̈ a Wiener process of density q_ω, s a
     random walk of density q_s), read by four triads with gyroscopes: the estimated levels
@@ -377,8 +406,9 @@ def test_row_patterns_group_rows_by_their_columns(monkeypatch, collide):
     dense = np.array([[1.0, 0, 0, 2], [0, 3, 4, 0], [5, 0, 0, 6], [0, 0, 0, 0], [0, 7, 8, 0], [9, 0, 0, 0]])
     groups = var._row_patterns(sp.csr_matrix(dense))
     seen = []
-    for idx, cols, vals in groups:
-        assert np.array_equal(dense[idx][:, cols], vals)
+    data = sp.csr_matrix(dense).data
+    for idx, cols, at in groups:
+        assert np.array_equal(dense[idx][:, cols], data[at])
         mask = np.zeros(dense.shape[1], bool)
         mask[cols] = True
         assert np.all(dense[idx][:, ~mask] == 0) and np.all(dense[idx][:, mask] != 0)

@@ -622,6 +622,7 @@ def fit_motion_noise(spec: ProblemSpec, problem, solver: Solver, sol: Solution, 
     stages = motion_stages(problem.lsq.layout, data.n)
     fits: dict = {}
     warm: dict = {}  # per sensor, the variance components' fits of the previous round (fit_noise)
+    structure: dict = {}  # the leverages' (hat_diagonal): the Jacobian's sparsity is the same every round
     state = {"data": data, "sol": sol, "regressors": None, "params": params, "estimate": None}
 
     def propose():
@@ -633,7 +634,7 @@ def fit_motion_noise(spec: ProblemSpec, problem, solver: Solver, sol: Solution, 
         if estimated:
             t0 = time.process_time()
             J, G = solver.jacobians(sol.x, data=problem.data_vector(data))
-            h = problem.per_triad(hat_diagonal(J, G, stages, np.arange(solver.n_data_residuals)))
+            h = problem.per_triad(hat_diagonal(J, G, stages, np.arange(solver.n_data_residuals), structure))
             log(f"  leverages of {solver.n_data_residuals} residuals: {time.process_time() - t0:.2f} s CPU")
             res = measurement_residuals(problem, data, sol)
             for i, (sensor, kind) in enumerate(SENSORS):

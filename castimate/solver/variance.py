@@ -130,7 +130,7 @@ def _hash_multipliers(k: int) -> np.ndarray:
 
 def _row_patterns(Jt: sp.csr_matrix) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """The rows of a canonical CSR grouped by their column pattern: per pattern (the rows in order,
-    its columns, the rows' values (rows, k)); rows without entries left out. A dynamic problem's
+    its columns, the positions of the rows' entries in ``Jt.data`` (rows, k)); rows without entries left out. A dynamic problem's
     border has a few hundred patterns (one per sensor axis and kind of reading), each read a few
     times per sample at most. Patterns are hashed, and the hash is checked for exactness."""
     n = Jt.shape[0]
@@ -162,7 +162,7 @@ def _row_patterns(Jt: sp.csr_matrix) -> list[tuple[np.ndarray, np.ndarray, np.nd
         k = int(nnz[idx[0]])
         if k:
             at = Jt.indptr[idx][:, None] + np.arange(k)
-            out.append((idx, Jt.indices[at[0]].astype(np.int64), Jt.data[at]))
+            out.append((idx, Jt.indices[at[0]].astype(np.int64), at))
     return out
 
 
@@ -184,7 +184,82 @@ def _split_columns(A: sp.csr_matrix, k: int) -> tuple[sp.csr_matrix, sp.csr_matr
             sp.csr_matrix((A.data[~left], A.indices[~left] - k, A.indptr - ptr), shape=(A.shape[0], A.shape[1] - k)))
 
 
-def hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None) -> np.ndarray:
+def _structure(J: sp.csr_matrix, stages: np.ndarray, rows, cache: dict | None, span: int | None = None) -> dict:
+    """What :func:`hat_diagonal` needs of the sparsity of a canonical J (not of its values): the
+    permutation of its entries into the stage columns then the θ columns, the stage part's CSR
+    structure, the super-stages, each row's first stage and the positions of its stage entries in
+    V, the coupled θ columns, the rows grouped by θ pattern (rows, columns, positions of their
+    entries), H_mθ's right factor and the rows wanted. Kept in ``cache`` while J's structure, the
+    stages and the rows stay the same (the noise model's rounds); ``span`` forces the stages to be
+    treated as coupled (2) or not (1), else it comes from J's structure."""
+    def same(a, b):
+        return a is b or (a is not None and b is not None and a.shape == b.shape and np.array_equal(a, b))
+
+    key = (J.shape, J.indptr, J.indices, stages, None if rows is None else np.asarray(rows, int).ravel())
+    if cache is not None and "plan" in cache and (span is None or cache["plan"]["span"] == span):
+        old = cache["key"]
+        if old[0] == key[0] and all(same(a, b) for a, b in zip(old[1:], key[1:])):
+            return cache["plan"]
+    N, m = stages.shape
+    mx = stages.ravel()
+    on_stage = np.zeros(J.shape[1], bool)
+    on_stage[mx] = True
+    theta = np.flatnonzero(~on_stage)
+    perm = np.empty(J.shape[1], np.int64)
+    perm[mx], perm[theta] = np.arange(mx.size), mx.size + np.arange(theta.size)
+    Jp = sp.csr_matrix((np.arange(1.0, J.nnz + 1), perm[J.indices], J.indptr.copy()), shape=J.shape)
+    Jp.sort_indices()
+    order = Jp.data.astype(np.int64) - 1
+    Jm, Jt = _split_columns(Jp, mx.size)
+    left = Jp.indices < mx.size
+    H = (Jm.T @ Jm).tocoo()
+    w = int(np.abs(H.row // m - H.col // m).max(initial=1))
+    pad = None
+    if w > 1:
+        pad = (-N) % w * m
+        Jm = sp.csr_matrix((Jm.data, Jm.indices, Jm.indptr), shape=(Jm.shape[0], Jm.shape[1] + pad))
+        N, m = (N * m + pad) // (w * m), w * m
+    if span is None:  # stages coupled when a row reads two of them
+        span = 2 if N > 1 and np.any((H.row // m) != (H.col // m)) else 1
+    n_all = Jm.shape[0]
+    Jk = Jm.tocoo()
+    reads = np.diff(Jm.indptr) > 0
+    first = np.zeros(n_all, int)
+    first[reads] = Jm.indices[Jm.indptr[:-1][reads]] // m
+    first = np.minimum(first, N - span)
+    rel = Jk.col // m - first[Jk.row]
+    if np.any((rel < 0) | (rel >= span)):
+        raise ValueError("a residual row spans more than two neighbouring stages")
+    vpos = Jk.row * (span * m) + rel * m + Jk.col % m  # unique (canonical CSR)
+    on_v = np.zeros(n_all * span * m, bool)
+    on_v[vpos] = True
+    on_v = on_v.reshape(n_all, span * m)
+    # the θ columns that rows reading a stage also read: the border's coupled part
+    coupled = np.zeros(Jt.shape[1], bool)
+    coupled[Jt.indices[np.repeat(reads, np.diff(Jt.indptr))]] = True
+    coupled = np.flatnonzero(coupled)
+    c = coupled.size
+    cmap = np.full(Jt.shape[1], -1)
+    cmap[coupled] = np.arange(c)
+    groups = [(idx, cols, at, cmap[cols], np.flatnonzero(np.any(on_v[idx], axis=0)))
+              for idx, cols, at in _row_patterns(Jt)]
+    on = cmap[Jt.indices] >= 0
+    want = np.arange(n_all) if rows is None else np.asarray(rows, int).ravel()
+    if want.size > 1 and not np.all(want[1:] > want[:-1]):  # unordered or repeated rows
+        want = np.unique(want)
+    wanted = np.zeros(n_all, bool)
+    wanted[want] = True
+    plan = {"order": order, "left": left, "Jm": (Jm.indices, Jm.indptr, Jm.shape), "N": N, "m": m, "pad": pad,
+            "span": span, "first": first, "V": vpos, "c": c, "coupled": coupled, "groups": groups,
+            "Jc": (np.flatnonzero(on), cmap[Jt.indices[on]], np.r_[0, np.cumsum(on)][Jt.indptr]),
+            "want": want, "wanted": wanted}
+    if cache is not None:
+        cache["key"], cache["plan"] = key, plan
+    return plan
+
+
+def hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None, cache: dict | None = None
+                 ) -> np.ndarray:
     """Leverages h_j = (J P Jᵀ)_jj of residual rows at one Jacobian (the module docstring's sweep).
 
     J (rows, n_x) and G (constraints, n_x) are the Jacobians of the whitened residuals and of the
@@ -199,7 +274,10 @@ def hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None) 
     X = B P_θ (−X their covariance with θ). B, X and H_mθ only have the columns of the θ's that rows
     reading a stage also read (not a joint problem's static pose directions); H_mθ is one sparse
     product, H_θθ and the θ terms are summed per pattern of θ columns (one per sensor axis and
-    reading kind), on the entries a row has: no (rows × n_θ) array is formed.
+    reading kind), on the entries a row has: no (rows × n_θ) array is formed. What depends on J's
+    sparsity only (:func:`_structure`: the permutation and split of its columns, the patterns) is
+    kept in ``cache`` (a dict the caller keeps) for the next call with the same structure, stages
+    and rows: the noise model's rounds.
 
     Large freed blocks are kept on the heap meanwhile (:func:`castimate.solver.ipopt.heap_allocation`):
     its arrays of a few 10 MB would otherwise come as fresh pages from the kernel, zeroed on first
@@ -207,68 +285,49 @@ def hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None) 
     """
     from .ipopt import heap_allocation
     with heap_allocation():
-        return _hat_diagonal(J, G, stages, rows)
+        return _hat_diagonal(J, G, stages, rows, cache)
 
 
-def _hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None) -> np.ndarray:
+def _hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None, cache: dict | None = None
+                  ) -> np.ndarray:
     """:func:`hat_diagonal` itself."""
     J, G = sp.csr_matrix(J), sp.csr_matrix(G)
-    N, m = stages.shape
-    mx = stages.ravel()
+    if not J.has_canonical_format:
+        J = J.copy()
+        J.sum_duplicates()
     on_stage = np.zeros(J.shape[1], bool)
-    on_stage[mx] = True
+    on_stage[stages.ravel()] = True
     theta = np.flatnonzero(~on_stage)
     if np.any(on_stage[G.indices] & (G.data != 0)):
         raise ValueError("constraints on the stage variables")
-    # one column permutation (stages first, then θ), canonical (sorted, unique column indices per
-    # row, used below), split into the stage and the θ columns: each row's stage entries come first
-    perm = np.empty(J.shape[1], np.int64)
-    perm[mx], perm[theta] = np.arange(mx.size), mx.size + np.arange(theta.size)
-    Jp = sp.csr_matrix((J.data.copy(), perm[J.indices], J.indptr.copy()), shape=J.shape)  # sorted in place below
-    Jp.sum_duplicates()
-    Jm, Jt = _split_columns(Jp, mx.size)
+    plan = _structure(J, stages, rows, cache)
+    # the columns permuted (stages first, then θ), canonical (sorted column indices per row, used
+    # below) and split into the stage and the θ columns: each row's stage entries come first
+    data = J.data[plan["order"]]
+    Jm = sp.csr_matrix((data[plan["left"]], plan["Jm"][0], plan["Jm"][1]), shape=plan["Jm"][2])
+    Jm.has_canonical_format = True  # its index arrays are the plan's: never sorted in place
+    Jt_data = data[~plan["left"]]
     Hmm = (Jm.T @ Jm).tocsc()
-    H = Hmm.tocoo()
-    w = int(np.abs(H.row // m - H.col // m).max(initial=1))
-    if w > 1:
+    N, m, pad = plan["N"], plan["m"], plan["pad"]
+    if pad is not None:
         # rows that read samples n-1..n+1 (sample-age effects' central differences) couple stages w
-        # apart: super-stages of w samples are block-tridiagonal again. Padded with decoupled unit
-        # stages (no rows read them) to a whole number of super-stages.
-        pad = (-N) % w * m
-        Jm = sp.hstack([Jm, sp.csr_matrix((Jm.shape[0], pad))]).tocsr()
-        Jm.sum_duplicates()
-        Hmm = (Jm.T @ Jm + sp.diags(np.r_[np.zeros(N * m), np.ones(pad)])).tocsc()
-        N, m = (N * m + pad) // (w * m), w * m
+        # apart: super-stages of w samples are block-tridiagonal again, padded with decoupled unit
+        # stages (no rows read them) to a whole number of super-stages (plan["N"], plan["m"])
+        Hmm = (Hmm + sp.diags(np.r_[np.zeros(Hmm.shape[0] - pad), np.ones(pad)])).tocsc()
     A, C = _tridiagonal_blocks(Hmm, N, m)
     span = 2 if C.any() and N > 1 else 1  # independent stages (no row reads two): span 1
+    if span != plan["span"]:  # stages coupled by exactly cancelling values only: the plan made for this span
+        plan = _structure(J, stages, rows, cache, span)
+    first, n_all, c, coupled = plan["first"], Jm.shape[0], plan["c"], plan["coupled"]
     # each row's values v on its first stage (its smallest column; any for a row that reads none) and the next
-    n_all = Jm.shape[0]
-    Jk = Jm.tocoo()
-    nnz = np.diff(Jm.indptr)
-    reads = nnz > 0
-    first = np.zeros(n_all, int)
-    first[reads] = Jm.indices[Jm.indptr[:-1][reads]] // m
-    first = np.minimum(first, N - span)
-    rel = Jk.col // m - first[Jk.row]
-    if np.any((rel < 0) | (rel >= span)):
-        raise ValueError("a residual row spans more than two neighbouring stages")
     V = np.zeros((n_all, span * m))
-    V[Jk.row, rel * m + Jk.col % m] = Jk.data  # unique entries (canonical CSR)
-    # the θ columns that rows reading a stage also read: the border's coupled part
-    coupled = np.zeros(Jt.shape[1], bool)
-    coupled[Jt.indices[np.repeat(reads, np.diff(Jt.indptr))]] = True
-    coupled = np.flatnonzero(coupled)
-    c = coupled.size
-    cmap = np.full(Jt.shape[1], -1)
-    cmap[coupled] = np.arange(c)
-    groups = [(idx, cols, t, cmap[cols], np.flatnonzero(np.any(V[idx] != 0, axis=0)))
-              for idx, cols, t in _row_patterns(Jt)]
+    V.ravel()[plan["V"]] = Jm.data
+    groups = [(idx, cols, Jt_data[at], ci, used) for idx, cols, at, ci, used in plan["groups"]]
     # H_θθ summed pattern by pattern; H_mθ (coupled columns, flat (N·m, c)) as one sparse product
     S = np.zeros((len(theta), len(theta)))
     for idx, cols, t, ci, used in groups:
         S[np.ix_(cols, cols)] += t.T @ t
-    on = cmap[Jt.indices] >= 0
-    Jc = sp.csr_matrix((Jt.data[on], cmap[Jt.indices[on]], np.r_[0, np.cumsum(on)][Jt.indptr]), shape=(n_all, c))
+    Jc = sp.csr_matrix((Jt_data[plan["Jc"][0]], plan["Jc"][1], plan["Jc"][2]), shape=(n_all, c))
     Hmt = (Jm.T.tocsr() @ Jc).toarray()
     if span == 1:
         Sd = _stage_inverse(A)
@@ -298,15 +357,11 @@ def _hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None)
         Q[:, m:, m:] = Sd[1:] + np.matmul(X3[1:], Bt[1:])
         Q[:, :m, m:] = So + np.matmul(X3[:-1], Bt[1:])
         Q[:, m:, :m] = Q[:, :m, m:].transpose(0, 2, 1)
-    want = np.arange(n_all) if rows is None else np.asarray(rows, int).ravel()
-    if want.size > 1 and not np.all(want[1:] > want[:-1]):  # unordered or repeated rows
-        want = np.unique(want)
+    want, wanted = plan["want"], plan["wanted"]
     h = np.zeros(n_all)
     for c0 in range(0, want.size, CHUNK):
         r = want[c0:c0 + CHUNK]
         h[r] = np.einsum("ri,ri->r", V[r], np.matmul(Q[first[r]], V[r][:, :, None])[:, :, 0])
-    wanted = np.zeros(n_all, bool)
-    wanted[want] = True
     for idx, cols, t, ci, used in groups:
         keep = wanted[idx]
         if not keep.all():
@@ -499,11 +554,12 @@ def estimate_levels(solve: Callable[[dict[str, float], object], tuple[object, ob
     cur = first or solve(levels, None)
     history: list[dict] = []
     kept: set[str] = set()
+    structure: dict = {}  # the hat diagonal's, kept while the Jacobian's sparsity stays the same
     for it in range(1, max_iter + 1):
         solver, sol, data = cur
         idx = rows(solver)
         J, G = solver.jacobians(sol.x, data=data)
-        h = hat_diagonal(J, G, stages, np.concatenate([i.ravel() for i in idx.values()]))
+        h = hat_diagonal(J, G, stages, np.concatenate([i.ravel() for i in idx.values()]), structure)
         ends = np.cumsum([0] + [i.size for i in idx.values()])
         redund = {k: 1.0 - h[a:b] for k, a, b in zip(idx, ends[:-1], ends[1:])}
         red = {k: float(v.sum()) for k, v in redund.items()}
