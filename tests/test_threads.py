@@ -120,3 +120,16 @@ def test_a_forked_child_gets_its_own_pool():
 def _work_in_child():
     pool = elimination._pool(2)
     return sum(pool.map(int, range(10)))
+
+
+@pytest.mark.parametrize("rows", [1, 2, 7, 1001])
+def test_gram_of_halves(rows):
+    """Projection._gram: the upper triangle of YᵀY from the two halves' rank updates, the same on
+    worker threads as in the caller."""
+    P = Solver(dynamic_case(20, False).lsq, SolverOptions()).projection
+    Y = np.random.default_rng(rows).standard_normal((rows, 6))
+    P.threads = 1
+    one = P._gram(Y)
+    P.threads = 2
+    np.testing.assert_array_equal(P._gram(Y), one)
+    np.testing.assert_allclose(np.triu(one), np.triu(Y.T @ Y), rtol=1e-13, atol=1e-13)

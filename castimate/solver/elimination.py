@@ -1057,13 +1057,30 @@ class Projection:
                 if Z is not None:
                     Hsc = np.einsum("rmk,rmc->rkc", Z, Hsc)
                 Y = F.lower(Hsc, inplace=True, threads=self.threads).reshape(-1, c)  # (R m', c), in Hsc's storage
-                S -= blas.dsyrk(1.0, Y.T, trans=0) if Y.flags.c_contiguous else Y.T @ Y
+                S -= self._gram(Y)
                 g -= Y.T @ y.reshape(-1)
             factors.append((F, Y, Z))
         if coupling:
             S = np.triu(S) + np.triu(S, 1).T  # dsyrk fills the upper triangle
         self._factors = factors
         return S, g
+
+    def _gram(self, Y):
+        """Yᵀ Y (the upper triangle from BLAS's rank-k update) as the sum of its two halves' (the
+        stages' rows split in the middle), each on a worker thread with ``threads`` > 1: the same
+        two products and their sum either way, so the same matrix."""
+        if not Y.flags.c_contiguous:
+            return Y.T @ Y
+
+        def half(A):
+            return blas.dsyrk(1.0, A.T, trans=0)
+
+        h = len(Y) // 2
+        if not h:
+            return half(Y)
+        a, b = (_pool(self.threads).map(half, (Y[:h], Y[h:])) if self.threads > 1
+                else (half(Y[:h]), half(Y[h:])))
+        return a + b
 
     def _move(self, Xs, steps, alpha, pf):
         out = []
