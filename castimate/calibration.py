@@ -50,7 +50,7 @@ from .prepare.plausibility import (
 from .problem.compensation import TriadLayout, triad_compensation
 from .problem.effects import BY_KEY, RETIRED, TEMPERATURE, TIME, included
 from .problem.triads import Regressors
-from .validation import as_path
+from .validation import as_path, within_range
 
 EXTENSIONS = {".csv": "csv", ".npz": "npz", ".bin": "mimu"}
 
@@ -258,10 +258,10 @@ def _values(path: Path, name: str, t: dict, layout: TriadLayout) -> dict:
         n = len(e.group.components)
         entry = params.get(e.results_key)
         v = np.zeros(n) if entry is None else np.asarray(entry.get("value"), float).ravel()
+        where = f"triads.{name}.parameters.{e.results_key}.value"
         if v.shape != (n,) or not np.isfinite(v).all():
-            raise InputError(path, f"triads.{name}.parameters.{e.results_key}.value",
-                             f"expected {n} finite numbers, found {entry.get('value')!r}")
-        out[e.key] = v
+            raise InputError(path, where, f"expected {n} finite numbers, found {entry.get('value')!r}")
+        out[e.key] = within_range(path, where, v, *e.group.physical_range(), e.group.components, e.group.unit)
     return out
 
 

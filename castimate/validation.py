@@ -39,6 +39,18 @@ def range_text(lo, hi, unit: str) -> str:
     return f"at least {lo:g}{u}" if lo is not None else f"at most {hi:g}{u}"
 
 
+def within_range(source: object, where: str, values, lo, hi, components, unit: str) -> np.ndarray:
+    """``values`` (one per component) inside [lo, hi] each, else a one-line InputError naming the first
+    component outside: "expected <component> from lo to hi <unit> (the physical range), found v"."""
+    v = np.asarray(values, float)
+    bad = (v < lo) | (v > hi)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise InputError(source, where, f"expected {components[i]} {range_text(lo[i], hi[i], '' if unit == '-' else unit)} "
+                                        f"(the physical range), found {v[i]:g}")
+    return v
+
+
 class Check:
     """Small validators that raise one-line InputErrors naming the file and key path."""
 

@@ -223,6 +223,23 @@ def test_results_without_regressors_need_none(drift_results, tmp_path):
     assert Calibration.read(p).effects == ("gyroscope.delay",)
 
 
+def test_results_effect_outside_its_physical_range(drift_results, tmp_path):
+    """A coupling of 5 (|coupling| <= 1 by definition) was applied as it was; the problem file and
+    model.intrinsics refuse it, and so does every reader of results.json now (apply, codegen, the API)."""
+    doc = json.loads(json.dumps(drift_results))
+    doc["effects"]["included"].append("gyroscope.coupling")
+    for name, t in doc["triads"].items():
+        t["parameters"]["gyroscope.coupling"] = {"value": [0.0, 5.0 if name == "imu11" else 0.0, 0.0],
+                                                 "components": ["yx", "zx", "zy"]}
+    p = tmp_path / "results.json"
+    p.write_text(json.dumps(doc))
+    expect_error(lambda: Calibration.read(p), p, "triads.imu11.parameters.gyroscope.coupling.value",
+                 "expected zx from -1 to 1 (the physical range), found 5")
+    doc["triads"]["imu11"]["parameters"]["gyroscope.coupling"]["value"][1] = 0.05
+    p.write_text(json.dumps(doc))
+    assert Calibration.read(p).effects == ("gyroscope.bias_drift", "gyroscope.coupling")  # within range: read
+
+
 # ============================================================================ codegen, batch
 
 
@@ -282,3 +299,30 @@ def test_evaluation_error_is_quiet_and_takes_the_same_path(tmp_path):
     assert "Traceback" not in runs["quiet"].stderr and "WARNING" not in runs["quiet"].stderr
     assert runs["quiet"].stdout == runs["raise"].stdout  # same status, evaluations and iterates
     assert int(runs["quiet"].stdout.split()[1]) > 5
+
+
+def test_failed_solve_at_an_unsolvable_start_is_not_converged(doc, tmp_path, monkeypatch):
+    """IPOPT stopping where the eliminated motion has no solution (a Schopp scenario of simulate's
+    defaults, samples: 300, from zero angular motion): Projection.solution raised out of the solve, an
+    internal error (exit 1); then the identifiability check at that start blamed the model (exit 2).
+    Now a failed Solution at the start (``evaluated`` False), which the CLI reports as not converged."""
+    from castimate.kinds import kind_of
+    from castimate.solver.assembly import EvaluationError
+    from castimate.solver.elimination import Projection
+    from castimate.solver.ipopt import Solver
+
+    spec = load_problem(write(tmp_path / "p.yaml", doc))
+    kind = kind_of(spec)
+    data = kind.load(spec)
+    problem = kind.build(kind.configure(spec, data), data)
+    solver = Solver(problem.lsq, spec.solver)
+
+    def no_motion(*args, **kwargs):
+        raise EvaluationError("the nuisance variables did not converge")
+
+    monkeypatch.setattr(Projection, "_evaluate", no_motion)
+    x0 = problem.lsq.layout.x0()
+    sol = solver.solve(x0)
+    assert not sol.success and not sol.evaluated
+    assert sol.message.endswith("the eliminated nuisance variables did not converge at its last iterate")
+    assert np.array_equal(sol.x, x0) and sol.covariance is None

@@ -471,9 +471,10 @@ def solve_dynamic(config: DynamicConfig, data: DynamicData, nominal: dict, optio
             first = gn.solve(x0)
             log(f"  Gauss-Newton: {first.message} in {first.iterations} iterations, {first.wall_s:.2f} s")
             x0, lam = first.x, first.lam_g
-        if attempt == 0:
+        if attempt == 0 and (first is None or first.evaluated):
             # at a point with motion: the gyro-aided start, or the Gauss-Newton solution (at zero
-            # angular motion nothing about the geometry is observable). The Fisher information is
+            # angular motion nothing about the geometry is observable: not where Gauss-Newton stopped at
+            # its start, the motion unsolved). The Fisher information is
             # J^T J whichever Hessian the solver uses: no Gauss-Newton solver is built for the check.
             bad = (gn or solver).undetermined(lay.x0() if x0 is None else x0)
             if bad:

@@ -19,6 +19,7 @@ from ..problem.triads import (
     GroupSetting,
 )
 from ..spec import ProblemSpec
+from ..validation import within_range
 
 
 @dataclass(frozen=True)
@@ -54,11 +55,7 @@ def read_intrinsics(spec: ProblemSpec) -> dict[str, Intrinsics]:
             if vals[sensor, group].shape != lo.shape:
                 raise InputError(path, where, f"expected {lo.size} values ({', '.join(gdef.components)}), found "
                                               f"{vals[sensor, group].tolist()}")
-            bad = (vals[sensor, group] < lo) | (vals[sensor, group] > hi)
-            if bad.any():
-                i = int(np.argmax(bad))
-                raise InputError(path, where, f"expected {gdef.components[i]} from {lo[i]:g} to {hi[i]:g} "
-                                              f"{gdef.unit} (the physical range), found {vals[sensor, group][i]:g}")
+            within_range(path, where, vals[sensor, group], lo, hi, gdef.components, gdef.unit)
             s = p.get("std")
             std[sensor, group] = np.zeros_like(vals[sensor, group]) if s is None else \
                 np.array([np.nan if x is None else x for x in np.ravel(s)], float)

@@ -161,6 +161,7 @@ class Solution:
     residual: np.ndarray
     covariance: np.ndarray = field(repr=False)  # of the free calibration components (Solver.theta), physical units
     lam_g: np.ndarray = field(default=None, repr=False)  # constraint multipliers, to warm-start another solve  # of the free calibration components (Solver.theta), physical units
+    evaluated: bool = True  # False: IPOPT stopped where the eliminated nuisance has no solution; x is the start
 
     @property
     def chi2_per_dof(self) -> float:

@@ -15,7 +15,7 @@ import numpy as np
 import scipy.sparse as sp
 from ..problem.graph import LeastSquaresProblem, Solution, SolverOptions
 from . import uncertainty
-from .assembly import Assembly, Block, Callback, Stages
+from .assembly import Assembly, Block, Callback, EvaluationError, Stages
 from .elimination import Projection
 
 
@@ -321,18 +321,24 @@ class Solver:
                        lam_g0=0 if lam_g0 is None else lam_g0)
         wall = time.perf_counter() - t0
         st = self.nlp.stats()
+        unsolved = ""
         if P is None:
             x = np.empty(self.n_x)
             x[sel] = np.asarray(sol["x"]).ravel()
         else:
-            x = P.solution(np.asarray(sol["x"]).ravel(), pf)
+            try:
+                x = P.solution(np.asarray(sol["x"]).ravel(), pf)
+            except EvaluationError:  # a failed solve's last iterate has no motion: report the failure at the start
+                if st["success"]:
+                    raise
+                x, unsolved = x0.copy(), "; the eliminated nuisance variables did not converge at its last iterate"
         values = lay.unpack(x, pf)
-        cov = self.covariance(x, pf, data) if with_covariance else None
+        cov = self.covariance(x, pf, data) if with_covariance and not unsolved else None
         std = uncertainty.std_by_group(self, cov) if cov is not None else {}
         residual = self.residuals(x, pf, data)
         cost = 0.5 * float(residual @ residual)
         lam = np.asarray(sol["lam_g"]).ravel()
-        success, message = bool(st["success"]), str(st["return_status"])
+        success, message = bool(st["success"]), str(st["return_status"]) + unsolved
         if message == "User_Requested_Stop" and self.stall.stalled:
             message = f"Stalled ({self.stall.idle} iterations that moved x by less than {Stall.RELATIVE:.0e})"
         violation = float(np.abs(np.asarray(sol["g"])).max(initial=0.0))
@@ -362,6 +368,7 @@ class Solver:
             residual=residual[: self.n_data_residuals],
             covariance=cov,
             lam_g=lam,
+            evaluated=not unsolved,
         )
 
     def newton_decrement(self, x, lam_g, p_fixed=None, data=None) -> float:
