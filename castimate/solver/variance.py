@@ -258,6 +258,19 @@ def _structure(J: sp.csr_matrix, stages: np.ndarray, rows, cache: dict | None, s
     return plan
 
 
+def _buffer(plan: dict, name: str, shape: tuple) -> np.ndarray:
+    """A zeroed array of ``shape`` kept in ``plan`` for the next call: the large arrays of
+    :func:`hat_diagonal` (tens of MB on MIMU4444 exp_1) written into the same pages each round
+    instead of fresh ones, which the kernel zeroes on first touch (the heap is trimmed between
+    rounds)."""
+    buffers = plan.setdefault("buffers", {})
+    if name not in buffers or buffers[name].shape != shape:
+        buffers[name] = np.zeros(shape)
+    else:
+        buffers[name].fill(0.0)
+    return buffers[name]
+
+
 def hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None, cache: dict | None = None
                  ) -> np.ndarray:
     """Leverages h_j = (J P Jᵀ)_jj of residual rows at one Jacobian (the module docstring's sweep).
@@ -320,7 +333,7 @@ def _hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None,
         plan = _structure(J, stages, rows, cache, span)
     first, n_all, c, coupled = plan["first"], Jm.shape[0], plan["c"], plan["coupled"]
     # each row's values v on its first stage (its smallest column; any for a row that reads none) and the next
-    V = np.zeros((n_all, span * m))
+    V = _buffer(plan, "V", (n_all, span * m))
     V.ravel()[plan["V"]] = Jm.data
     groups = [(idx, cols, Jt_data[at], ci, used) for idx, cols, at, ci, used in plan["groups"]]
     # H_θθ summed pattern by pattern; H_mθ (coupled columns, flat (N·m, c)) as one sparse product
@@ -328,10 +341,10 @@ def _hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None,
     for idx, cols, t, ci, used in groups:
         S[np.ix_(cols, cols)] += t.T @ t
     Jc = sp.csr_matrix((Jt_data[plan["Jc"][0]], plan["Jc"][1], plan["Jc"][2]), shape=(n_all, c))
-    Hmt = (Jm.T.tocsr() @ Jc).toarray()
+    Hmt = (Jm.T.tocsr() @ Jc).toarray(out=_buffer(plan, "Hmt", (N * m, c)))
     if span == 1:
         Sd = _stage_inverse(A)
-        B = np.matmul(Sd, Hmt.reshape(N, m, c)).reshape(N * m, c)
+        B = np.matmul(Sd, Hmt.reshape(N, m, c), out=_buffer(plan, "B", (N, m, c))).reshape(N * m, c)
     else:
         Hmm, chol = _factor(Hmm, 2 * m - 1)
         # factor, then solve: LAPACK's one-call pbsv is orders of magnitude slower for many right-hand sides
@@ -346,7 +359,7 @@ def _hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None,
     pos = ev > ev.max(initial=0.0) * len(ev) * np.finfo(float).eps
     K = U @ (vec[:, pos] / np.sqrt(ev[pos]))
     P = K @ K.T
-    X = B @ P[np.ix_(coupled, coupled)]
+    X = np.matmul(B, P[np.ix_(coupled, coupled)], out=_buffer(plan, "X", (N * m, c)))
     B3, X3 = B.reshape(N, m, c), X.reshape(N, m, c)
     if span == 1:
         Q = Sd + np.matmul(X3, B3.transpose(0, 2, 1))
