@@ -470,6 +470,9 @@ def initial_motion(config: DynamicConfig, data: DynamicData, gyro_triads: list[s
 
 
 SLAB = 512  # samples per slab of DynamicProblem.block_data
+#: The sensor factors' data columns of vec(R̄), the triad's nominal rotation (DynamicProblem.block_data):
+#: the same for every sample of a triad (FactorBlock.shared_data)
+R_COLUMNS = tuple(range(6, 15))
 
 
 def _valid(rows: dict, names, N: int) -> np.ndarray:
@@ -531,7 +534,7 @@ def build_dynamic(config: DynamicConfig, data: DynamicData, start: dict | None =
                           + effect_inputs("accelerometer", config.names, k)
                           + ([(g, i) for i in (prev[n], nxt[n]) for g in (OMEGA_DOT, S)]
                              if fxs.need(effects, fxs.RATE) else []),
-                          np.zeros((len(k), 0)), valid=ok, series=n)]
+                          np.zeros((len(k), 0)), valid=ok, series=n, shared_data=R_COLUMNS)]
     if gyro_triads:
         k, n, ok = instances("gyro", gyro_triads)
         need_wd, need_f, need_rate = _gyro_needs(fxs.acting_on(config.effects, "gyroscope"), config.age_order)
@@ -541,7 +544,7 @@ def build_dynamic(config: DynamicConfig, data: DynamicData, start: dict | None =
                                   + ([(tuple(f"{t}.position" for t in gyro_triads), k), (S, n)] if need_f else [])
                                   + effect_inputs("gyroscope", gyro_triads, k)
                                   + ([(OMEGA_DOT, prev[n]), (OMEGA_DOT, nxt[n])] if need_rate else []),
-                                  np.zeros((len(k), 0)), valid=ok, series=n))
+                                  np.zeros((len(k), 0)), valid=ok, series=n, shared_data=R_COLUMNS))
     if config.process_model and N > 1:
         a, b = np.arange(N - 1), np.arange(1, N)
         blocks.append(FactorBlock("process_model", process_factor(config.motion.integration),

@@ -114,6 +114,12 @@ class FactorBlock:
         (N,) the sample of each instance when the block's residuals form time series (serially
         correlated: the HAC covariance of :mod:`castimate.solver.serial` sums their scores per
         sample over its lags); None: independent instances (Fisher information).
+    shared_data
+        Data columns that are the same for every instance reading the same calibration rows (a
+        sensor block's nominal rotation R̄ of each triad): the eliminated problem's compiled
+        functions compute what depends on them and the calibration inputs alone once per call
+        instead of once per instance (:mod:`castimate.solver.elimination`), and check every data
+        vector they are given for it.
     """
 
     name: str
@@ -122,6 +128,7 @@ class FactorBlock:
     data: np.ndarray
     valid: np.ndarray | None = None
     series: np.ndarray | None = None
+    shared_data: tuple[int, ...] = ()
 
     @property
     def n(self) -> int:

@@ -45,6 +45,7 @@ import contextlib
 import functools
 import os
 import threading
+import weakref
 from concurrent.futures import ThreadPoolExecutor
 
 import casadi as ca
@@ -338,6 +339,21 @@ def _reduce(M: _Map, values: np.ndarray) -> np.ndarray:
     return X if M.starts is None else np.add.reduceat(X, M.starts)
 
 
+def _shared_split(fn: ca.Function, shared: tuple[int, ...]):
+    """fn (z_cal, z_stage, d) of one instance split into (pre, post): pre (z_cal, d) -> p, the
+    subexpressions that depend on the calibration inputs and the data columns ``shared`` alone
+    (CasADi's extract_parametric; e.g. a triad's T = K L M R̄), and post (p, z_cal, z_stage, d) ->
+    fn's outputs from them. None if there is nothing to split off."""
+    zc, zs, d = (ca.SX.sym(n, fn.sparsity_in(i)) for i, n in enumerate(("zc", "zs", "d")))
+    outs = fn(zc, zs, d)
+    outs = list(outs) if isinstance(outs, (list, tuple)) else [outs]
+    ret, syms, par = ca.extract_parametric(outs, ca.vertcat(zc, *[d[i] for i in shared]))
+    if not syms:
+        return None
+    pre = ca.Function(f"{fn.name()}_shared", [zc, d], [ca.veccat(*par)])
+    return pre, ca.Function(f"{fn.name()}_per_instance", [ca.veccat(*syms), zc, zs, d], ret)
+
+
 def _outputs(fn: ca.Function, k: int) -> ca.Function:
     """fn's first k outputs alone (an SX function keeps only the operations they need)."""
     ins = [ca.SX.sym(f"i{i}", fn.sparsity_in(i)) for i in range(fn.n_in())]
@@ -362,9 +378,11 @@ class _StageFunctions:
         """Every instance of a stage group sees the same stage inputs."""
         return bool((sb.rel[:, sb.is_st] == sb.rel[0, sb.is_st]).all())
 
-    def __init__(self, f, inner_fn, plan: _Plan, inner_plan: _Plan, sb, m: int, c: int, jit: bool):
+    def __init__(self, f, inner_fn, plan: _Plan, inner_plan: _Plan, sb, m: int, c: int, jit: bool,
+                 shared: tuple[int, ...] = ()):
         K, nc, nd = sb.K, f.n_cal, f.nd
-        self.K, self.nc = K, nc
+        self.K, self.nc, self.shared = K, nc, tuple(shared)
+        self._checked = None  # the last data array found to have its shared columns shared
         widths = {"G": m, "B": m * m, "Bgn": m * m, "Hsc": m * c}
         na, P = len(f.act), len(f.pairs)
         ns_act, P_in = inner_plan.na, inner_plan.P
@@ -383,24 +401,89 @@ class _StageFunctions:
                       + [("h", M, True, ("B", k)) for k, M in inner_plan.hss.items()]
                       + [("hgn", M, True, ("Bgn", k)) for k, M in inner_plan.hss.items()]),
         }
-        self.layout, functions = {}, []
-        for mode, (fn, names, width, red, tgt) in specs.items():
-            F, layout = self._build(f"{fn.name()}_{mode}_stages", fn, names, width, red, tgt, K, nc, nd, widths)
-            functions.append(F)
-            self.layout[mode] = layout
-        # the residuals themselves, instance by instance (K m per stage group, the block's order)
-        zc, zs, d = ca.MX.sym("zc", K * nc), ca.MX.sym("zs", inner_fn.size1_in(1)), ca.MX.sym("d", K * nd)
-        r = ca.vec(f.symbolic["res"].map(K, "serial")(ca.reshape(zc, nc, K), ca.repmat(zs, 1, K), ca.reshape(d, nd, K)))
-        functions.append(ca.Function(f"{f.symbolic['res'].name()}_vec_stages", [zc, zs, d], [0.5 * ca.sumsqr(r), r]))
-        self.layout["vec"] = (True, [], [], 1, K * f.m)
-        compiled = (compile_functions(functions) if jit else None) or functions
-        self.fns = dict(zip([*specs, "vec"], compiled))
+        self.fns, self.layout = self._functions(specs, f, inner_fn, K, nc, nd, widths, self.shared, jit)
+        # without the shared part, for data whose declared-shared columns are not (built when needed)
+        self._plain_args, self._plain_fns = (specs, f, inner_fn, K, nc, nd, widths, (), jit), None
         self._buffers: dict = {}
 
+    @classmethod
+    def _functions(cls, specs, f, inner_fn, K, nc, nd, widths, shared, jit):
+        """The stage functions of every mode (and their shared parts), compiled, and their layouts."""
+        layouts, functions, names_ = {}, [], []
+        for mode, (fn, names, width, red, tgt) in specs.items():
+            split = _shared_split(fn, shared) if shared else None
+            F, pre, layout = cls._build(f"{fn.name()}_{mode}_stages", fn, names, width, red, tgt, K, nc, nd, widths,
+                                        split)
+            functions += [F] + ([pre] if pre is not None else [])
+            names_ += [mode] + ([f"{mode}_shared"] if pre is not None else [])
+            layouts[mode] = layout
+        # the residuals themselves, instance by instance (K m per stage group, the block's order)
+        zc, zs, d = ca.MX.sym("zc", K * nc), ca.MX.sym("zs", inner_fn.size1_in(1)), ca.MX.sym("d", K * nd)
+        split = _shared_split(f.symbolic["res"], shared) if shared else None
+        args = [ca.reshape(zc, nc, K), ca.repmat(zs, 1, K), ca.reshape(d, nd, K)]
+        ins, pre = [zc, zs, d], None
+        if split is None:
+            r = f.symbolic["res"].map(K, "serial")(*args)
+        else:
+            npar = split[0].size1_out(0)
+            pk = ca.MX.sym("pk", K * npar)
+            r = split[1].map(K, "serial")(ca.reshape(pk, npar, K), *args)
+            ins.append(pk)
+            pre = cls._pre(f"{f.symbolic['res'].name()}_vec_stages", split[0], K, nc, nd)
+        r = ca.vec(r)
+        functions.append(ca.Function(f"{f.symbolic['res'].name()}_vec_stages", ins, [0.5 * ca.sumsqr(r), r]))
+        names_.append("vec")
+        if pre is not None:
+            functions.append(pre)
+            names_.append("vec_shared")
+        layouts["vec"] = (True, [], [], 1, K * f.m)
+        compiled = (compile_functions(functions) if jit else None) or functions
+        return dict(zip(names_, compiled)), layouts
+
     @staticmethod
-    def _build(name, fn, names, width, red, tgt, K, nc, nd, widths):
+    def _pre(name, pre, K, nc, nd):
+        """The shared part (:func:`_shared_split`) of K instances: (z_cal (K nc), d (K nd)) -> p (K np)."""
+        zc, d = ca.MX.sym("zc", K * nc), ca.MX.sym("d", K * nd)
+        return ca.Function(f"{name}_shared", [zc, d], [ca.vec(pre.map(K, "serial")(ca.reshape(zc, nc, K),
+                                                                                  ca.reshape(d, nd, K)))])
+
+    def shared_values(self, mode, zc, D, J):
+        """p of the shared part of ``mode``'s functions for the K instances of a stage group, from
+        their calibration inputs zc and the data D (J K, nd) of all stage groups; None if the mode
+        has none, or if the declared-shared columns (FactorBlock.shared_data) differ between stage
+        groups in these data (the calls then use the functions without a shared part)."""
+        pre = self.fns.get(f"{mode}_shared")
+        if pre is None:
+            return None
+        K = self.K
+        # checked once per data array (a view of the same memory counts as the same: the data
+        # vector's block is a new view at every assembly; inputs are never modified in place). The
+        # array owning the memory is held weakly: once it is gone, its address means nothing
+        owner = D
+        while isinstance(owner.base, np.ndarray):
+            owner = owner.base
+        key = (D.__array_interface__["data"][0], D.shape, D.strides)
+        if self._checked is None or self._checked[0] != key or self._checked[1]() is not owner:
+            S = D.reshape(J, K, -1)[:, :, list(self.shared)]
+            self._checked = (key, weakref.ref(owner), bool((S == S[0]).all()))
+        if not self._checked[2]:  # not shared in these data: the functions without the shared part
+            if self._plain_fns is None:
+                self._plain_fns = self._functions(*self._plain_args)[0]
+            return None
+        return np.asarray(pre(np.ascontiguousarray(zc).ravel(), np.ascontiguousarray(D[:K]).ravel())).ravel()
+
+    @classmethod
+    def _build(cls, name, fn, names, width, red, tgt, K, nc, nd, widths, split=None):
         zc, zs, d = ca.MX.sym("zc", K * nc), ca.MX.sym("zs", fn.size1_in(1)), ca.MX.sym("d", K * nd)
-        outs = fn.map(K, "serial")(ca.reshape(zc, nc, K), ca.repmat(zs, 1, K), ca.reshape(d, nd, K))
+        args, ins, pre = [ca.reshape(zc, nc, K), ca.repmat(zs, 1, K), ca.reshape(d, nd, K)], [zc, zs, d], None
+        if split is None:
+            outs = fn.map(K, "serial")(*args)
+        else:  # the shared part computed once per call (input 4, the same for every stage group)
+            npar = split[0].size1_out(0)
+            pk = ca.MX.sym("pk", K * npar)
+            outs = split[1].map(K, "serial")(ca.reshape(pk, npar, K), *args)
+            ins.append(pk)
+            pre = cls._pre(name, split[0], K, nc, nd)
         loc = {nm: ca.vec(o) for nm, o in zip(names, outs if isinstance(outs, (list, tuple)) else [outs])}
         red_x = [0.5 * ca.sumsqr(loc["r"])] if "r" in loc else []
         red_layout = []
@@ -429,16 +512,22 @@ class _StageFunctions:
             A = ca.DM(ca.Sparsity(L, K * width[nm], A.indptr.tolist(), A.indices.tolist()), A.data)
             T += ca.mtimes(A, loc[nm])
         red_v = ca.densify(ca.vertcat(*red_x)) if red_x else ca.MX(0, 1)
-        F = ca.Function(name, [zc, zs, d], [red_v, ca.densify(T)])  # dense: the buffers hold every entry
-        return F, ("r" in loc, red_layout, segs, red_v.size1(), L)
+        F = ca.Function(name, ins, [red_v, ca.densify(T)])  # dense: the buffers hold every entry
+        return F, pre, ("r" in loc, red_layout, segs, red_v.size1(), L)
 
-    def __call__(self, mode, zc, zs, D, out: np.ndarray | None = None):
+    def __call__(self, mode, zc, zs, D, out: np.ndarray | None = None, shared: np.ndarray | None = None):
         """(reduced (Lr,), per stage group (nJ, L)) of stage groups with stage inputs zs (nJ, ns);
-        ``out``: the (nJ, L) C-contiguous array to write the latter into."""
+        ``out``: the (nJ, L) C-contiguous array to write the latter into; ``shared``: the shared
+        values of :meth:`shared_values` (None: the functions without a shared part)."""
         nJ = zs.shape[0]
-        key = (mode, nJ, threading.get_ident())  # a buffer holds its arguments and work: one per thread
+        fn = self.fns[mode]
+        if shared is None and fn.n_in() == 4:  # data without the shared columns shared (shared_values)
+            if self._plain_fns is None:
+                self._plain_fns = self._functions(*self._plain_args)[0]
+            fn = self._plain_fns[mode]
+        key = (mode, nJ, threading.get_ident(), fn.n_in())  # a buffer holds its arguments and work: one per thread
         if key not in self._buffers:
-            self._buffers[key] = self.fns[mode].map(f"stages_{nJ}", "serial", nJ, [0], [0]).buffer()
+            self._buffers[key] = fn.map(f"stages_{nJ}", "serial", nJ, [0, 3] if fn.n_in() == 4 else [0], [0]).buffer()
         buf, run = self._buffers[key]
         _, _, _, Lr, L = self.layout[mode]
         red = np.empty(Lr)
@@ -446,6 +535,8 @@ class _StageFunctions:
         if T.shape != (nJ, L) or T.dtype != np.float64 or not T.flags.c_contiguous:
             raise ValueError(f"{mode}: the output must be a C-contiguous {nJ} x {L} array of doubles")
         args = [np.ascontiguousarray(a, float) for a in (zc, zs, D)]
+        if fn.n_in() == 4:
+            args.append(np.ascontiguousarray(shared, float))
         for i, a in enumerate(args):
             buf.set_arg(i, memoryview(a))
         buf.set_res(0, memoryview(red))
@@ -735,7 +826,8 @@ class Projection:
                 fn, pairs_s, act_s = inner_cache[key]
                 inner_plan = _Plan(sb.K, sb.is_st, sb.rel, sb.q, act_s, pairs_s, fam.scale, fam.m, self.tpos, xs, n, c)
                 if applies:
-                    u.stage_fns = _StageFunctions(f, fn, u.plan, inner_plan, sb, fam.m, c, jit and many)
+                    u.stage_fns = _StageFunctions(f, fn, u.plan, inner_plan, sb, fam.m, c, jit and many,
+                                                  blk.block.shared_data)
                 else:
                     u.inner = (((compile_functions([fn]) if jit and many else None) or [fn])[0], inner_plan)
                 self.units.append(u)
@@ -798,12 +890,14 @@ class Projection:
         same call with the same inputs and the consumer adds them up in the same order, so the
         results are identical to one thread's."""
         Zc = np.take(w, W[:K, :nc])
+        pk = sf.shared_values(mode, Zc, D, J)  # once per call (a triad's T, say), not per sample
         step = max(1, STAGE_CHUNK // K)
         spans = [(j0, min(J, j0 + step)) for j0 in range(0, J, step)]
 
         def call(j0, j1):
             o = None if out is None else out[j0 * K: j1 * K].reshape(j1 - j0, -1)
-            return sf(mode, Zc, np.take(w, W[j0 * K: j1 * K: K, nc:]), D[j0 * K: j1 * K].reshape(j1 - j0, -1), out=o)
+            return sf(mode, Zc, np.take(w, W[j0 * K: j1 * K: K, nc:]), D[j0 * K: j1 * K].reshape(j1 - j0, -1), out=o,
+                      shared=pk)
 
         if self.threads <= 1 or len(spans) < 2:
             for j0, j1 in spans:
