@@ -160,6 +160,12 @@ class Calibration:
                 if name not in self.layouts:
                     raise InputError(where, f"{arg}[{name!r}]", f"unknown triad; the calibration has "
                                                                 f"{', '.join(self.names)}")
+        if gyro is not None:  # a calibrated gyroscope left out of a gyro dict would give no rate, silently
+            missing = [n for n in acc if self.layouts[n].gyroscope and gyro.get(n) is None]
+            if missing:
+                raise InputError(where, f"gyro[{missing[0]!r}]", "missing; expected readings of every calibrated "
+                                 f"gyroscope in acc ({', '.join(n for n in acc if self.layouts[n].gyroscope)}), "
+                                 f"found {', '.join(n for n in gyro if gyro[n] is not None) or 'none'}")
         f, omega = {}, {}
         for name, y in acc.items():
             w = (lambda a: a) if single else (lambda a, name=name: f"{a}[{name!r}]")
@@ -257,7 +263,11 @@ def _values(path: Path, name: str, t: dict, layout: TriadLayout) -> dict:
     for e in layout.acc_effects + (layout.gyro_effects or ()):
         n = len(e.group.components)
         entry = params.get(e.results_key)
-        v = np.zeros(n) if entry is None else np.asarray(entry.get("value"), float).ravel()
+        if entry is None:
+            raise InputError(path, f"triads.{name}.parameters.{e.results_key}",
+                             f"missing; effects.included lists {e.key}, expected its {n} values "
+                             f"({', '.join(e.group.components)})")
+        v = np.asarray(entry.get("value"), float).ravel()
         where = f"triads.{name}.parameters.{e.results_key}.value"
         if v.shape != (n,) or not np.isfinite(v).all():
             raise InputError(path, where, f"expected {n} finite numbers, found {entry.get('value')!r}")
@@ -332,8 +342,13 @@ def apply_calibration(results_path, data_path, out_path, fmt: str | None = None,
         if cal.needs(TEMPERATURE) and name not in rec.temp:
             raise InputError(data_path, f"{name}.temp", "the calibration has a temperature effect; the data logs "
                                                         f"no temperature for triad {name!r}")
-    gyro = {n: rec.gyro[n] for n in cal.names if n in rec.gyro}
-    unread = [n for n in cal.names if cal.layouts[n].gyroscope and n not in rec.gyro]
+    calibrated = [n for n in cal.names if cal.layouts[n].gyroscope]
+    unread = [n for n in calibrated if n not in rec.gyro]
+    if unread and len(unread) < len(calibrated):  # some gyroscopes read, not all: a rate would be missing
+        read = ", ".join(n for n in calibrated if n in rec.gyro)
+        raise InputError(data_path, f"{unread[0]}.gx", f"missing; the calibration has the gyroscopes of "
+                                                       f"{', '.join(calibrated)}, the data read those of {read}")
+    gyro = {n: rec.gyro[n] for n in cal.names if n in rec.gyro} if calibrated and not unread else None
     if unread:
         log(f"note: the calibration includes the gyroscope of {', '.join(unread)}, but {data_path.name} has no "
             "gyroscope readings" + (" (imutk: pass --gyro FILE)" if fmt == "imutk" else "") + "; accelerometer only")

@@ -20,6 +20,11 @@ def _log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
+def _progress(args):
+    """The verb's progress log: stderr, or nothing with -q."""
+    return _log if not args.quiet else (lambda m: None)
+
+
 def cmd_solve(args) -> int:
     from .io.atomic import StagedOutput
     from .kinds import calibrate
@@ -28,7 +33,7 @@ def cmd_solve(args) -> int:
 
     out = Path(args.output)
     spec = load_problem(args.problem)
-    log = _log if not args.quiet else (lambda m: None)
+    log = _progress(args)
     # refused up front (a file where the directory goes, an input in the way), written only on success
     with StagedOutput(out, names=("results.json", "details.npz"), inputs=spec.inputs) as stage:
         summary = write_outputs(stage, calibrate(spec, log))
@@ -55,7 +60,8 @@ def cmd_apply(args) -> int:
 
     inputs = (args.results, args.data) + ((args.gyro,) if args.gyro else ())
     with StagedOutput(args.output, directory=False, inputs=inputs) as staged:
-        n = apply_calibration(args.results, args.data, staged, fmt=args.format, gyro_path=args.gyro, log=_log)
+        n = apply_calibration(args.results, args.data, staged, fmt=args.format, gyro_path=args.gyro,
+                               log=_progress(args))
     print(f"wrote {args.output}: {n} samples calibrated")
     return 0
 
@@ -85,7 +91,7 @@ def cmd_diagnose(args) -> int:
 
     out = Path(args.output)
     spec = load_problem(args.problem)
-    log = _log if not args.quiet else (lambda m: None)
+    log = _progress(args)
     names = ("diagnose.json", "results.json", f"{Path(args.problem).stem}_refined.yaml", "report.html")
     with StagedOutput(out, names=names, inputs=spec.inputs) as stage:
         d = diagnose(spec, log=log)
@@ -116,7 +122,7 @@ def cmd_noise(args) -> int:
     names = ("noise.json", *(f"{kind}{suffix[n]}.{ext}" for n in triads for kind, ext in (("imu", "yaml"),
                                                                                             ("allan", "png"))))
     with StagedOutput(out, names=names, inputs=spec.inputs) as stage:
-        outcome = characterise_noise(spec, log=_log if not args.quiet else (lambda m: None))
+        outcome = characterise_noise(spec, log=_progress(args))
         write_json(stage / names[0], noise_document(outcome))
         for n in outcome.accelerometer:
             write_atomic(stage / f"imu{suffix[n]}.yaml", kalibr_imu_yaml(outcome, n))
@@ -285,6 +291,7 @@ def build_parser() -> argparse.ArgumentParser:
              "Writes DIR/data.csv, DIR/truth.json and DIR/problem.yaml; solve the latter with `castimate solve`.")
     s.add_argument("scenario", help="scenario file (a problem-like YAML with a 'seed' key, e.g. problems/sim_*.yaml)")
     s.add_argument("-o", "--output", required=True, help="output directory (created if missing)")
+    s.add_argument("-q", "--quiet", **quiet)
     s.set_defaults(func=cmd_simulate)
     s = verb("apply", "write calibrated data from a results.json",
              "Reads DATA with the units recorded in the results, removes every included effect and writes "
@@ -295,6 +302,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--format", choices=("csv", "npz", "mimu", "imutk"), help="data format (default: from the extension)")
     s.add_argument("--gyro", metavar="FILE", help="imutk data: the gyroscope file beside the accelerometer file "
                                                   "(default: the file named like DATA with 'acc' -> 'gyro', if it exists)")
+    s.add_argument("-q", "--quiet", **quiet)
     s.set_defaults(func=cmd_apply)
     s = verb("report", "write a self-contained HTML report of a solved directory",
              "Reads DIR/results.json and DIR/details.npz as written by `castimate solve`.")

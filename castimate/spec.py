@@ -37,11 +37,10 @@ from .io.units import UnitConversion, parse_units
 from .prepare.masks import SaturationOptions
 from .prepare.options import DetectionOptions
 from .problem.graph import SolverOptions
-from .problem.effects import BOARD, DYNAMIC, RETIRED, STATIC, effects_for
+from .problem.effects import BOARD, DYNAMIC, KINDS, RETIRED, STATIC, effects_for
 from .problem.parameters import GroupDef
 from .problem.triads import POSITION, QUATERNION_MISALIGNMENT, SENSOR_GROUPS, GroupSetting
 
-KINDS = ("static_array", "dynamic_array", "ferraris")
 FORMATS = ("csv", "npz", "mimu", "imutk", "imucal")
 DIRECTIONS = ("unit_vector", "quaternion", "pitch_roll")
 MISALIGNMENTS = ("small_angle", "rotation")
@@ -421,13 +420,13 @@ def _group_setting(c: Check, v, where, size, base: dict, gdef: GroupDef) -> dict
     v = c.mapping(v, where, ("free", "initial", "bounds", "prior"))
     if "free" in v:
         out["free"] = c.vector(v["free"], f"{where}.free", size, bool)
-    lo, hi = gdef.physical_range()
+    low, high = gdef.physical_range()
     unit = "" if gdef.unit == "-" else gdef.unit
 
     def in_range(values, w):
         for i, x in enumerate(values):
-            if not lo[i] <= x <= hi[i]:
-                c.fail(w, f"expected {gdef.components[i]} {range_text(lo[i], hi[i], unit)} (the physical range), "
+            if not low[i] <= x <= high[i]:
+                c.fail(w, f"expected {gdef.components[i]} {range_text(low[i], high[i], unit)} (the physical range), "
                           f"found {x:g}")
         return values
 
@@ -437,7 +436,8 @@ def _group_setting(c: Check, v, where, size, base: dict, gdef: GroupDef) -> dict
         b = v["bounds"]
         if not (isinstance(b, list) and len(b) == 2):
             c.fail(f"{where}.bounds", f"expected [lower, upper], found {b!r}")
-        lo, hi = c.vector(b[0], f"{where}.bounds[0]", size), c.vector(b[1], f"{where}.bounds[1]", size)
+        lo = in_range(c.vector(b[0], f"{where}.bounds[0]", size), f"{where}.bounds[0]")
+        hi = in_range(c.vector(b[1], f"{where}.bounds[1]", size), f"{where}.bounds[1]")
         if any(l >= h for l, h in zip(lo, hi)):
             c.fail(f"{where}.bounds", f"lower must be below upper, found {list(lo)} and {list(hi)}")
         out["lower"], out["upper"] = lo, hi

@@ -20,11 +20,13 @@ import pytest
 import yaml
 
 import castimate
-from castimate.calibration import Calibration
+from castimate.calibration import Calibration, apply_calibration
+from castimate.cli import main
 from castimate.codegen import CodegenOptions
 from castimate.codegen.solvers import reference
 from castimate.errors import InputError
 from castimate.io.readers import read_csv, write_csv
+from castimate.io.recording import Recording
 from castimate.scale.batch import check_threshold
 from castimate.simulate.scenarios import simulate_scenario
 from castimate.spec import load_problem
@@ -326,3 +328,118 @@ def test_failed_solve_at_an_unsolvable_start_is_not_converged(doc, tmp_path, mon
     assert not sol.success and not sol.evaluated
     assert sol.message.endswith("the eliminated nuisance variables did not converge at its last iterate")
     assert np.array_equal(sol.x, x0) and sol.covariance is None
+
+
+# ============================================================================ third round
+
+
+def _gyro_only(sim, tmp_path: Path, names) -> Path:
+    """The session's data.csv with gyroscope columns for ``names`` only."""
+    rec = read_csv(sim / "data.csv")
+    data = tmp_path / "data.csv"
+    write_csv(data, Recording(rec.t, rec.acc, {n: g for n, g in rec.gyro.items() if n in names}))
+    return data
+
+
+def test_apply_gyro_of_a_calibrated_triad_missing(drift_results, sim, tmp_path, capsys):
+    """A gyro dict without one of the calibration's triads returned no rate for it, silently (the CLI
+    passed what the data had); now refused naming the triad. Without any gyroscope readings the data
+    are calibrated accelerometer only, with a note (the note silenced by -q)."""
+    cal = Calibration.read(_with(drift_results, tmp_path, drift_results["effects"]["regressors"]))
+    acc = {n: np.array([[0.0, 0.0, 9.81]]) for n in ("imu1", "imu11")}
+    expect_error(lambda: cal.apply(acc, {"imu1": np.zeros((1, 3))}, t=np.array([1.0])), "Calibration.apply",
+                 "gyro['imu11']", "missing; expected readings of every calibrated gyroscope in acc (imu1, imu11), "
+                                  "found imu1")
+    _, omega = cal.apply(acc, {n: np.zeros((1, 3)) for n in acc}, t=np.array([1.0]))
+    assert set(omega) == {"imu1", "imu11"}
+    results = tmp_path / "results.json"
+    data = _gyro_only(sim, tmp_path, ("imu1", "imu22"))
+    expect_error(lambda: apply_calibration(results, data, tmp_path / "out.csv"), data, "imu11.gx",
+                 "missing; the calibration has the gyroscopes of imu1, imu11, the data read those of imu1")
+    data = _gyro_only(sim, tmp_path, ())
+    for quiet in ([], ["-q"]):
+        capsys.readouterr()
+        assert main(["apply", str(results), str(data), "-o", str(tmp_path / "out.csv")] + quiet) == 0
+        err = capsys.readouterr().err
+        assert ("no gyroscope readings; accelerometer only" in err) == (not quiet), err
+        assert read_csv(tmp_path / "out.csv").gyro == {}
+
+
+@pytest.mark.parametrize("noise, where, found", [
+    ({"gyroscope": 0.01}, "noise.gyroscope", ("expected no gyroscope noise, found 0.01: data.csv has no gyroscope "
+                                              "readings for imu1, imu11, imu22, imu32 (accelerometers only)")),
+    ({"motion_dependent": {"gyroscope": {"floor": 0.1}}}, "noise.motion_dependent.gyroscope.floor",
+     "expected no gyroscope noise, found 0.1"),
+])
+def test_gyroscope_noise_without_gyroscopes(doc, sim, tmp_path, noise, where, found):
+    """An accelerometer-only session took the gyroscope's σ and motion-dependent noise silently."""
+    from castimate.kinds import kind_of
+
+    doc["data"]["path"] = str(_gyro_only(sim, tmp_path, ()))
+    doc["model"]["gyroscope"] = {}
+    doc["noise"] = {"accelerometer": 0.01, "motion_dependent": {"gyroscope": "auto"}}  # auto: nothing to estimate
+    spec = load_problem(write(tmp_path / "p.yaml", doc))
+    assert kind_of(spec).load(spec).data.gyro == {}
+    doc["noise"].update(noise)
+    p = write(tmp_path / "p.yaml", doc)
+    spec = load_problem(p)
+    expect_error(lambda: kind_of(spec).load(spec), p, where, found)
+
+
+def test_results_kind_and_effect_without_parameters(drift_results, tmp_path):
+    """kind: magic, and clock_beat included with no parameters (applied as zero), were read by apply and
+    codegen RESULTS.json (both through Calibration.read)."""
+    p = tmp_path / "results.json"
+    p.write_text(json.dumps({**drift_results, "kind": "magic"}))
+    expect_error(lambda: Calibration.read(p), p, "kind", "expected one of static_array, dynamic_array, ferraris, "
+                                                         "found 'magic'")
+    doc = json.loads(json.dumps(drift_results))
+    doc["effects"]["included"].append("accelerometer.clock_beat")
+    p.write_text(json.dumps(doc))
+    expect_error(lambda: Calibration.read(p), p, "triads.imu1.parameters.clock_beat",
+                 "missing; effects.included lists accelerometer.clock_beat, expected its 1 values (A)")
+    for t in doc["triads"].values():
+        t["parameters"]["clock_beat"] = {"value": [1e-3], "components": ["A"]}
+    p.write_text(json.dumps(doc))
+    assert Calibration.read(p).effects == ("gyroscope.bias_drift", "accelerometer.clock_beat")
+
+
+@pytest.mark.parametrize("sensor, effect, value, where, found", [
+    # accepted, then exit 3 after 8 s of solving
+    ("accelerometer", "age", {"initial": 5.0}, "initial", "expected a from -1 to 1 s (the physical range), found 5"),
+    # accepted, then blamed on "3 undetermined directions"
+    ("gyroscope", "delay", {"initial": -10}, "initial", "expected d from -1 to 1 s (the physical range), found -10"),
+    ("gyroscope", "delay", {"bounds": [-5, 0.5]}, "bounds[0]", "expected d from -1 to 1 s (the physical range), found -5"),
+    ("accelerometer", "clock_beat", {"initial": 2}, "initial", "expected A from -1 to 1 s"),
+])
+def test_timing_effect_beyond_a_sample_age(doc, tmp_path, sensor, effect, value, where, found):
+    """A timing effect's initial value and bounds within ±1 s (they were ±10 s: the group's scale 1e-3 s
+    times RANGE_SCALES)."""
+    doc["model"][sensor][effect] = value
+    p = write(tmp_path / "p.yaml", doc)
+    expect_error(lambda: load_problem(p), p, f"model.{sensor}.{effect}.{where}", found)
+    doc["model"][sensor][effect] = {k: ([-0.5, 0.5] if k == "bounds" else 0.5) for k in value}
+    load_problem(write(tmp_path / "p.yaml", doc))  # within range: loads
+
+
+def test_simulate_quiet(tmp_path, capsys):
+    """The README's -q (no progress on stderr) was not an option of castimate simulate."""
+    (tmp_path / "scenario.yaml").write_text(SCENARIO)
+    assert main(["simulate", str(tmp_path / "scenario.yaml"), "-o", str(tmp_path / "out"), "-q"]) == 0
+    out = capsys.readouterr()
+    assert out.err == "" and "wrote problem" in out.out
+
+
+def test_five_samples_without_a_time_range(doc, sim, tmp_path):
+    """Five samples (enough for the count check) with data.time_range absent: the excitation check
+    named data.time_range; it names the data's t and the number of samples."""
+    rec = read_csv(sim / "data.csv")
+    data = tmp_path / "data.csv"
+    write_csv(data, rec.select(np.arange(len(rec.t)) < 5))
+    doc["data"]["path"] = str(data)
+    p = write(tmp_path / "p.yaml", doc)
+    expect_error(lambda: castimate.solve(p), data, "t", f"expected enough angular motion to determine the positions, "
+                                                       f"found the angular motion in {data} (5 samples")
+    doc["data"]["time_range"] = [0.0, 0.04]  # the cut is blamed when there is one
+    p = write(tmp_path / "p.yaml", doc)
+    expect_error(lambda: castimate.solve(p), p, "data.time_range", "(5 samples")

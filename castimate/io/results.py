@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ..problem.effects import KINDS
 from ..validation import Check, read_input_text, shown
 from .units import parse_units
 from .atomic import write_atomic
@@ -70,6 +71,8 @@ def check_results(doc: dict, path: str | Path, require_success: bool = True) -> 
     if not isinstance(status, dict) or not isinstance(status.get("success"), bool):
         raise InputError(path, "status.success", "expected true or false (did the solver converge?), found "
                                                  f"{shown(status.get('success') if isinstance(status, dict) else status)}")
+    if "kind" in doc and doc["kind"] not in KINDS:
+        raise InputError(path, "kind", f"expected one of {', '.join(KINDS)}, found {shown(doc['kind'])}")
     triads = doc.get("triads")
     if not isinstance(triads, dict) or not triads:
         raise InputError(path, "triads", f"expected a non-empty mapping of triads, found {triads!r}")

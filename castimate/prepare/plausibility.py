@@ -215,8 +215,9 @@ def check_uniform_sampling(t: np.ndarray, declared: Declared, needs: str) -> Non
 
 
 def check_dynamic_information(rec: Recording, reference: str, free_position: bool, nominal: np.ndarray | None,
-                              acc_sigma: float, declared: Declared, log: Log) -> None:
-    """Refuse a dynamic segment whose angular motion cannot determine the free positions."""
+                              acc_sigma: float, declared: Declared, log: Log, cut: bool = True) -> None:
+    """Refuse a dynamic segment whose angular motion cannot determine the free positions. ``cut``: the
+    segment is the problem's data.time_range (blamed then), else the whole recording (its column t)."""
     if not free_position or reference not in rec.gyro or nominal is None or len(nominal) < 2:
         return
     size = float(np.max(np.linalg.norm(nominal[:, None] - nominal[None], axis=-1)))
@@ -229,10 +230,14 @@ def check_dynamic_information(rec: Recording, reference: str, free_position: boo
     what = (f"the angular motion in {declared.data} ({len(rec.t)} samples, RMS |[w_dot]x + [w]x^2| = {rms:.3g} s^-2) "
             f"predicts a position error of {1e3 * err:.3g} mm (noise σ {1e3 * sd:.3g} mm; {MODEL_ERROR:g} m/s^2 of "
             f"residual intrinsics error divided by the excitation) on an array of {1e3 * size:.3g} mm")
-    if err > POSITION_ERROR_REFUSE * size:
+    if err > POSITION_ERROR_REFUSE * size and cut:
         raise InputError(declared.problem, "data.time_range",
                          f"{what}: too little angular motion to determine the positions (a static phase?); give "
                          "the time range where the array is twisted by hand, or fix model.position")
+    if err > POSITION_ERROR_REFUSE * size:  # the whole recording: its time column and sample count
+        raise InputError(declared.data, "t", f"expected enough angular motion to determine the positions, found "
+                         f"{what} (the whole recording): record the array twisted by hand (or give data.time_range "
+                         "where it is), or fix model.position")
     if err > POSITION_ERROR_WARN * size:
         log(f"warning: {what}; the positions will be poorly determined")
 

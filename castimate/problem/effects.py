@@ -69,6 +69,8 @@ from ..models import effects as fx
 from .parameters import XYZ, GroupDef
 
 STATIC, DYNAMIC = "static_array", "dynamic_array"
+#: The problem kinds (a problem file's and a results.json's ``kind``).
+KINDS = (STATIC, DYNAMIC, "ferraris")
 TIME, TEMPERATURE, SPECIFIC_FORCE, MOTION, RATE = "time", "temperature", "specific_force", "motion", "rate"
 #: How an effect is undone when a calibration is applied (:attr:`Effect.undoing`).
 SUBTRACTED, NEWTON, NOT_SAMPLE_WISE = "subtracted", "newton", "not sample-wise"
@@ -185,6 +187,11 @@ def probe_context() -> Context:
                    beat=sym("beat"), u_ddot=sym("u_ddot", 3), Rbar=sym("Rbar", 3, 3))
 
 
+#: The physical range of a timing effect's age [s] (accelerometer.age, gyroscope.delay, the clock_beat
+#: amplitude): a sample read more than a second late is not a sample age but a misaligned recording.
+TIMING_RANGE = (-1.0, 1.0)
+
+
 def _timing(name: str, sensor: str, group: GroupDef, age: Callable[[Any, Context], Any], **kw) -> Effect:
     """A timing effect: it adds ``age`` to the reading's sample age (``Effect.age``)."""
     return Effect(name, sensor, group, lambda c, x: fx.sample_age(age(c, x), x.u_dot, x.u_ddot), kinds=(DYNAMIC,),
@@ -224,7 +231,8 @@ EFFECTS: tuple[Effect, ...] = (
            gauge=fx.chip_offsets_gauge,
            title="accelerometer sensing-element offsets of the chip model (size effect): y and z elements relative "
                  "to x in the chip's frame, shared by every triad of the board"),
-    _timing("age", "accelerometer", GroupDef(("a",), (0.0,), 1e-3, "s"), lambda c, x: c, relative=True, shared=True,
+    _timing("age", "accelerometer", GroupDef(("a",), (0.0,), 1e-3, "s", limits=TIMING_RANGE), lambda c, x: c,
+            relative=True, shared=True,
             title="chip sample age: the IMU's accelerometer and gyroscope read the motion a late "
                  "(constant, relative to the reference triad's)"),
     _bias_drift("gyroscope", "rad/s", 1e-3),
@@ -232,7 +240,7 @@ EFFECTS: tuple[Effect, ...] = (
     Effect("g_sensitivity", "gyroscope",
            GroupDef(("xx", "xy", "xz", "yx", "yy", "yz", "zx", "zy", "zz"), (0.0,) * 9, 1e-4, "rad/s per m/s^2"),
            lambda c, x: fx.g_sensitivity(c, x.f), needs=(SPECIFIC_FORCE,), title="gyroscope g-sensitivity"),
-    _timing("delay", "gyroscope", GroupDef(("d",), (0.0,), 1e-3, "s"), lambda c, x: c,
+    _timing("delay", "gyroscope", GroupDef(("d",), (0.0,), 1e-3, "s", limits=TIMING_RANGE), lambda c, x: c,
             title="accelerometer-gyroscope delay: the gyroscope reads the motion d later than its own "
                  "accelerometer (filter group delays)"),
     Effect("coupling", "gyroscope", GroupDef(("yx", "zx", "zy"), (0.0,) * 3, 1e-2, "-", limits=(-1.0, 1.0)),
@@ -242,7 +250,8 @@ EFFECTS: tuple[Effect, ...] = (
             relative=True, shared=True,
             title="chip clock-rate drift: the IMU's sample age (accelerometer and gyroscope) linear in time, "
                  "its value at the session's end, relative to the reference triad's"),
-    _timing("clock_beat", "accelerometer", GroupDef(("A",), (0.0,), 1e-3, "s"), lambda c, x: c * x.beat, shared=True,
+    _timing("clock_beat", "accelerometer", GroupDef(("A",), (0.0,), 1e-3, "s", limits=TIMING_RANGE),
+            lambda c, x: c * x.beat, shared=True,
             title="chip clock: the IMU's sample age (accelerometer and gyroscope) a sawtooth A (frac(ν t + φ) − ½) "
                  "at the beat with the read-out; ν, φ from the implied age"),
 )
