@@ -546,7 +546,10 @@ def _readme(ref: Reference, st: GNStructure) -> str:
              "parametrisation)." if ref.kind == "static_array" else
              "Motion (gyro-aided, castimate.problem.dynamic.initial_motion): s_n = the reference triad's "
              "compensated reading (it sits at the origin), omega_n = the mean of the compensated gyroscopes "
-             "(interpolated over saturated ones), omega_dot_n = its finite-difference derivative.")
+             "(interpolated over saturated ones), omega_dot_n = its finite-difference derivative. Without "
+             "gyroscopes, omega_n and omega_dot_n from the array's readings at the start poses "
+             "(castimate.models.motion.angular_motion_from_specific_forces: W = [omega]x^2 + [omega_dot]x by "
+             "least squares per sample, signs by continuity with the integral of omega_dot).")
     motion = ("Motion estimator: every intrinsic and position is fixed, so there are no global variables and "
               "every sample is solved on its own (Carlsson 2017's maximum-likelihood omega, omega_dot, s). The "
               "geometry comes in at run time as the fixed values p_fixed (offsets CASTIMATE_P_<GROUP> in "

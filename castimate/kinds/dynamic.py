@@ -1,7 +1,9 @@
 """From a validated dynamic problem spec to an outcome: read, mask, start, solve, check, restart.
 
-Initialisation and local minima follow Schopp 2016, sec. VI: start from zero angular motion (or the
-gyroscopes, when present) and the nominal poses; after solving, look for the diverged minima of
+Initialisation and local minima follow Schopp 2016, sec. VI, from the nominal poses, but with the angular
+motion from the gyroscopes when present, else from the array's own readings (ω, ω̇ per sample, signs by
+continuity with ∫ω̇: ``models.motion.angular_motion_from_specific_forces``; Schopp's zero start is a flat
+point of the centripetal terms, from which the solver did not leave at 2000 °/s); after solving, look for the diverged minima of
 Schopp's Table III (positions -> 0 or inf, angular motion -> 0 or inf) and for sign-trapped angular
 rates; restart from the estimated poses when one is found. Every attempt is reported.
 """
@@ -468,7 +470,7 @@ def solve_dynamic(config: DynamicConfig, data: DynamicData, nominal: dict, optio
             start_values, diverged = {}, False
         log(f"attempt {attempt + 1}: {lay.n_x} variables, " + (
             "from the previous fit" + (", Gauss-Newton first" if attempt else "") if from_start else
-            ("gyro-aided start" if has_gyro else "zero angular motion")
+            ("gyro-aided start" if has_gyro else "angular motion from the array")
             + (", poses from the previous attempt" if start_values else ", nominal poses")))
         x0 = lay.x0(start) if from_start else lay.x0(start_values) if start_values else None
         determined = sign_determined(config, data, problem.gyro_triads)

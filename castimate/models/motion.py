@@ -94,3 +94,78 @@ def process_residual_snap(omega, omega_dot, omega_ddot, s, omega_next, omega_dot
     scaled = [e[i] / dt ** (2.5 - i) for i in range(3)]  # D⁻¹ e
     rows = [sum(float(W[i, j]) * scaled[i] for i in range(3)) / sigma_snap for j in range(3)]  # Wᵀ D⁻¹ e / √q
     return ca.vertcat((s_next - s) / (sigma_s * ca.sqrt(dt)), *rows)
+
+
+def angular_motion_from_specific_forces(t: np.ndarray, f: np.ndarray, r: np.ndarray,
+                                        valid: np.ndarray | None = None
+                                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Angular rate and acceleration from an accelerometer array without gyroscopes, sample by sample.
+
+    Per sample, ``f_k = s + W r_k`` (:func:`specific_force_at`, Carlsson 2017 eq. 1, with
+    ``W = [ω]×² + [ω̇]×``) is linear in (s, W): a least-squares fit over the triads gives W, whose
+    antisymmetric part is [ω̇]× and whose symmetric part is S = ωωᵀ − |ω|² I, so |ω|² = −tr(S)/2,
+    S + |ω|² I = ωωᵀ and ω lies along its top eigenvector with magnitude sqrt(top eigenvalue).
+    The sign of each ω (the centripetal terms are even in ω) is chained from sample to sample by
+    continuity with the trapezoid integral of ω̇, ω_n ≈ ω_{n−1} + (ω̇_{n−1} + ω̇_n) Δt/2; the sign
+    of the first sample is the one whose chain agrees best with that integral overall.
+
+    t: (N,) times [s]; f: (N, K, 3) specific forces in the body frame [m/s²]; r: (K, 3) positions
+    [m]; valid: (N, K, 3) which readings count (default all). Returns (ω, ω̇, s, determined): (N, 3)
+    each and (N,) whether the sample's valid readings determine W (the positions of the triads
+    reading an axis must span 3-D, affinely). Undetermined samples take ω, ω̇ interpolated from the
+    determined ones (zero where none is): with coplanar positions W has free columns and the
+    centripetal terms alone leave ω ambiguous, so ω is left to the process model there (Schopp
+    2016, sec. VI-B: ω = 0 then, without a sign predetermined).
+    """
+    t, f, r = np.asarray(t, float), np.asarray(f, float), np.asarray(r, float)
+    N, K = f.shape[:2]
+    ok = np.ones((N, K, 3), bool) if valid is None else np.broadcast_to(np.asarray(valid, bool), (N, K, 3))
+    A = np.column_stack([np.ones(K), r])  # (K, 4): row k of f_k = [s | W] [1; r_k]
+    X = np.full((N, 3, 4), np.nan)
+    for j in range(3):  # the rows of [s | W] are separate problems, one per body axis
+        pattern = ok[:, :, j]
+        keys, inverse = np.unique(pattern, axis=0, return_inverse=True)
+        for p, key in enumerate(keys):
+            rows = np.flatnonzero(inverse.ravel() == p)
+            Ak = A[key]
+            if np.linalg.matrix_rank(Ak) < 4:
+                continue
+            X[rows, j] = f[rows][:, key, j] @ np.linalg.pinv(Ak).T
+    determined = np.isfinite(X).all(axis=(1, 2))
+    s, W = X[:, :, 0], X[:, :, 1:]
+    omega_dot = 0.5 * np.stack([W[:, 2, 1] - W[:, 1, 2], W[:, 0, 2] - W[:, 2, 0], W[:, 1, 0] - W[:, 0, 1]], axis=1)
+    Sym = 0.5 * (W + W.transpose(0, 2, 1))
+    omega = np.zeros((N, 3))
+    d = np.flatnonzero(determined)
+    if d.size:
+        norm2 = -0.5 * np.trace(Sym[d], axis1=1, axis2=2)
+        lam, vec = np.linalg.eigh(Sym[d] + norm2[:, None, None] * np.eye(3))
+        omega_abs = vec[:, :, -1] * np.sqrt(np.maximum(lam[:, -1], 0.0))[:, None]  # ± ω
+        omega[d] = _chain_signs(t[d], omega_abs, omega_dot[d])
+        for i in range(3):
+            omega[:, i] = np.interp(t, t[d], omega[d, i])
+            omega_dot[:, i] = np.interp(t, t[d], omega_dot[d, i])
+        s = np.where(determined[:, None], s, np.nan)
+    else:
+        omega_dot[:] = 0.0
+    return omega, omega_dot, s, determined
+
+
+def _chain_signs(t: np.ndarray, u: np.ndarray, omega_dot: np.ndarray) -> np.ndarray:
+    """Signs of ±u (N, 3) chosen by continuity with the integral of ω̇ (see
+    :func:`angular_motion_from_specific_forces`): both starting signs, the better chain wins."""
+    step = 0.5 * (omega_dot[1:] + omega_dot[:-1]) * np.diff(t)[:, None]
+    best, best_cost = u, np.inf
+    for first in (1.0, -1.0):
+        w = u.copy()
+        w[0] *= first
+        cost = 0.0
+        for n in range(1, len(u)):
+            pred = w[n - 1] + step[n - 1]
+            plus, minus = np.sum((u[n] - pred) ** 2), np.sum((u[n] + pred) ** 2)
+            if minus < plus:
+                w[n] = -u[n]
+            cost += min(plus, minus)
+        if cost < best_cost:
+            best, best_cost = w, cost
+    return best

@@ -435,30 +435,45 @@ class DynamicProblem:
         return {n: (np.asarray(Tfn(v(n, "gain"), v(n, "misalignment"), R[n])), v(n, "bias")) for n in self.gyro_triads}
 
 
+def _start_value(setting, group: str, default):
+    """A triad's group start: the problem's ``initial`` where given, else ``default``."""
+    return setting[group].initial if setting[group].initial is not None else default
+
+
+def _start_specific_force(config: DynamicConfig, t: TriadConfig, data: DynamicData) -> np.ndarray:
+    """(N, 3) triad ``t``'s readings compensated with its start intrinsics: the specific force in the body frame."""
+    a = lambda g, d: _start_value(t.accelerometer, g, d)  # noqa: E731
+    T = accelerometer_matrix(config.misalignment)(a("gain", [1, 1, 1]), a("nonorthogonality", [0, 0, 0]),
+                                                   [1, 0, 0, 0] if config.misalignment == "rotation" else [0, 0, 0],
+                                                   t.R_nominal)
+    return linear_inverse(T, np.asarray(a("bias", [0, 0, 0]), float), data.acc[t.name])
+
+
 def initial_motion(config: DynamicConfig, data: DynamicData, gyro_triads: list[str]) -> dict[str, np.ndarray]:
     """Start of the motion states (Schopp 2016, sec. VI-B, and gyro-aided when gyros exist).
 
     s: the reference triad's compensated reading (it sits at the origin, so it measures s).
-    ω: the mean compensated gyroscope reading, interpolated over saturated samples; zero without gyros,
-    so that the sign of the rotation is not predetermined. ω̇: the derivative of that ω.
+    ω: the mean compensated gyroscope reading, interpolated over saturated samples. Without gyros,
+    ω and ω̇ from the array itself (:func:`castimate.models.motion.angular_motion_from_specific_forces`
+    on the start poses, signs by continuity with ∫ω̇): a zero start is a flat point of the centripetal
+    terms, from which the solver may not leave at high rates. ω̇: the derivative of the gyro-aided ω.
     """
     ref = next(t for t in config.triads if t.name == config.reference)
-    init = lambda t, sensor, g, dflt: (t.accelerometer if sensor == "accelerometer" else t.gyroscope)[g].initial \
-        if (t.accelerometer if sensor == "accelerometer" else t.gyroscope)[g].initial is not None else dflt  # noqa: E731
-    T = accelerometer_matrix(config.misalignment)(init(ref, "accelerometer", "gain", [1, 1, 1]),
-                                                   init(ref, "accelerometer", "nonorthogonality", [0, 0, 0]),
-                                                   [1, 0, 0, 0] if config.misalignment == "rotation" else [0, 0, 0],
-                                                   ref.R_nominal)
-    b = np.asarray(init(ref, "accelerometer", "bias", [0, 0, 0]), float)
-    s = linear_inverse(T, b, data.acc[ref.name])
+    s = _start_specific_force(config, ref, data)
     omega = np.zeros((data.n, 3))
+    if not gyro_triads and data.n > 1:
+        r = np.stack([position_group(config, t).initial.reshape(3) for t in config.triads])
+        f = np.stack([_start_specific_force(config, t, data) for t in config.triads], axis=1)
+        valid = np.stack([data.axis_valid("acc", t.name) for t in config.triads], axis=1)
+        omega, omega_dot, _, _ = mot.angular_motion_from_specific_forces(data.t, f, r, valid)
+        return {OMEGA: omega, OMEGA_DOT: omega_dot, S: s}
     if gyro_triads:
         est, weight = np.zeros((data.n, 3)), np.zeros(data.n)
         for name in gyro_triads:
             t = next(t for t in config.triads if t.name == name)
-            Tg = gyroscope_matrix()(init(t, "gyroscope", "gain", [1, 1, 1]), init(t, "gyroscope", "misalignment", [0, 0, 0]),
-                                    t.R_nominal)
-            w = linear_inverse(Tg, np.asarray(init(t, "gyroscope", "bias", [0, 0, 0]), float), data.gyro[name])
+            Tg = gyroscope_matrix()(_start_value(t.gyroscope, "gain", [1, 1, 1]),
+                                    _start_value(t.gyroscope, "misalignment", [0, 0, 0]), t.R_nominal)
+            w = linear_inverse(Tg, np.asarray(_start_value(t.gyroscope, "bias", [0, 0, 0]), float), data.gyro[name])
             ok = data.axis_valid("gyro", name).all(axis=1)  # a clipped axis leaks into the others through T_g
             est[ok] += w[ok]
             weight[ok] += 1
