@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from .errors import InputError
-from .validation import Check, input_file, load_yaml, range_text, shown
+from .validation import Check, input_file, load_yaml, shown, within_range
 from .io.units import UnitConversion, parse_units
 from .prepare.masks import SaturationOptions
 from .prepare.options import DetectionOptions
@@ -421,13 +421,9 @@ def _group_setting(c: Check, v, where, size, base: dict, gdef: GroupDef) -> dict
     if "free" in v:
         out["free"] = c.vector(v["free"], f"{where}.free", size, bool)
     low, high = gdef.physical_range()
-    unit = "" if gdef.unit == "-" else gdef.unit
 
     def in_range(values, w):
-        for i, x in enumerate(values):
-            if not low[i] <= x <= high[i]:
-                c.fail(w, f"expected {gdef.components[i]} {range_text(low[i], high[i], unit)} (the physical range), "
-                          f"found {x:g}")
+        within_range(c.source, w, values, low, high, gdef.components, gdef.unit)
         return values
 
     if "initial" in v:

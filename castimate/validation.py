@@ -43,7 +43,7 @@ def within_range(source: object, where: str, values, lo, hi, components, unit: s
     """``values`` (one per component) inside [lo, hi] each, else a one-line InputError naming the first
     component outside: "expected <component> from lo to hi <unit> (the physical range), found v"."""
     v = np.asarray(values, float)
-    bad = (v < lo) | (v > hi)
+    bad = ~((v >= lo) & (v <= hi))  # NaN is outside too
     if bad.any():
         i = int(np.argmax(bad))
         raise InputError(source, where, f"expected {components[i]} {range_text(lo[i], hi[i], '' if unit == '-' else unit)} "
