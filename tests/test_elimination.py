@@ -5,6 +5,8 @@ a prior, a free gain and masked samples (``test_assembly``'s cases); the reduced
 exact reduced Hessian against finite differences of the reduced objective.
 """
 
+import functools
+
 import numpy as np
 import pytest
 
@@ -230,6 +232,52 @@ def test_stall_asks_the_newton_decrement_after_three_idle_iterations():
         assert flags == [0] * (stop_at - 1) + [1] and s.stalled and s.idle == stop_at
         assert s.early == (dec if stop_at == 3 else None)  # the value that stopped it, for Solver.solve
     assert asked == [1e-22, 1e-9]  # once per solve, at the third idle iteration
+
+
+def _decrement(asked, value, x, lam):
+    asked.append(value)
+    return value
+
+
+def test_stall_settles_on_a_small_chi2_change_and_tests_a_flat_warm_start_at_once():
+    """An outer iteration's refits (Stall.reset(settle, warm)), hand-made objective values f = χ²/2:
+    ``settle`` 1 stops at the first iteration that changed χ² by at most 1 (here 0.4, after 100),
+    recording that change; ``warm`` asks for the Newton decrement at the first iteration whose χ²
+    change is round-off (2e-13 of 200), not after three idle ones, and only once per solve."""
+    from castimate.solver.ipopt import Stall
+    def rest(f):
+        return [np.array([f]), np.zeros(0), np.zeros(3), np.zeros(0), np.zeros(0)]
+
+    x = np.array([1.0, -2.0, 3.0])
+    s = Stall(3, 0, 0)
+    s.reset(settle=1.0)
+    assert [s.eval([x + k] + rest(f))[0] for k, f in enumerate((100.0, 50.0))] == [0, 0] and s.settled is None
+    assert s.eval([x + 2] + rest(49.8)) == [1] and s.settled == pytest.approx(0.4) and not s.stalled
+    s.reset()
+    assert s.settled is None and s.eval([x] + rest(100.0)) == [0] and s.eval([x + 1] + rest(99.9)) == [0]
+    asked = []
+    for dec, stop in ((1e-22, 1), (1e-9, 0)):
+        s = Stall(3, 0, 0, functools.partial(_decrement, asked, dec))
+        s.reset(warm=True)
+        assert s.eval([x] + rest(100.0)) == [0] and s.eval([x + 1e-3] + rest(99.0)) == [0]  # moved: not flat
+        assert s.eval([x + 2e-3] + rest(99.0 - 1e-13)) == [stop] and s.early == (dec if stop else None)
+        if not stop:  # not asked again at the next flat iteration
+            assert s.eval([x + 3e-3] + rest(99.0 - 2e-13)) == [0]
+    assert asked == [1e-22, 1e-9]
+
+
+def test_settled_refit_continued_reaches_the_same_optimum():
+    """A solve stopped by ``settle`` after its first iteration is reported unconverged (success False,
+    ``settled``), and continued from there with the usual tolerance it reaches the optimum of a solve
+    from the start to 1e-9, as the noise model's outer iteration does with its intermediate fits."""
+    prob = CASES["dynamic_no_process_model"]()
+    solver = Solver(prob.lsq)
+    ref = solver.solve()
+    early = solver.solve(settle=np.inf)
+    assert early.settled and not early.success and early.iterations == 1 and early.message.startswith("Settled")
+    assert relative(early.x, ref.x) > 1e-6  # not yet at the optimum
+    polished = solver.solve(early.x, lam_g0=early.lam_g, warm=True)
+    assert polished.success and not polished.settled and relative(polished.x, ref.x) < 1e-9
 
 
 def test_warm_refit_at_its_optimum_stops_after_three_idle_iterations():

@@ -145,8 +145,9 @@ def _outer(Phi, z0, tol, max_rounds, relaxed=None):
         state["previous"] = g
         return {"gyroscope": {"rate": float(np.exp(g[0]))}}, g, previous
 
-    def refit(z):
+    def refit(z, tight):
         state["z"], state["refits"] = z, state["refits"] + 1
+        return True
 
     out = accelerated_fixed_point(propose, refit, z0, tol, max_rounds)
     assert out.rounds == state["refits"] and out.status.startswith("converged after" if out.converged else "not conv")
@@ -181,6 +182,41 @@ def test_outer_iteration_limit_and_safeguard():
     assert converged and z[0] == pytest.approx(0.3, abs=1e-3)
     converged, rounds, _ = _outer(Phi, np.array([0.0]), 1e-3, 1)
     assert not converged and rounds == 1
+
+
+def _loose_then_polished(converges_anyway: bool):
+    """The refits (σ's, tight) of :func:`accelerated_fixed_point` on Φ(z) = z* + 10⁻³ (z − z*) from
+    100 % away, the refit returning ``converges_anyway`` when asked for a loose fit; and the outcome."""
+    star = np.array([np.log(3e-3), np.log(5e-2)])
+    calls, state = [], {"z": star + 1.0, "previous": None}
+
+    def phi(z):
+        return star + 1e-3 * (z - star)
+
+    def propose():
+        g, previous = phi(state["z"]), state["previous"]
+        state["previous"] = g
+        return {"gyroscope": {"rate": 1.0}}, g, previous
+
+    def refit(z, tight):
+        calls.append((z.copy(), tight))
+        state["z"] = z
+        return tight or converges_anyway
+
+    return calls, phi(star + 1.0), accelerated_fixed_point(propose, refit, star + 1.0, 0.01, 12)
+
+
+def test_outer_iteration_refits_loosely_far_from_the_fixed_point_and_polishes_before_converging():
+    """Φ(z) = z* + 10⁻³ (z − z*) from 100 % away: the first refit follows a step of 100 % RMS (above
+    TIGHT × tol) and may stop early; the estimate from it already passes the test, so that fit is
+    continued to convergence at the same σ's and the test repeated there, and only then does the
+    iteration converge (one weighted refit). A loose refit that converged anyway needs no polish."""
+    calls, first, out = _loose_then_polished(False)
+    assert out.converged and out.rounds == 1
+    assert [t for _, t in calls] == [False, True] and np.allclose(calls[0][0], first)
+    assert np.array_equal(calls[1][0], calls[0][0])  # the polish: the same σ's, to convergence
+    calls, _, out = _loose_then_polished(True)
+    assert out.converged and out.rounds == 1 and [t for _, t in calls] == [False]
 
 
 def test_fit_noise_recovers_jitter_on_synthetic_residuals():
@@ -255,6 +291,24 @@ def test_known_jitter_recovered_and_sigmas_honest(tmp_path):
     # the white-noise model on the same data: χ²/dof far above 1
     white = calibrate_dynamic(replace(spec, noise=replace(spec.noise, motion_dependent=motion_noise_setting("none"))))
     assert white.solution.chi2_per_dof > 10 and white.motion_noise == {}
+
+
+def test_intermediate_refits_stopped_early_reach_the_same_fixed_point(tmp_path, monkeypatch):
+    """The outer iteration with its intermediate refits stopped early (``settle``) against every refit
+    converged (TIGHT infinite): the same components to 1e-4 relative and the same positions to 1e-3
+    of their σ's, far inside the iteration's 1 % tolerance, and no more refits."""
+    import castimate.solver.motion_noise as mn
+    spec, _ = _board(tmp_path, 1e-4)
+    fast = calibrate_dynamic(spec)
+    monkeypatch.setattr(mn, "TIGHT", np.inf)
+    tight = calibrate_dynamic(spec)
+    assert fast.motion_noise["converged"] and fast.motion_noise["rounds"] <= tight.motion_noise["rounds"]
+    for s in ("accelerometer", "gyroscope"):
+        for k, c in tight.motion_noise[s].items():
+            assert fast.motion_noise[s][k]["value"] == pytest.approx(c["value"], rel=1e-4, abs=1e-12)
+    for n in spec.array.names:
+        (a, sa), (b, _) = tight.positions[n], fast.positions[n]
+        assert np.all(np.abs(a - b) <= 1e-3 * sa + 1e-12)
 
 
 def test_no_jitter_nothing_added(tmp_path):

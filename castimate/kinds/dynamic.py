@@ -587,6 +587,10 @@ def estimate_process_noise(problem, data: DynamicData, solver: Solver, sol: Solu
 #: weighted refit change no reading's σ by more than MOTION_NOISE_TOL (relative; a small component
 #: may still move more, it hardly weighs), and stops unconverged after MOTION_NOISE_ROUNDS weighted refits.
 MOTION_NOISE_ALPHA, MOTION_NOISE_TOL, MOTION_NOISE_ROUNDS = 0.01, 0.01, 12
+#: An intermediate weighted refit (far from the fixed point: solver.motion_noise.TIGHT) stops after an
+#: iteration that changed χ² by at most this share of the degrees of freedom, a tenth of the
+#: tolerance: the residual variance the next estimate sees is off by about as much.
+MOTION_NOISE_SETTLE = 1e-3
 SENSORS = (("accelerometer", "acc"), ("gyroscope", "gyro"))
 
 
@@ -670,16 +674,21 @@ def fit_motion_noise(spec: ProblemSpec, problem, solver: Solver, sol: Solution, 
         state["params"] = state["estimate"] = proposal
         return proposal, _log_sigmas(data, proposal, regressors), previous
 
-    def refit(z):
+    def refit(z, tight):
         data = state["data"] = _with_log_sigmas(state["data"], z, state["regressors"])
         prev = state["sol"]
-        sol = state["sol"] = solver.solve(prev.x, data=problem.data_vector(data), lam_g0=prev.lam_g, covariance=False)
+        # an intermediate fit stops once an iteration changes χ² by at most MOTION_NOISE_SETTLE per
+        # degree of freedom: the estimate from its residuals is then off by about that share
+        settle = None if tight else MOTION_NOISE_SETTLE * max(prev.dof, 1)
+        sol = state["sol"] = solver.solve(prev.x, data=problem.data_vector(data), lam_g0=prev.lam_g, covariance=False,
+                                          settle=settle, warm=True)
         state["regressors"] = None
         log(f"  weighted refit: {sol.message} in {sol.iterations} iterations, {sol.wall_s:.2f} s, "
             f"χ²/dof {sol.chi2_per_dof:.4g}")
-        if not sol.success:
+        if not sol.success and not sol.settled:
             raise NotConvergedError(f"{spec.path}: the refit with the motion-dependent noise model did not converge: "
                                     f"{sol.message} (χ²/dof before {prev.chi2_per_dof:.4g})")
+        return sol.success
 
     state["regressors"] = noise_regressors(problem, sol.values, data)
     z0 = np.log(np.concatenate([data.sigma(kind, n).ravel() for (_, kind), reg in zip(SENSORS, state["regressors"])

@@ -169,6 +169,7 @@ class Solution:
     covariance: np.ndarray = field(repr=False)  # of the free calibration components (Solver.theta), physical units
     lam_g: np.ndarray = field(default=None, repr=False)  # constraint multipliers, to warm-start another solve  # of the free calibration components (Solver.theta), physical units
     evaluated: bool = True  # False: IPOPT stopped where the eliminated nuisance has no solution; x is the start
+    settled: bool = False  # stopped unconverged by Solver.solve's ``settle`` (an outer iteration's intermediate fit)
 
     @property
     def chi2_per_dof(self) -> float:

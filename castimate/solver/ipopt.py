@@ -291,18 +291,25 @@ class Solver:
         """Covariance of the reported parameters ``theta`` (physical units), nuisance marginalised."""
         return uncertainty.covariance(self, x, p_fixed, data)
 
-    def solve(self, x0=None, p_fixed=None, data=None, lam_g0=None, covariance: bool | None = None) -> Solution:
+    def solve(self, x0=None, p_fixed=None, data=None, lam_g0=None, covariance: bool | None = None,
+              settle: float | None = None, warm: bool = False) -> Solution:
         """Solve from x0 (default: the groups' initial values); ``lam_g0`` warm-starts the constraint
         multipliers, e.g. from a Gauss-Newton solution polished with the exact Hessian.
         ``covariance``: compute the Fisher covariance (default: ``options.covariance``); False for a
-        fit that an outer iteration refits anyway (the noise model's)."""
+        fit that an outer iteration refits anyway (the noise model's).
+
+        For an outer iteration's refits (:class:`Stall`): ``settle`` (χ² units) stops the solve after
+        the first iteration that changed χ² by at most ``settle``, unconverged (``Solution.settled``;
+        an intermediate fit whose residuals only feed the next round); ``warm`` tests the Newton
+        decrement at the first iteration that leaves χ² unchanged to round-off rather than after
+        :attr:`Stall.EARLY` idle ones (a warm start near the optimum)."""
         cov = self.options.covariance if covariance is None else covariance
         if self.projection is not None:  # no MUMPS factor storage to keep: glibc's defaults fragment less
-            return self._solve(x0, p_fixed, data, lam_g0, cov)
+            return self._solve(x0, p_fixed, data, lam_g0, cov, settle, warm)
         with heap_allocation():
-            return self._solve(x0, p_fixed, data, lam_g0, cov)
+            return self._solve(x0, p_fixed, data, lam_g0, cov, settle, warm)
 
-    def _solve(self, x0, p_fixed, data, lam_g0, with_covariance: bool) -> Solution:
+    def _solve(self, x0, p_fixed, data, lam_g0, with_covariance: bool, settle=None, warm=False) -> Solution:
         lay, P = self.problem.layout, self.projection
         x0 = lay.x0() if x0 is None else np.asarray(x0, float)
         lbx, ubx = lay.bounds()
@@ -315,7 +322,7 @@ class Solver:
         else:  # IPOPT over the calibration variables
             sel = P.cal
             start = P.reset(x0, data)
-        self.stall.reset()
+        self.stall.reset(settle, warm)
         self._pf = pf
         sol = self.nlp(x0=start, p=pf, lbx=lbx[sel], ubx=ubx[sel], lbg=0, ubg=0,
                        lam_g0=0 if lam_g0 is None else lam_g0)
@@ -339,6 +346,10 @@ class Solver:
         cost = 0.5 * float(residual @ residual)
         lam = np.asarray(sol["lam_g"]).ravel()
         success, message = bool(st["success"]), str(st["return_status"]) + unsolved
+        settled = message == "User_Requested_Stop" and self.stall.settled is not None
+        if settled:
+            message = (f"Settled, not converged (an iteration changed χ² by {self.stall.settled:.2g}, "
+                       f"at most {settle:.2g})")
         if message == "User_Requested_Stop" and self.stall.stalled:
             message = f"Stalled ({self.stall.idle} iterations that moved x by less than {Stall.RELATIVE:.0e})"
         violation = float(np.abs(np.asarray(sol["g"])).max(initial=0.0))
@@ -369,6 +380,7 @@ class Solver:
             covariance=cov,
             lam_g=lam,
             evaluated=not unsolved,
+            settled=settled,
         )
 
     def newton_decrement(self, x, lam_g, p_fixed=None, data=None) -> float:
@@ -396,12 +408,20 @@ class Stall(ca.Callback):
     refit: 9 of 12 iterations idle, decrement 1e-22), while a problem that is still converging
     slowly (a static case sits still for 7 iterations at a decrement far above it, then moves by
     3e-9) goes on. The caller then decides convergence by the Newton decrement
-    (:meth:`Solver.solve`)."""
+    (:meth:`Solver.solve`).
+
+    For an outer iteration's refits (``reset(settle, warm)``): with ``settle`` (χ² units) it stops
+    after the first iteration that changed χ² = 2f by at most ``settle`` (``settled``: that
+    change); with ``warm`` the decrement is tested at the first iteration that changed χ² by at
+    most FLAT relative (round-off), not after EARLY idle ones: the exp_1 joint problem's last
+    noise-model refit moved by 1e-7 in its second iteration and then sat idle for three more
+    (1.5 s), at a decrement of 1e-22."""
 
     ITERATIONS = 10
     RELATIVE = 1e-12
     EARLY = 3
     DECREMENT = 1e-15  # χ² units: test_elimination's bar for a converged solve
+    FLAT = 1e-12
 
     def __init__(self, n: int, n_c: int, n_p: int, decrement=None):
         ca.Callback.__init__(self)
@@ -411,9 +431,11 @@ class Stall(ca.Callback):
         self.reset()
         self.construct("stall", {})
 
-    def reset(self):
+    def reset(self, settle: float | None = None, warm: bool = False):
         self._last, self.idle, self.stalled = None, 0, False
         self.early = None  # the Newton decrement that stopped the solve after EARLY idle iterations
+        self._f, self.settle, self.warm = None, settle, warm
+        self.settled = None  # the χ² change of the iteration that stopped the solve by ``settle``
 
     def get_n_in(self):
         return len(self._sp)
@@ -438,8 +460,18 @@ class Stall(ca.Callback):
         else:
             self.idle = 0
         self._last = x.copy()
+        f, change = float(np.asarray(arg[1]).ravel()[0]), None
+        if self._f is not None:
+            change = 2.0 * abs(self._f - f)
+        self._f = f
+        if self.settle is not None and change is not None and change <= self.settle:
+            self.settled = change
+            return [1]
         self.stalled = self.idle >= self.ITERATIONS
-        if self.idle == self.EARLY and self.decrement is not None:
+        flat = self.warm and change is not None and change <= self.FLAT * 2.0 * abs(f)
+        if flat:
+            self.warm = False  # tested once; then the idle iterations' test as usual
+        if (self.idle == self.EARLY or flat) and self.decrement is not None:
             d = self.decrement(x, np.asarray(arg[4]).ravel())
             if d < self.DECREMENT:
                 self.stalled, self.early = True, d
