@@ -310,3 +310,26 @@ def test_jacobian_structure_reused_at_another_point_and_data(case):
         e[j] = 1e-6
         fd = (solver.residuals(x + e, data=data) - solver.residuals(x - e, data=data)) / 2e-6
         np.testing.assert_allclose(J[:, j], fd, rtol=1e-5, atol=1e-6 * max(1.0, np.abs(fd).max()))
+
+
+@pytest.mark.parametrize("case", ["dynamic", "dynamic_no_process_model", "static", "sample_ages"])
+def test_jacobian_plan_by_instance_equals_the_coo_pass(case, monkeypatch):
+    """``Solver._plan_jacobian`` orders each instance's columns once; its plan must be the reference
+    COO -> CSR pass's (``_plan_jacobian_summed``) entry for entry: the same local positions, factors,
+    indices and indptr (masked samples, priors, fixed inputs). A block that reads one variable twice
+    (sample ages, at the ends) takes the reference pass, which sums those entries."""
+    prob = {"dynamic": dynamic_case, "dynamic_no_process_model": lambda: dynamic_case(process_model=False),
+            "static": static_case, "sample_ages": _sample_ages_case}[case]()
+    solver = Solver(prob.lsq, SolverOptions(jit=False))
+    local = solver.assembly.local(solver.nlp_order(prob.lsq.layout.x0()), *solver.fixed_and_data(None, None), "jac")
+    sizes = [J.size for J in local]
+    ref = solver._plan_jacobian_summed(sizes)
+    summed = []
+    monkeypatch.setattr(Solver, "_plan_jacobian_summed", lambda self, s: summed.append(s) or ref)
+    plan = solver._plan_jacobian(sizes)
+    assert bool(summed) == (case == "sample_ages") and (ref[4] is not None) == (case == "sample_ages")
+    for got, want in zip(plan[:4], ref[:4]):
+        assert got.dtype == want.dtype and np.array_equal(got, want)
+    assert ref[0].size > 100 and (len(solver.prior[0]) > 0 or case == "sample_ages")  # priors: their own rows
+    if case.startswith("dynamic"):
+        assert not solver.keep.all()  # masked samples' rows are left out

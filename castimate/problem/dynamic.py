@@ -395,8 +395,9 @@ class DynamicProblem:
         inv_span = 1.0 / (data.t[nxt] - data.t[prev]) if data.n > 1 else np.zeros(data.n)
         F = accelerometer_rate().map(data.n)
         both = lambda i: np.hstack([wd[i], s[i]]).T  # noqa: E731
-        acc = {n: np.asarray(F(T, values[f"{n}.position"], values[OMEGA].T, wd.T, both(prev), both(nxt), inv_span[None])).T
-               for n, (T, _) in self.calibration(values).items()}
+        # the motion is the same for every triad: converted to CasADi once (half the time of a call)
+        motion = [ca.DM(np.ascontiguousarray(a)) for a in (values[OMEGA].T, wd.T, both(prev), both(nxt), inv_span[None])]
+        acc = {n: np.asarray(F(T, values[f"{n}.position"], *motion)).T for n, (T, _) in self.calibration(values).items()}
         gyro = {n: wd @ T.T for n, (T, _) in self.gyro_calibration(values).items()}
         return acc, gyro
 

@@ -228,16 +228,14 @@ def serial_covariance(solver, x, p_fixed=None, data=None, lags: int | None = Non
     F_ind = np.zeros((nt, nt))  # Fisher information of the independent rows
     S_channels = np.zeros((nt, nt))  # pooling="channel": the channels' own Bartlett sums
     channels, num, den, var = [], [], [], []
+    scores = sp.csr_matrix((T, solver.n_x))  # Σ_rows of sample t e_n J_n, before the elimination
     for name, J, e, series, m, valid in _rows(solver, x, pf, d):
         e = np.where(valid, e, 0.0)
         if series is not None:
             series = np.asarray(series, int)
-            sample = np.repeat(series, m)
-            for r0 in range(0, J.shape[0] if pooling == "sample" else 0, ROW_CHUNK):
-                r = slice(r0, min(J.shape[0], r0 + ROW_CHUNK))
-                Jh = reduce(J[r])
-                A = sp.csr_matrix((e[r], (sample[r], np.arange(r.stop - r.start))), shape=(T, r.stop - r.start))
-                Gt += A @ Jh
+            if pooling == "sample":
+                scores = scores + sp.csr_matrix((e, (np.repeat(series, m), np.arange(J.shape[0]))),
+                                                shape=(T, J.shape[0])) @ J
             # channels: the k-th instance of a sample and its residual component
             order = np.argsort(series, kind="stable")
             first = np.searchsorted(series[order], series[order])
@@ -262,6 +260,9 @@ def serial_covariance(solver, x, p_fixed=None, data=None, lags: int | None = Non
                 r = slice(r0, min(J.shape[0], r0 + ROW_CHUNK))
                 Jh = reduce(J[r])[valid[r]]
                 F_ind += Jh.T @ Jh
+    # the elimination is linear: ĝ_t = reduce(Σ_n e_n J_n), one row per sample instead of per residual
+    for r0 in range(0, T if pooling == "sample" else 0, ROW_CHUNK):
+        Gt[r0: r0 + ROW_CHUNK] = reduce(scores[r0: r0 + ROW_CHUNK])
     num, den, var = np.concatenate(num), np.concatenate(den), np.concatenate(var)
     with np.errstate(invalid="ignore", divide="ignore"):
         rho = num / den

@@ -7,13 +7,15 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.linalg import splu
 
 
 def factor(K: sp.spmatrix):
     """Sparse LU of a symmetric (KKT) matrix. The minimum-degree ordering on K + K^T keeps the
     triangular solves fast: with SuperLU's default COLAMD, solving for 100 right-hand sides on a
-    block-diagonal motion block of 18 000 rows took 31 s instead of 0.17 s."""
+    block-diagonal motion block of 18 000 rows took 31 s instead of 0.17 s. (scipy.sparse.linalg
+    is imported here: a dynamic solve with the motion eliminated never needs it.)"""
+    from scipy.sparse.linalg import splu
+
     return splu(sp.csc_matrix(K), permc_spec="MMD_AT_PLUS_A")
 
 
@@ -138,9 +140,9 @@ def undetermined(solver, x, p_fixed=None, data=None, top: int = 4) -> list[str]:
     U = np.linalg.qr(G.T, mode="complete")[0][:, G.shape[0]:] if G.shape[0] else np.eye(len(solver.theta))
     w, V = np.linalg.eigh(U.T @ S @ U)
     tol = solver.options.identifiability_tol * max(w.max(), 1e-300)
-    labels = solver.problem.layout.x_labels
-    out = []
+    out, labels = [], None
     for k in np.flatnonzero(w <= tol):
+        labels = solver.problem.layout.x_labels if labels is None else labels  # only to name one (every x's: 0.1 s)
         d = U @ V[:, k]
         idx = np.argsort(-np.abs(d))[:top]
         idx = [i for i in idx if abs(d[i]) > 0.2 * abs(d[idx[0]])]
