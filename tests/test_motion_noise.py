@@ -323,7 +323,7 @@ def test_unconverged_components_named_in_one_line(tmp_path, monkeypatch):
     the sensor's key, never a silently used estimate."""
     import castimate.solver.motion_noise as mn
     spec, _ = _board(tmp_path, 1e-4)
-    monkeypatch.setattr(mn, "variance_components", functools.partial(mn.variance_components, max_iter=1))
+    monkeypatch.setattr(mn, "solve_components", functools.partial(mn.solve_components, max_iter=1))
     with pytest.raises(NotConvergedError, match=r"problem\.yaml: noise\.motion_dependent\.(accelerometer|gyroscope): "
                                                 r"the variance components did not converge in 1 iterations") as err:
         calibrate_dynamic(spec)

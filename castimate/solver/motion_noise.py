@@ -41,12 +41,13 @@ the calibration, and small here, where it depends on it only through u̇ and ω.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from itertools import pairwise
 
 import numpy as np
 
-from .variance import likelihood_ratio, variance_components
+from .variance import likelihood_ratio, solve_components
 
 
 #: The components of the motion-dependent noise model beyond σ₀² (module docstring, eq. 2): name ->
@@ -103,23 +104,24 @@ def fit_noise(residual, leverage, sigma0, regressors: dict[str, list], settings:
                         + [flat(regressors[k]) for k in names])
     ok = np.isfinite(e) & (r > 0) & np.all(np.isfinite(G), axis=1)
     e, r, G = e[ok], r[ok], G[ok]
+    e2, Gt = e ** 2, np.ascontiguousarray(G.T)  # the rows as every fit below takes them
     fixed = {k: float(v) for k, v in settings.items() if not isinstance(v, str)}
     active = [k for k, v in settings.items() if v in ("auto", "free")]
     start = start or {}
     # where to start: the previous round's parameters (the outer iteration's), or, for components
     # without one, the moment estimate (from the white fit Newton's method took ~30 iterations)
-    guess = moment_estimate(e, r, G)
+    guess = functools.cache(lambda: moment_estimate(e, r, G))  # only for a fit without a warm start
 
     def fit(keep, theta=None):
         key = frozenset(keep)
         if key in warm:  # the same fit in the outer iteration's previous round
             theta = warm[key]
         elif theta is None:
-            theta = [fixed.get(k, (start.get(k) or np.sqrt(guess[i])) if k in keep else 0.0) ** 2
+            theta = [fixed.get(k, (start.get(k) or np.sqrt(guess()[i])) if k in keep else 0.0) ** 2
                      for i, k in enumerate(names, start=1)]
         theta0 = np.array([1.0] + [t if k in keep or k in fixed else 0.0 for k, t in zip(names, theta)])
         free = [False] + [k in keep for k in names]
-        out = variance_components(e, r, G, theta0, free)
+        out = solve_components(e2, r, Gt, theta0, free)
         warm[key] = out.theta[1:]
         return out
 
