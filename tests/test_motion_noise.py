@@ -140,9 +140,10 @@ def _outer(Phi, z0, tol, max_rounds, relaxed=None):
         return False, max_rounds, z
     state = {"z": z0, "previous": None, "refits": 0}
 
-    def propose():
+    def propose(reused):  # the toy map has no leverages: the same estimate either way
         g, previous = Phi(state["z"]), state["previous"]
-        state["previous"] = g
+        if not reused:
+            state["previous"] = g
         return {"gyroscope": {"rate": float(np.exp(g[0]))}}, g, previous
 
     def refit(z, tight):
@@ -184,18 +185,22 @@ def test_outer_iteration_limit_and_safeguard():
     assert not converged and rounds == 1
 
 
-def _loose_then_polished(converges_anyway: bool):
-    """The refits (σ's, tight) of :func:`accelerated_fixed_point` on Φ(z) = z* + 10⁻³ (z − z*) from
-    100 % away, the refit returning ``converges_anyway`` when asked for a loose fit; and the outcome."""
+def _loose_then_polished(converges_anyway: bool, bias: float = 0.0):
+    """The refits (σ's, tight) and estimates (whether with reused leverages) of
+    :func:`accelerated_fixed_point` on Φ(z) = z* + 10⁻³ (z − z*) from 100 % away, the refit
+    returning ``converges_anyway`` when asked for a loose fit, an estimate with reused leverages off
+    by ``bias`` in every log σ; and the outcome."""
     star = np.array([np.log(3e-3), np.log(5e-2)])
-    calls, state = [], {"z": star + 1.0, "previous": None}
+    calls, estimates, state = [], [], {"z": star + 1.0, "previous": None}
 
     def phi(z):
         return star + 1e-3 * (z - star)
 
-    def propose():
-        g, previous = phi(state["z"]), state["previous"]
-        state["previous"] = g
+    def propose(reused):
+        estimates.append(reused)
+        g, previous = phi(state["z"]) + (bias if reused else 0.0), state["previous"]
+        if not reused:
+            state["previous"] = g
         return {"gyroscope": {"rate": 1.0}}, g, previous
 
     def refit(z, tight):
@@ -203,7 +208,7 @@ def _loose_then_polished(converges_anyway: bool):
         state["z"] = z
         return tight or converges_anyway
 
-    return calls, phi(star + 1.0), accelerated_fixed_point(propose, refit, star + 1.0, 0.01, 12)
+    return calls, estimates, phi(star + 1.0), accelerated_fixed_point(propose, refit, star + 1.0, 0.01, 12)
 
 
 def test_outer_iteration_refits_loosely_far_from_the_fixed_point_and_polishes_before_converging():
@@ -211,12 +216,24 @@ def test_outer_iteration_refits_loosely_far_from_the_fixed_point_and_polishes_be
     TIGHT × tol) and may stop early; the estimate from it already passes the test, so that fit is
     continued to convergence at the same σ's and the test repeated there, and only then does the
     iteration converge (one weighted refit). A loose refit that converged anyway needs no polish."""
-    calls, first, out = _loose_then_polished(False)
+    calls, _, first, out = _loose_then_polished(False)
     assert out.converged and out.rounds == 1
     assert [t for _, t in calls] == [False, True] and np.allclose(calls[0][0], first)
     assert np.array_equal(calls[1][0], calls[0][0])  # the polish: the same σ's, to convergence
-    calls, _, out = _loose_then_polished(True)
+    calls, _, _, out = _loose_then_polished(True)
     assert out.converged and out.rounds == 1 and [t for _, t in calls] == [False]
+
+
+def test_convergence_tested_with_reused_leverages_only_with_margin():
+    """The polished fit has the σ's of the fit the last estimate was made at, so its test first takes
+    that fit's leverages: an estimate within REUSED × tol (here exact) converges there, without new
+    leverages; one that the reused leverages put 0.8 % off (beyond 0.5 %, within 1 %) is estimated
+    again with the fit's own, and converges on that."""
+    _, estimates, _, out = _loose_then_polished(False)
+    assert estimates == [False, False, True] and out.converged and "leverages of the previous fit" in out.status
+    _, estimates, _, out = _loose_then_polished(False, bias=0.008)
+    assert estimates == [False, False, True, False] and out.converged
+    assert "leverages of the previous fit" not in out.status and out.rms < 0.002  # not the biased 0.8 %
 
 
 def test_fit_noise_recovers_jitter_on_synthetic_residuals():

@@ -642,19 +642,24 @@ def fit_motion_noise(spec: ProblemSpec, problem, solver: Solver, sol: Solution, 
     fits: dict = {}
     warm: dict = {}  # per sensor, the variance components' fits of the previous round (fit_noise)
     structure: dict = {}  # the leverages' (hat_diagonal): the Jacobian's sparsity is the same every round
-    state = {"data": data, "sol": sol, "regressors": None, "params": params, "estimate": None}
+    state = {"data": data, "sol": sol, "regressors": None, "params": params, "estimate": None, "leverages": None}
 
-    def propose():
+    def propose(reused=False):
         data, sol = state["data"], state["sol"]
         if state["regressors"] is None:  # at a refit's solution (the white fit's are computed below)
             state["regressors"] = noise_regressors(problem, sol.values, data)
         regressors = state["regressors"]
         proposal = {s: dict(c) for s, c in state["params"].items()}
         if estimated:
-            t0 = time.process_time()
-            J, G = solver.jacobians(sol.x, data=problem.data_vector(data))
-            h = problem.per_triad(hat_diagonal(J, G, stages, np.arange(solver.n_data_residuals), structure))
-            log(f"  leverages of {solver.n_data_residuals} residuals: {time.process_time() - t0:.2f} s CPU")
+            if reused:  # the previous estimate's (accelerated_fixed_point: a test with margin)
+                h = state["leverages"]
+                log("  leverages of the previous fit")
+            else:
+                t0 = time.process_time()
+                J, G = solver.jacobians(sol.x, data=problem.data_vector(data))
+                h = state["leverages"] = problem.per_triad(
+                    hat_diagonal(J, G, stages, np.arange(solver.n_data_residuals), structure))
+                log(f"  leverages of {solver.n_data_residuals} residuals: {time.process_time() - t0:.2f} s CPU")
             res = measurement_residuals(problem, data, sol)
             for i, (sensor, kind) in enumerate(SENSORS):
                 names = list(res[i])
@@ -671,7 +676,8 @@ def fit_motion_noise(spec: ProblemSpec, problem, solver: Solver, sol: Solution, 
                 fits[sensor] = fit
                 proposal[sensor].update({k: f.value for k, f in fit.items()})
         previous = _log_sigmas(data, state["estimate"], regressors) if state["estimate"] else None
-        state["params"] = state["estimate"] = proposal
+        if not reused:  # else this round's estimate comes next (the same start and previous estimate)
+            state["params"] = state["estimate"] = proposal
         return proposal, _log_sigmas(data, proposal, regressors), previous
 
     def refit(z, tight):
