@@ -449,6 +449,26 @@ def test_gyroscope_data_used(sim_gyro, tmp_path):
     assert out.solution.success and out.problem.gyro_triads == ["imu1", "imu2"]
 
 
+def test_gyroscope_noise_without_gyroscopes_static(doc, sim_gyro, tmp_path):
+    """The static kind took noise.gyroscope silently for a session without gyroscope readings (the
+    dynamic kind refused it): refused alike, also where every triad's gyroscope is switched off."""
+    edit(doc, "noise.gyroscope", 0.01)
+    p = write_yaml(tmp_path / "p.yaml", doc)
+    expect_error(lambda: calibrate_static(load_problem(p)), p, "noise.gyroscope",
+                 "expected no gyroscope noise, found 0.01: data.csv has no gyroscope readings for imu1, imu2, imu3 "
+                 "(accelerometers only); leave it out")
+    doc = _problem_doc(sim_gyro)
+    edit(doc, "noise.gyroscope", {"imu1": 0.01, "imu2": 0.02})
+    for t in doc["array"]["triads"]:
+        t["gyroscope"] = False
+    p = write_yaml(tmp_path / "p.yaml", doc)
+    expect_error(lambda: calibrate_static(load_problem(p)), p, "noise.gyroscope",
+                 "found {'imu1': 0.01, 'imu2': 0.02}: no triad's gyroscope is used (array: gyroscope: false for imu1, imu2)")
+    doc["array"]["triads"][1]["gyroscope"] = True  # one gyroscope read: the σ's are used
+    out = calibrate_static(load_problem(write_yaml(tmp_path / "p.yaml", doc)))
+    assert out.problem.gyro_triads == ["imu2"]
+
+
 def test_not_converged(doc, tmp_path):
     edit(doc, "solver.max_iter", 1)
     p = write_yaml(tmp_path / "p.yaml", doc)

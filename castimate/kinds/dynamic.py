@@ -18,9 +18,8 @@ import numpy as np
 
 from . import CrossValidation, Log, Residuals, quiet
 from .intrinsics import read_intrinsics, reused
-from .static import check_estimates, check_gyroscope_effects, check_plausible, check_temperature, declared, load_recording
+from .static import check_estimates, check_gyroscope_effects, check_gyroscope_noise_used, check_plausible, check_temperature, declared, load_recording
 from ..errors import InputError, NotConvergedError
-from ..validation import shown
 from ..io.readers import read_recording
 from ..io.recording import Recording
 from ..problem.compensation import linear_inverse
@@ -76,16 +75,7 @@ def noise_from_static(spec: ProblemSpec, full: Recording, log: Log, cache: dict 
     recording (:func:`full_static`, kept in ``cache``)."""
     names = spec.array.names
     acc, gyro = spec.noise.accelerometer, spec.noise.gyroscope
-    if not any(n in full.gyro for n in names):  # σ's of a sensor the session lacks would be silently dropped
-        one = set(gyro.values()) if gyro else set()
-        named = ([("noise.gyroscope", one.pop() if len(one) == 1 else gyro)] if gyro else []) + \
-            [(f"noise.motion_dependent.gyroscope.{k}", v)
-             for k, v in spec.noise.motion_dependent["gyroscope"].items() if not isinstance(v, str)]
-        if named:
-            key, value = named[0]
-            raise InputError(spec.path, key, f"expected no gyroscope noise, found {shown(value)}: "
-                             f"{spec.data.path.name} has no gyroscope readings for {', '.join(names)} "
-                             "(accelerometers only); leave it out")
+    check_gyroscope_noise_used(spec, full)  # σ's of a sensor the session lacks would be silently dropped
     out_a = {n: np.full(3, acc[n]) for n in names} if acc else None
     out_g = {n: np.full(3, gyro[n]) for n in names if n in full.gyro} if gyro else None
     if out_a is None or (out_g is None and full.gyro):

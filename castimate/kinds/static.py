@@ -14,6 +14,7 @@ import numpy as np
 from . import CrossValidation, Log, Residuals, quiet
 from .intrinsics import group_def, read_intrinsics, reused
 from ..errors import InputError, NotConvergedError
+from ..validation import shown
 from ..io.readers import read_recording
 from ..io.recording import Recording
 from ..problem.compensation import linear_inverse
@@ -140,6 +141,25 @@ def check_estimates(spec: ProblemSpec, values: dict, names: list[str]) -> None:
                                  f"the fit puts the {what} ({axis}) at {v[i]:.4g}, outside its physical "
                                  f"range {lo[i]:g} to {hi[i]:g}: the data contradict the model (an axis read with "
                                  "reversed sign, mislabelled poses or wrong units)")
+
+
+def check_gyroscope_noise_used(spec: ProblemSpec, rec: Recording) -> None:
+    """Refuse gyroscope σ's (``noise.gyroscope``, a fixed ``noise.motion_dependent.gyroscope``
+    component) for a session in which no triad's gyroscope reads: they would be silently dropped."""
+    names = spec.array.names
+    if any(t.gyroscope is not False and t.name in rec.gyro for t in spec.array.triads):
+        return
+    gyro = spec.noise.gyroscope
+    one = set(gyro.values()) if gyro else set()
+    named = ([("noise.gyroscope", one.pop() if len(one) == 1 else gyro)] if gyro else []) + \
+        [(f"noise.motion_dependent.gyroscope.{k}", v)
+         for k, v in spec.noise.motion_dependent["gyroscope"].items() if not isinstance(v, str)]
+    if named:
+        key, value = named[0]
+        why = (f"{spec.data.path.name} has no gyroscope readings for {', '.join(names)} (accelerometers only)"
+               if not any(n in rec.gyro for n in names) else
+               f"no triad's gyroscope is used (array: gyroscope: false for {', '.join(n for n in names if n in rec.gyro)})")
+        raise InputError(spec.path, key, f"expected no gyroscope noise, found {shown(value)}: {why}; leave it out")
 
 
 def check_gyroscope_effects(spec: ProblemSpec, triad, has_gyro: bool) -> None:
@@ -396,6 +416,7 @@ def load_static(spec: ProblemSpec, log: Log = quiet) -> StaticData:
     for note in rec.notes:
         log(f"  {note}")
     check_plausible(spec, rec, "static", log)
+    check_gyroscope_noise_used(spec, rec)
     avg, det = pose_averages(spec, rec)
     if det is not None:
         log(det.summary())
