@@ -78,7 +78,7 @@ def cmd_report(args) -> int:
     target = Path(args.output) if args.output else directory / "report.html"
     with StagedOutput(target, directory=False,
                       inputs=(directory / "results.json", directory / "details.npz")) as staged:
-        write_report(directory, staged)
+        write_report(directory, staged, log=_progress(args))
     print(f"wrote {target}")
     return 0
 
@@ -147,7 +147,7 @@ def cmd_codegen(args) -> int:
     out = Path(args.output)
     with StagedOutput(out, inputs=(args.source,)) as stage:
         files = generate_c(args.source, stage, CodegenOptions(window=args.window, start=args.start,
-                                                              motion_only=args.motion_only))
+                                                              motion_only=args.motion_only), log=_progress(args))
     for name in files:
         print(f"wrote {out / name}")
     print(f"build and test with: make -C {args.output} check")
@@ -176,7 +176,7 @@ def cmd_batch(args) -> int:
     names = ("summary.csv", "summary.json", "summary.html")
     with StagedOutput(out, names=names, inputs=(args.template, *recordings_of(args.recordings))) as stage:
         with dask_client(args.scheduler, args.workers) as client:
-            summary = run_batch(client, args.template, args.recordings, _log, args.outlier_threshold, args.diagnose)
+            summary = run_batch(client, args.template, args.recordings, _progress(args), args.outlier_threshold, args.diagnose)
         for name, r in zip(summary.names, summary.results):
             if r.ok:
                 for f, data in r.value["files"].items():
@@ -211,7 +211,7 @@ def cmd_montecarlo(args) -> int:
     names = ("montecarlo.json", "parameters.csv", "runs.csv", "montecarlo.html", "montecarlo.png")
     with StagedOutput(out, names=names, inputs=(args.scenario,)) as stage:
         with dask_client(args.scheduler, args.workers) as client:
-            study = run_montecarlo(client, args.scenario, args.runs, _log, args.bound)
+            study = run_montecarlo(client, args.scenario, args.runs, _progress(args), args.bound)
         rows = montecarlo_table(study.score, study.bound.truth)
         runs = [{"run": r.name, "status": "ok" if r.ok else "failed", "chi2_per_dof": r.value.chi2_per_dof if r.ok
                  else None, "wall_s": r.wall_s, "message": r.error} for r in study.results]
@@ -248,7 +248,7 @@ def cmd_plan(args) -> int:
     names = ("plan.json", "plan.csv", "plan.html", "crb_vs_duration.png")
     with StagedOutput(out, names=names, inputs=(args.plan,)) as stage:
         with dask_client(args.scheduler, args.workers) as client:
-            plan, cases = run_plan(client, args.plan, _log)
+            plan, cases = run_plan(client, args.plan, _progress(args))
         rows = plan_table(cases)
         write_json(stage / names[0], {"format": "castimate.plan/1", "plan": str(args.plan), "durations_s": plan.durations,
                                       "undetermined": {f"{c.duration:g} s": list(c.undetermined) for c in cases},
@@ -279,21 +279,20 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="verb", required=True, metavar="VERB")
 
     def verb(name, summary, description):
-        return sub.add_parser(name, help=summary, description=f"{summary[0].upper()}{summary[1:]}. {description}")
+        s = sub.add_parser(name, help=summary, description=f"{summary[0].upper()}{summary[1:]}. {description}")
+        s.add_argument("-q", "--quiet", action="store_true", help="no progress messages on stderr")
+        return s
 
-    quiet = {"action": "store_true", "help": "no progress messages on stderr"}
     s = verb("solve", "solve a YAML problem, write DIR/results.json and DIR/details.npz and print a summary",
              "Reads the data, finds the static poses (static_array) or masks saturated samples (dynamic_array), "
              "solves the maximum-likelihood problem and writes the estimates with their sigmas.")
     s.add_argument("problem", help="problem file (PROBLEM.yaml, see the README's 'Problem files')")
     s.add_argument("-o", "--output", required=True, help="output directory (created if missing)")
-    s.add_argument("-q", "--quiet", **quiet)
     s.set_defaults(func=cmd_solve)
     s = verb("simulate", "simulate a session with known truth and write a ready problem",
              "Writes DIR/data.csv, DIR/truth.json and DIR/problem.yaml; solve the latter with `castimate solve`.")
     s.add_argument("scenario", help="scenario file (a problem-like YAML with a 'seed' key, e.g. problems/sim_*.yaml)")
     s.add_argument("-o", "--output", required=True, help="output directory (created if missing)")
-    s.add_argument("-q", "--quiet", **quiet)
     s.set_defaults(func=cmd_simulate)
     s = verb("apply", "write calibrated data from a results.json",
              "Reads DATA with the units recorded in the results, removes every included effect and writes "
@@ -304,7 +303,6 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--format", choices=("csv", "npz", "mimu", "imutk"), help="data format (default: from the extension)")
     s.add_argument("--gyro", metavar="FILE", help="imutk data: the gyroscope file beside the accelerometer file "
                                                   "(default: the file named like DATA with 'acc' -> 'gyro', if it exists)")
-    s.add_argument("-q", "--quiet", **quiet)
     s.set_defaults(func=cmd_apply)
     s = verb("report", "write a self-contained HTML report of a solved directory",
              "Reads DIR/results.json and DIR/details.npz as written by `castimate solve`.")
@@ -317,7 +315,6 @@ def build_parser() -> argparse.ArgumentParser:
              "the refined problem file and report.html.")
     s.add_argument("problem", help="problem file (static_array or dynamic_array)")
     s.add_argument("-o", "--output", required=True, help="output directory (created if missing)")
-    s.add_argument("-q", "--quiet", **quiet)
     s.set_defaults(func=cmd_diagnose)
     s = verb("noise", "Allan deviation of the static segments of a problem's data: write DIR/imu.yaml, "
                       "DIR/noise.json and DIR/allan.png",
@@ -326,7 +323,6 @@ def build_parser() -> argparse.ArgumentParser:
              "Kalibr's IMU noise file (the largest axis); arrays get imu_<triad>.yaml and allan_<triad>.png.")
     s.add_argument("problem", help="problem file; its data, units, time range and static detection are used")
     s.add_argument("-o", "--output", required=True, help="output directory (created if missing)")
-    s.add_argument("-q", "--quiet", **quiet)
     s.set_defaults(func=cmd_noise)
     s = verb("codegen", "write C99 code into DIR: the solver of a problem file, or the compensation function "
                         "of a results.json", "Builds and checks with `make -C DIR check` (gcc and make needed).")

@@ -23,6 +23,27 @@ def test_every_verb_and_argument_is_described():
             assert a.help, f"{name} {a.dest} has no help"
 
 
+def test_every_verb_takes_quiet():
+    """report, codegen, batch, montecarlo and plan had no -q; every verb takes it now."""
+    sub = next(a for a in build_parser()._actions if a.dest == "verb")
+    for name, verb in sub.choices.items():
+        assert any("-q" in a.option_strings and "--quiet" in a.option_strings for a in verb._actions), name
+
+
+def test_report_and_codegen_progress_on_stderr_silenced_by_quiet(tmp_path, capsys):
+    d = tmp_path / "solved"
+    shutil.copytree(ROOT / "reports" / "xsens_imutk", d)
+    for verb, args in (("report", [str(d), "-o", str(tmp_path / "x.html")]),
+                       ("codegen", [str(d / "results.json"), "-o", str(tmp_path / "c")])):
+        assert main([verb, *args]) == 0
+        out = capsys.readouterr()
+        assert "wrote" in out.out and out.err.strip() and "wrote" not in out.err, (verb, out)
+        shutil.rmtree(tmp_path / "c", ignore_errors=True)
+        assert main([verb, *args, "-q"]) == 0
+        out = capsys.readouterr()
+        assert "wrote" in out.out and out.err == "", (verb, out)
+
+
 def test_version(capsys):
     with pytest.raises(SystemExit) as e:
         main(["--version"])

@@ -185,15 +185,20 @@ def test_plan_agrees_with_montecarlo_dynamic(client, tmp_path):
     assert abs(np.sqrt(np.mean(ratio ** 2)) - 1) < sampling_band(30)
 
 
-def test_montecarlo_and_plan_commands_write_their_outputs(client, tmp_path):
+def test_montecarlo_and_plan_commands_write_their_outputs(client, tmp_path, capsys):
     sc = write(tmp_path / "s.yaml", STATIC)
     addr = client.scheduler.address
     assert main(["montecarlo", str(sc), "--runs", "4", "-o", str(tmp_path / "mc"), "--scheduler", addr]) == 0
+    out = capsys.readouterr()
+    assert "runs solved" in out.out and "[4/4]" in out.err, out  # progress on stderr, the result on stdout
     doc = json.loads((tmp_path / "mc" / "montecarlo.json").read_text())
     assert doc["solved"] == 4 and len(doc["parameters"]) == 33
     assert (tmp_path / "mc" / "montecarlo.png").stat().st_size > 10_000
     plan = write(tmp_path / "p.yaml", {**STATIC, "plan": {"durations": [1, 4]}})
-    assert main(["plan", str(plan), "-o", str(tmp_path / "plan"), "--scheduler", addr]) == 0
+    capsys.readouterr()
+    assert main(["plan", str(plan), "-o", str(tmp_path / "plan"), "--scheduler", addr, "-q"]) == 0
+    out = capsys.readouterr()
+    assert "parameters" in out.out and out.err == "", out  # -q: no progress
     rows = json.loads((tmp_path / "plan" / "plan.json").read_text())["parameters"]
     assert all(r["exponent"] == pytest.approx(-0.5, abs=1e-6) for r in rows)  # white noise averaged 4x longer
     assert (tmp_path / "plan" / "crb_vs_duration.png").exists() and (tmp_path / "plan" / "plan.csv").exists()

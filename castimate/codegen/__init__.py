@@ -7,6 +7,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 from ..errors import InputError
@@ -19,13 +20,14 @@ def is_problem_file(path: str | Path) -> bool:
     return Path(path).suffix.lower() in (".yaml", ".yml")
 
 
-def generate_c(source: str | Path, out_dir: str | Path, options: CodegenOptions = CodegenOptions()) -> dict[str, Path]:
+def generate_c(source: str | Path, out_dir: str | Path, options: CodegenOptions = CodegenOptions(),
+               log: Callable[[str], None] = lambda m: None) -> dict[str, Path]:
     """Write C sources, header, test vectors, test program, Makefile and README into out_dir.
 
     ``source`` is a results.json (the compensation function) or a problem file (its solver, see
     :class:`CodegenOptions` for the window of a dynamic problem and the motion estimator). Returns
     {name: path} of the files written. Raises InputError for bad input, NotConvergedError if the
-    reference solve fails.
+    reference solve fails. ``log``: progress lines.
     """
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
@@ -33,9 +35,13 @@ def generate_c(source: str | Path, out_dir: str | Path, options: CodegenOptions 
     if is_problem_file(source):
         from .solvers import generate_solver_files, reference_for
 
-        files = generate_solver_files(reference_for(source, options))
+        log(f"solving {Path(source).name} in Python (IPOPT): the reference solution of the test vectors")
+        ref = reference_for(source, options)
+        log("generating the C solver (CasADi)")
+        files = generate_solver_files(ref)
     else:
         options.check(source, None)
+        log(f"generating the compensation function of {Path(source).name} (CasADi)")
         files = generate_files(source)
     written = {}
     for name, text in files.items():
