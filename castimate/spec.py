@@ -588,6 +588,11 @@ def parse_motion(c: Check, m) -> MotionSpec:
         if not isinstance(m["process_model"], bool):
             c.fail("motion.process_model", f"expected true or false, found {m['process_model']!r}")
         kw["process_model"] = m["process_model"]
+        unused = [k for k in m if k != "process_model"]
+        if not m["process_model"] and unused:  # every sample's motion is free: nothing ties the samples
+            c.fail(f"motion.{unused[0]}", f"is a setting of the process model, found with motion.process_model: false "
+                                          "(the motion of every sample free), where it would be unused; leave it out "
+                                          "or set process_model: true")
     return MotionSpec(**kw)
 
 

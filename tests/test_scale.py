@@ -448,6 +448,9 @@ def test_bound_problems_by_hand():
     over = {"model": {"gyroscope": {"bias": "fixed"}}}
     assert bound_problem(StudySettings("problem", over)) == over
     assert bound_problem(StudySettings("measurements", over)) == {**over, "motion": {"process_model": False}}
+    # the process model's settings leave with it (they are refused with process_model: false)
+    levels = {**over, "motion": {"integration": "euler", "sigma_s": 30.0}}
+    assert bound_problem(StudySettings("measurements", levels)) == {**over, "motion": {"process_model": False}}
     pm = StudySettings("process_model", over)
     assert bound_problem(pm, {"integration": "wiener3", "levels": {"s": 2.0, "omega_dot": 400.0}}) == {
         **over, "motion": {"process_noise": "fixed", "density_s": 2.0, "density_omega": 400.0}}

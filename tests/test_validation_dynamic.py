@@ -143,6 +143,8 @@ def test_dict_with_a_key_that_is_not_a_string(doc, sim):
     ("{density_s: -1}", "motion.density_s", "expected a positive finite number, found -1"),
     ("{integration: rk4}", "motion.integration", "expected one of wiener3, wiener2, trapezoid, euler, found 'rk4'"),
     ("{sigma_s: 30}", "motion.sigma_s", "is a level of integration trapezoid or euler"),
+    ("{process_model: false, process_noise: fixed}", "motion.process_noise",
+     "is a setting of the process model, found with motion.process_model: false"),
 ])
 def test_scenario_motion_values(tmp_path, motion, where, found):
     """Only the scenario's motion keys were checked: the values went unchecked into the problem file
@@ -151,6 +153,24 @@ def test_scenario_motion_values(tmp_path, motion, where, found):
     sc.write_text(SCENARIO.replace("motion: {process_model: false}", f"motion: {motion}"))
     expect_error(lambda: simulate_scenario(sc, tmp_path / "out"), sc, where, found)
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("motion, where", [
+    ({"density_s": 5.0}, "motion.density_s"),
+    ({"integration": "euler"}, "motion.integration"),
+    ({"process_noise": "auto"}, "motion.process_noise"),
+    ({"integration": "trapezoid", "sigma_s": 30.0}, "motion.integration"),
+])
+def test_process_model_settings_without_process_model(doc, tmp_path, motion, where):
+    """The process model's integration, levels and process_noise given with process_model: false were
+    silently unused (every sample's motion free); refused naming the key, accepted with the model on."""
+    doc["motion"] = {"process_model": False, **motion}
+    p = write(tmp_path / "p.yaml", doc)
+    expect_error(lambda: load_problem(p), p, where, "is a setting of the process model, found with "
+                 "motion.process_model: false (the motion of every sample free), where it would be unused")
+    doc["motion"]["process_model"] = True
+    spec = load_problem(write(tmp_path / "p.yaml", doc))
+    assert spec.motion.process_model and all(getattr(spec.motion, k) == v for k, v in motion.items())
 
 
 # ============================================================================ results.json regressors

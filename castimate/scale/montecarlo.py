@@ -93,7 +93,7 @@ def bound_problem(settings: StudySettings, levels: dict | None = None) -> dict:
     """The problem keys of the noise-free session of the settings' bound (``levels``: the process
     model's integration and levels, for the process_model bound)."""
     if settings.bound == "measurements":
-        return merged(settings.problem, {"motion": {"process_model": False}})
+        return {**settings.problem, "motion": {"process_model": False}}  # the process model's settings go too
     if settings.bound == "process_model":
         keys = MOTION_LEVEL_KEYS[levels["integration"]]
         return merged(settings.problem, {"motion": {"process_noise": "fixed", **{
