@@ -5,7 +5,7 @@ import json
 
 import numpy as np
 
-from castimate.models.motion import angular_motion_from_specific_forces
+from castimate.models.motion import affine_dimension, angular_motion_from_specific_forces
 from castimate.simulate.dynamic import SCHOPP_POSITIONS_CM, sinusoid_motion
 
 R4 = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0], [0.0, 0.0, 0.1]])
@@ -38,6 +38,39 @@ def test_hand_computed_recovery_with_signs_through_a_zero_crossing():
     np.testing.assert_allclose(wd1, 0, atol=1e-12)
 
 
+def test_coplanar_array_by_hand():
+    """A board (positions in one plane) gives only W's two in-plane columns; ω used to stay at zero.
+    By hand: ω = (1, 2, 3), ω̇ = 0 on the plane z = 0: W₁₁ = −13, W₂₂ = −10, W₁₂ + W₂₁ = 4, so
+    (ω₁ + iω₂)² = −3 + 4i = (1 + 2i)² and ω₃² = (13 + 10 − 5)/2 = 9; the wrong sign of ω₃ would need
+    ω̇₁ = W₃₂ − ω₃ω₂ = 6 + 6 = 12, which continuity with a constant ω refutes."""
+    flat = R4[:3]
+    t = np.arange(5) * 0.01
+    omega = np.tile([1.0, 2.0, 3.0], (5, 1))
+    s = np.tile([0.3, -0.2, 9.81], (5, 1))
+    w, wd, s_hat, determined = angular_motion_from_specific_forces(t, forces(s, omega, np.zeros((5, 3)), flat), flat)
+    assert affine_dimension(flat) == 2 and determined.all()
+    assert np.allclose(w, omega, atol=1e-12) or np.allclose(w, -omega, atol=1e-12)  # ω̇ = 0: either sign
+    np.testing.assert_allclose(wd, 0, atol=1e-12)
+    np.testing.assert_allclose(s_hat, s, atol=1e-12)
+
+
+def test_coplanar_array_signs_through_a_zero_crossing():
+    # the first test's motion (ω_z through zero at t = 0.1) on a tilted board off the origin: the
+    # normal component of ω changes sign, ω̇ fixes both signs
+    t = np.arange(21) * 0.01
+    omega = np.column_stack([np.full_like(t, 2.0), np.zeros_like(t), -5 + 50 * t])
+    omega_dot = np.tile([0.0, 0.0, 50.0], (len(t), 1))
+    s = np.tile([0.3, -0.2, 9.81], (len(t), 1))
+    c, sn = np.cos(0.4), np.sin(0.4)
+    R = np.array([[1, 0, 0], [0, c, -sn], [0, sn, c]]) @ np.array([[c, 0, sn], [0, 1, 0], [-sn, 0, c]])
+    board = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0], [-0.1, 0.05, 0.0]]) @ R.T + [0.02, -0.01, 0.03]
+    w, wd, s_hat, determined = angular_motion_from_specific_forces(t, forces(s, omega, omega_dot, board), board)
+    assert affine_dimension(board) == 2 and determined.all()
+    np.testing.assert_allclose(wd, omega_dot, atol=1e-8)
+    np.testing.assert_allclose(w, omega, atol=1e-6)
+    np.testing.assert_allclose(s_hat, s, atol=1e-9)
+
+
 def test_noise_robust_on_schopp_array():
     r = SCHOPP_POSITIONS_CM * 1e-2
     m = sinusoid_motion(300, 100.0, np.deg2rad(2000), np.deg2rad(8594), np.random.default_rng(5))
@@ -58,9 +91,11 @@ def test_undetermined_samples_fall_back():
     t = np.arange(5) * 0.01
     omega = np.tile([1.0, 2.0, 3.0], (5, 1))
     f = forces(np.zeros((5, 3)), omega, np.zeros((5, 3)), R4)
-    # coplanar positions (z = 0): W's z column is free, so no sample is determined: ω = ω̇ = 0
-    flat = R4[:3]
-    w, wd, s, determined = angular_motion_from_specific_forces(t, f[:, :3], flat)
+    # collinear positions (on the x axis): W's y and z columns are free, so no sample is determined: ω = ω̇ = 0
+    line = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.2, 0.0, 0.0]])
+    w, wd, s, determined = angular_motion_from_specific_forces(t, forces(np.zeros((5, 3)), omega, np.zeros((5, 3)),
+                                                                         line), line)
+    assert affine_dimension(line) == 1 and affine_dimension(R4) == 3 and affine_dimension(R4[:1]) == 0
     assert not determined.any() and np.all(w == 0) and np.all(wd == 0) and np.isnan(s).all()
     # a masked reading leaves sample 2 with 3 triads on an axis: interpolated from its neighbours
     valid = np.ones((5, 4, 3), bool)
@@ -89,3 +124,46 @@ def test_default_gyro_free_scenario_solves(tmp_path):
         if name != truth["reference"]:
             z = (sol.values[f"{name}.position"] - tr["position"]) / sol.std[f"{name}.position"]
             assert np.abs(z).max() < 5, (name, z)
+
+
+def test_gyro_free_board_solves(tmp_path):
+    """A gyro-free board (5 coplanar triads, positions free, default process model): from the zero
+    start, Gauss-Newton stopped at iteration 0 (Invalid_Number_Detected) in each of 3 attempts, exit 3
+    after 166 s; from the in-plane start it converges, positions within 5 σ of the truth, and the
+    progress log says how ω was started."""
+    import yaml
+
+    from castimate import api
+    from castimate.io.readers import write_csv
+    from castimate.io.recording import Recording
+    from castimate.simulate.dynamic import dynamic_measurements, euler_consistent, smooth_random_motion
+
+    rng = np.random.default_rng(3)
+    m = euler_consistent(smooth_random_motion(300, 100.0, np.radians(2000), np.radians(20000), rng))
+    nominal = np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [-0.1, 0, 0], [0, -0.1, 0.0]])
+    true = nominal + np.vstack([np.zeros(3), 1e-3 * rng.standard_normal((4, 3))])
+    names = [f"a{i}" for i in range(5)]
+    acc, _, _ = dynamic_measurements(m, true, np.stack([np.eye(3)] * 5), np.zeros((5, 3)), rng, 0.02, names=names)
+    write_csv(tmp_path / "data.csv", Recording(t=m.t, acc=acc, gyro={}, source="simulation"))
+    doc = {"kind": "dynamic_array", "data": {"path": "data.csv", "format": "csv"},
+           "array": {"reference": "a0", "triads": [{"name": n, "position": nominal[i].tolist()} for i, n in enumerate(names)]},
+           "model": {"position": "free"}, "noise": {"accelerometer": 0.02}}
+    (tmp_path / "problem.yaml").write_text(yaml.safe_dump(doc))
+    lines = []
+    sol = api.solve(tmp_path / "problem.yaml", log=lines.append).solution
+    assert any("positions lie in one plane: ω and ω̇ start from W's two in-plane columns" in ln for ln in lines)
+    assert sol.success and 0.8 < sol.chi2_per_dof < 1.2
+    for i, n in enumerate(names[1:], 1):
+        z = (sol.values[f"{n}.position"] - true[i]) / sol.std[f"{n}.position"]
+        assert np.abs(z).max() < 5, (n, z)
+    # on one line the start cannot give ω: a warning before the solve (kinds.dynamic.check_information)
+    from castimate.kinds.dynamic import dynamic_inputs
+    from castimate.spec import load_problem
+
+    for i, t in enumerate(doc["array"]["triads"]):
+        t["position"] = [0.05 * i, 0.0, 0.0]
+    doc["model"]["position"] = "fixed"
+    (tmp_path / "problem.yaml").write_text(yaml.safe_dump(doc))
+    lines = []
+    dynamic_inputs(load_problem(tmp_path / "problem.yaml"), lines.append)
+    assert any(ln.startswith("warning: no gyroscope and the positions lie on one line") for ln in lines), lines

@@ -25,6 +25,7 @@ from ..io.recording import Recording
 from ..problem.compensation import linear_inverse
 from ..problem.triads import Regressors
 from ..problem.clocks import Beat, estimate_beats, implied_age
+from ..models.motion import affine_dimension
 from ..models.rotation import rotation_to_quaternion
 from ..problem.dynamic import (OMEGA, OMEGA_DOT, S, DynamicConfig, DynamicData, MotionSigmas, build_dynamic,
                                build_dynamic_sigma_masked, build_joint, geometry_fixed)
@@ -315,6 +316,20 @@ def dynamic_inputs(spec: ProblemSpec, log: Log = quiet, loaded: DynamicInput | N
     return DynamicInputs(config, data, sat, nominal, static_problem)
 
 
+#: The gyro-free start of the angular motion (models.motion.angular_motion_from_specific_forces), by
+#: the dimension of the positions' affine span: a progress line, a warning where it cannot start ω.
+GYRO_FREE_START = {
+    3: "no gyroscope: ω and ω̇ start from the array's specific forces, sample by sample (f_k = s + W r_k, "
+       "W = [ω]x^2 + [ω̇]x; signs by continuity with ∫ω̇)",
+    2: "no gyroscope and the positions lie in one plane: ω and ω̇ start from W's two in-plane columns, up to "
+       "the signs of ω and of its component along the normal, chosen by continuity with ∫ω̇",
+    1: "warning: no gyroscope and the positions lie on one line: the accelerometers cannot give ω sample by "
+       "sample; the motion starts at zero and its sign may flip between samples, which the fit (χ²/dof) does not "
+       "show; add a gyroscope or a triad off the line",
+}
+GYRO_FREE_START[0] = GYRO_FREE_START[1].replace("lie on one line", "coincide").replace("off the line", "elsewhere")
+
+
 def check_information(spec: ProblemSpec, data: DynamicData, nominal: dict[str, np.ndarray], log: Log) -> None:
     """Refuse data that cannot determine the motion or the free positions, before solving."""
     ref = spec.array.reference
@@ -325,6 +340,8 @@ def check_information(spec: ProblemSpec, data: DynamicData, nominal: dict[str, n
                          "is false and no triad has a gyroscope: the accelerometers alone cannot determine the motion "
                          "(the angular rate enters squared) while positions are free; set motion.process_model: true, "
                          "use the gyroscopes, or fix model.position")
+    if not gyros:
+        log(GYRO_FREE_START[affine_dimension(np.stack(list(nominal.values())))])
     sigma = float(np.mean(data.acc_sigma[ref]))
     rec = Recording(data.t, {}, {ref: data.gyro[ref]} if ref in data.gyro else {})
     check_dynamic_information(rec, ref, bool(free), np.stack(list(nominal.values())), sigma, declared(spec), log,

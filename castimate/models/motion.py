@@ -109,63 +109,125 @@ def angular_motion_from_specific_forces(t: np.ndarray, f: np.ndarray, r: np.ndar
     continuity with the trapezoid integral of ω̇, ω_n ≈ ω_{n−1} + (ω̇_{n−1} + ω̇_n) Δt/2; the sign
     of the first sample is the one whose chain agrees best with that integral overall.
 
+    A coplanar array (a board: positions in one plane) gives only W's two in-plane columns; ω and ω̇
+    then follow from :func:`_planar_candidates` up to the sign of ω and the sign of its normal
+    component, both chained by the same continuity.
+
     t: (N,) times [s]; f: (N, K, 3) specific forces in the body frame [m/s²]; r: (K, 3) positions
     [m]; valid: (N, K, 3) which readings count (default all). Returns (ω, ω̇, s, determined): (N, 3)
-    each and (N,) whether the sample's valid readings determine W (the positions of the triads
-    reading an axis must span 3-D, affinely). Undetermined samples take ω, ω̇ interpolated from the
-    determined ones (zero where none is): with coplanar positions W has free columns and the
-    centripetal terms alone leave ω ambiguous, so ω is left to the process model there (Schopp
-    2016, sec. VI-B: ω = 0 then, without a sign predetermined).
+    each and (N,) whether the sample's valid readings determine ω (the positions of the triads
+    reading an axis must span 3-D, affinely, or the array's plane). Undetermined samples take ω, ω̇
+    interpolated from the determined ones (zero where none is: collinear positions, for example),
+    and are left to the process model (Schopp 2016, sec. VI-B: ω = 0 then, without a sign
+    predetermined).
     """
     t, f, r = np.asarray(t, float), np.asarray(f, float), np.asarray(r, float)
     N, K = f.shape[:2]
     ok = np.ones((N, K, 3), bool) if valid is None else np.broadcast_to(np.asarray(valid, bool), (N, K, 3))
     A = np.column_stack([np.ones(K), r])  # (K, 4): row k of f_k = [s | W] [1; r_k]
-    X = np.full((N, 3, 4), np.nan)
+    planar = affine_dimension(r) == 2
+    if planar:  # in-plane coordinates (a, b) of the positions: f_k = (s + W c) + a_k W q1 + b_k W q2
+        c = r.mean(axis=0)
+        Q = np.linalg.svd(r - c)[2].T  # columns q1, q2 in the plane, q3 its normal
+        Q[:, 2] *= np.sign(np.linalg.det(Q))  # right-handed: the cross products keep their form
+        A = np.column_stack([np.ones(K), (r - c) @ Q[:, :2]])
+    X = np.full((N, 3, A.shape[1]), np.nan)
     for j in range(3):  # the rows of [s | W] are separate problems, one per body axis
         pattern = ok[:, :, j]
         keys, inverse = np.unique(pattern, axis=0, return_inverse=True)
         for p, key in enumerate(keys):
             rows = np.flatnonzero(inverse.ravel() == p)
             Ak = A[key]
-            if np.linalg.matrix_rank(Ak) < 4:
+            if np.linalg.matrix_rank(Ak) < A.shape[1]:
                 continue
             X[rows, j] = f[rows][:, key, j] @ np.linalg.pinv(Ak).T
     determined = np.isfinite(X).all(axis=(1, 2))
-    s, W = X[:, :, 0], X[:, :, 1:]
-    omega_dot = 0.5 * np.stack([W[:, 2, 1] - W[:, 1, 2], W[:, 0, 2] - W[:, 2, 0], W[:, 1, 0] - W[:, 0, 1]], axis=1)
-    Sym = 0.5 * (W + W.transpose(0, 2, 1))
-    omega = np.zeros((N, 3))
+    omega, omega_dot = np.zeros((N, 3)), np.zeros((N, 3))
     d = np.flatnonzero(determined)
+    if planar and d.size:
+        Wp = np.einsum("ji,njk->nik", Q, X[d, :, 1:])  # Qᵀ W [q1 q2]: W's in-plane columns, plane coordinates
+        w, wd = _planar_candidates(Wp)
+        w, wd = w @ Q.T, wd @ Q.T  # to the body frame, (M, 4, 3)
+        pick = _chain_candidates(t[d], w, wd)
+        omega[d], omega_dot[d] = w[np.arange(d.size), pick], wd[np.arange(d.size), pick]
+        W = _rate_matrix(omega[d], omega_dot[d])
+        s = np.full((N, 3), np.nan)
+        s[d] = X[d, :, 0] - W @ c  # the fit's offset is the specific force at the centroid c
+    else:
+        s, W = X[:, :, 0], X[:, :, 1:]
+        omega_dot = 0.5 * np.stack([W[:, 2, 1] - W[:, 1, 2], W[:, 0, 2] - W[:, 2, 0], W[:, 1, 0] - W[:, 0, 1]], axis=1)
+        if d.size:
+            Sym = 0.5 * (W[d] + W[d].transpose(0, 2, 1))
+            norm2 = -0.5 * np.trace(Sym, axis1=1, axis2=2)
+            lam, vec = np.linalg.eigh(Sym + norm2[:, None, None] * np.eye(3))
+            u = vec[:, :, -1] * np.sqrt(np.maximum(lam[:, -1], 0.0))[:, None]  # ± ω
+            wd = np.repeat(omega_dot[d, None], 2, axis=1)
+            pick = _chain_candidates(t[d], np.stack([u, -u], axis=1), wd)
+            omega[d] = np.where(pick[:, None] == 0, u, -u)
     if d.size:
-        norm2 = -0.5 * np.trace(Sym[d], axis1=1, axis2=2)
-        lam, vec = np.linalg.eigh(Sym[d] + norm2[:, None, None] * np.eye(3))
-        omega_abs = vec[:, :, -1] * np.sqrt(np.maximum(lam[:, -1], 0.0))[:, None]  # ± ω
-        omega[d] = _chain_signs(t[d], omega_abs, omega_dot[d])
         for i in range(3):
             omega[:, i] = np.interp(t, t[d], omega[d, i])
             omega_dot[:, i] = np.interp(t, t[d], omega_dot[d, i])
         s = np.where(determined[:, None], s, np.nan)
     else:
         omega_dot[:] = 0.0
+        s = np.full((N, 3), np.nan)
     return omega, omega_dot, s, determined
 
 
-def _chain_signs(t: np.ndarray, u: np.ndarray, omega_dot: np.ndarray) -> np.ndarray:
-    """Signs of ±u (N, 3) chosen by continuity with the integral of ω̇ (see
-    :func:`angular_motion_from_specific_forces`): both starting signs, the better chain wins."""
-    step = 0.5 * (omega_dot[1:] + omega_dot[:-1]) * np.diff(t)[:, None]
-    best, best_cost = u, np.inf
-    for first in (1.0, -1.0):
-        w = u.copy()
-        w[0] *= first
+def affine_dimension(r: np.ndarray) -> int:
+    """The dimension of the affine span of positions r (K, 3): 3 for an array in space, 2 for a
+    coplanar one (a board), 1 for a line, 0 for one point (what a gyro-free start can use, see
+    :func:`angular_motion_from_specific_forces`)."""
+    r = np.atleast_2d(np.asarray(r, float))
+    return int(np.linalg.matrix_rank(np.column_stack([np.ones(len(r)), r]))) - 1
+
+
+def _rate_matrix(omega: np.ndarray, omega_dot: np.ndarray) -> np.ndarray:
+    """W = [ω]×² + [ω̇]× = ωωᵀ − |ω|² I + [ω̇]× per row, (M, 3, 3) (Carlsson 2017, eq. 1)."""
+    x, y, z = omega_dot.T
+    o = np.zeros_like(x)
+    skew = np.stack([np.stack([o, -z, y], -1), np.stack([z, o, -x], -1), np.stack([-y, x, o], -1)], axis=1)
+    return (np.einsum("ni,nj->nij", omega, omega) - np.einsum("ni,ni->n", omega, omega)[:, None, None] * np.eye(3)
+            + skew)
+
+
+def _planar_candidates(Wp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """ω and ω̇ (plane coordinates, normal = axis 3) from W's two in-plane columns Wp (M, 3, 2) of
+    W = ωωᵀ − |ω|² I + [ω̇]× (:func:`specific_force_at`): W₁₁ = −(ω₂² + ω₃²), W₂₂ = −(ω₁² + ω₃²),
+    W₂₁ + W₁₂ = 2 ω₁ω₂ and W₂₁ − W₁₂ = 2 ω̇₃, so (ω₁ + iω₂)² = W₁₁ − W₂₂ + i (W₂₁ + W₁₂) and
+    ω₃² = −(W₁₁ + W₂₂ + |ω₁ + iω₂|²)/2; then W₃₁ = ω₃ω₁ − ω̇₂ and W₃₂ = ω₃ω₂ + ω̇₁ give ω̇₁, ω̇₂.
+    The column along the normal is not measured, so ω is known up to its sign and that of ω₃:
+    returns the four candidates (M, 4, 3) each of ω and ω̇, ordered (+, +), (+, −), (−, +), (−, −)
+    (sign of the in-plane part, of ω₃)."""
+    W11, W21, W31 = Wp[:, 0, 0], Wp[:, 1, 0], Wp[:, 2, 0]
+    W12, W22, W32 = Wp[:, 0, 1], Wp[:, 1, 1], Wp[:, 2, 1]
+    p = np.sqrt((W11 - W22) + 1j * (W21 + W12))  # ω₁ + iω₂, up to its sign
+    h = np.sqrt(np.maximum(-(W11 + W22 + np.abs(p) ** 2) / 2, 0.0))  # |ω₃|
+    w, wd = np.empty((len(Wp), 4, 3)), np.empty((len(Wp), 4, 3))
+    for k, (a, b) in enumerate(((1, 1), (1, -1), (-1, 1), (-1, -1))):
+        w1, w2, w3 = a * p.real, a * p.imag, b * h
+        w[:, k] = np.column_stack([w1, w2, w3])
+        wd[:, k] = np.column_stack([W32 - w3 * w2, w3 * w1 - W31, 0.5 * (W21 - W12)])
+    return w, wd
+
+
+def _chain_candidates(t: np.ndarray, w: np.ndarray, wd: np.ndarray) -> np.ndarray:
+    """The candidate (M,) of every sample, out of w, wd (M, C, 3) (ω and ω̇ per candidate), chained by
+    continuity with the trapezoid integral of ω̇ (see :func:`angular_motion_from_specific_forces`):
+    each sample takes the candidate nearest to ω_{n−1} + (ω̇_{n−1} + ω̇_n) Δt/2; every first
+    candidate is tried and the chain with the smallest sum of squared misfits wins."""
+    dt = np.diff(t)
+    best, best_cost = np.zeros(len(w), int), np.inf
+    for first in range(w.shape[1]):
+        pick = np.zeros(len(w), int)
+        pick[0] = first
         cost = 0.0
-        for n in range(1, len(u)):
-            pred = w[n - 1] + step[n - 1]
-            plus, minus = np.sum((u[n] - pred) ** 2), np.sum((u[n] + pred) ** 2)
-            if minus < plus:
-                w[n] = -u[n]
-            cost += min(plus, minus)
+        for n in range(1, len(w)):
+            prev = pick[n - 1]
+            miss = np.sum((w[n] - w[n - 1, prev] - 0.5 * (wd[n - 1, prev] + wd[n]) * dt[n - 1]) ** 2, axis=1)
+            pick[n] = int(np.argmin(miss))
+            cost += miss[pick[n]]
         if cost < best_cost:
-            best, best_cost = w, cost
+            best, best_cost = pick, cost
     return best

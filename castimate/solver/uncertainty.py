@@ -139,6 +139,8 @@ def undetermined(solver, x, p_fixed=None, data=None, top: int = 4) -> list[str]:
         return [str(e)]
     U = np.linalg.qr(G.T, mode="complete")[0][:, G.shape[0]:] if G.shape[0] else np.eye(len(solver.theta))
     w, V = np.linalg.eigh(U.T @ S @ U)
+    if not w.size:  # nothing reported is free (e.g. only the motion of a dynamic problem)
+        return []
     tol = solver.options.identifiability_tol * max(w.max(), 1e-300)
     out, labels = [], None
     for k in np.flatnonzero(w <= tol):
