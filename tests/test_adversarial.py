@@ -391,6 +391,7 @@ def dynamic_motion_undetermined_no_gyro_no_process_model(base, tmp):
     def edit(d):
         for t in d["array"]["triads"]:
             t["gyroscope"] = False
+        d["noise"].pop("gyroscope", None)  # unused with every gyroscope off: refused on its own
         d["motion"] = {"process_model": False}
     p = problem_in(base, tmp, "dyn", edit)
     return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("problem.yaml", "motion.process_model"))
@@ -2027,6 +2028,7 @@ def coupling_without_gyroscopes(base, tmp):
     def edit(d):
         for t in d["array"]["triads"]:
             t["gyroscope"] = False
+        d["noise"].pop("gyroscope", None)  # unused with every gyroscope off: refused on its own
         d.setdefault("model", {})["gyroscope"] = {"coupling": "free"}
     return _dyn_model(edit, ("model.gyroscope.coupling", "no gyroscope"))(base, tmp)
 

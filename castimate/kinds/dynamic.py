@@ -79,7 +79,8 @@ def noise_from_static(spec: ProblemSpec, full: Recording, log: Log, cache: dict 
     check_gyroscope_noise_used(spec, full)  # σ's of a sensor the session lacks would be silently dropped
     out_a = {n: np.full(3, acc[n]) for n in names} if acc else None
     out_g = {n: np.full(3, gyro[n]) for n in names if n in full.gyro} if gyro else None
-    if out_a is None or (out_g is None and full.gyro):
+    used_gyro = any(t.gyroscope is not False and t.name in full.gyro for t in spec.array.triads)
+    if out_a is None or (out_g is None and used_gyro):  # no σ to estimate for gyroscopes switched off
         if not full_static(spec, full, cache).segments:
             raise InputError(spec.path, "noise.accelerometer" if out_a is None else "noise.gyroscope",
                              "auto needs static segments in the recording to estimate the noise; none were found; "
