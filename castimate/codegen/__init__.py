@@ -35,14 +35,13 @@ def generate_c(source: str | Path, out_dir: str | Path, options: CodegenOptions 
     if is_problem_file(source):
         from .solvers import generate_solver_files, reference_for
 
-        log(f"solving {Path(source).name} in Python (IPOPT): the reference solution of the test vectors")
-        ref = reference_for(source, options)
+        ref = reference_for(source, options, log)
         log("generating the C solver (CasADi)")
         files = generate_solver_files(ref)
     else:
         options.check(source, None)
-        log(f"generating the compensation function of {Path(source).name} (CasADi)")
         files = generate_files(source)
+        log(f"generated the compensation function of {Path(source).name} (CasADi)")
     written = {}
     for name, text in files.items():
         write_atomic(out_dir / name, text)

@@ -89,13 +89,13 @@ def sample_coupling_effects(spec) -> list[str]:
             and (second or BY_KEY[k].sensor == "accelerometer")]
 
 
-def reference(spec, options: CodegenOptions = CodegenOptions()) -> Reference:
+def reference(spec, options: CodegenOptions = CodegenOptions(), log=lambda m: None) -> Reference:
     """The problem instance the C solver is emitted for, solved by IPOPT, through the kind's
     pipeline (:class:`castimate.kinds.Kind`): a static problem with all its poses (Nilsson 2014);
     a dynamic one for ``options.window`` samples from ``options.start``, saturated readings weighted
     out (fixed size), and with ``options.motion_only`` every triad's intrinsics and position fixed at
     the problem file's values (or its ``model.intrinsics``): the array's per-sample ML motion
-    estimator (Carlsson 2017)."""
+    estimator (Carlsson 2017). ``log``: progress lines."""
     from ..kinds import kind_of
 
     options.check(spec.path, spec.kind)
@@ -111,6 +111,7 @@ def reference(spec, options: CodegenOptions = CodegenOptions()) -> Reference:
                          f"{'second derivative' if spec.model.sample_age == 'second_order' else 'rate'} from the "
                          "neighbouring samples' motion, which couples the samples; the C solver "
                          "eliminates one sample at a time and needs them independent: leave them out for codegen")
+    log(f"solving {spec.path.name} in Python (IPOPT): the reference solution of the test vectors")
     kind = kind_of(spec)
     data = kind.load(spec)
     config = kind.configure(spec, data)
@@ -139,11 +140,11 @@ def _reference_options(options):
     return replace(options, tol=min(options.tol, REFERENCE_TOL), method="ipopt")
 
 
-def reference_for(problem_path: str | Path, options: CodegenOptions = CodegenOptions()) -> Reference:
+def reference_for(problem_path: str | Path, options: CodegenOptions = CodegenOptions(), log=lambda m: None) -> Reference:
     """Load a problem file and solve the problem the C solver is emitted for."""
     from ..spec import load_problem
 
-    return reference(load_problem(problem_path), options)
+    return reference(load_problem(problem_path), options, log)
 
 
 # ----------------------------------------------------------------------------------------------

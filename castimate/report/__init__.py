@@ -20,11 +20,10 @@ def write_report(directory: Path, path: Path | None = None, log: Callable[[str],
         raise InputError(directory, "", "expected the output directory of `castimate solve`, found a file")
     if not directory.is_dir():
         raise InputError(directory, "", "no such directory; expected the output directory of `castimate solve`")
-    log(f"reading {directory / 'results.json'} and details.npz")
     results = load_results(directory)
     dynamic = results.get("kind") == "dynamic_array"
     details = load_details(directory, REQUIRED_DYNAMIC_DETAILS if dynamic else REQUIRED_DETAILS, results)
-    log(f"rendering the {results.get('kind')} report (figures)")
+    log(f"rendering the {results.get('kind')} report of {directory} (figures)")
     path = directory / "report.html" if path is None else Path(path)
     write_atomic(path, (render_dynamic_report if dynamic else render_report)(results, details))
     return path
