@@ -87,6 +87,9 @@ def test_recording_names():
     assert recording_names(p) == ["exp_1", "exp_2"]
     assert recording_names([Path("/d/a.csv"), Path("/d/b.csv")]) == ["a", "b"]
     assert recording_names([Path("/d/a.csv"), Path("/d/a.npz")]) == ["a.csv", "a.npz"]
+    # joined with _, two paths gave one name: both recordings wrote DIR/a_b_x/results.json, one lost
+    assert recording_names([Path("/d/a_b/x.csv"), Path("/d/a/b_x.csv"), Path("/d/a_b_x~2.csv")]) == [
+        "a_b_x", "a_b_x~3", "a_b_x~2"]
 
 
 # ---------------------------------------------------------------------------------------------

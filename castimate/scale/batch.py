@@ -62,8 +62,18 @@ def recording_names(paths: list[Path]) -> list[str]:
     same_file = len({r.name for r in rel}) == 1 and all(len(r.parts) > 1 for r in rel)
     parts = [r.parent.parts if same_file else (*r.parent.parts, r.stem if r.suffix else r.name) for r in rel]
     names = ["_".join(p) for p in parts]
-    if len(set(names)) < len(names):  # suffixes alone told them apart (a.csv, a.npz)
-        names = ["_".join((*r.parent.parts, r.name)) for r in rel]
+    alt = ["_".join((*r.parent.parts, r.name)) for r in rel]
+    if len(set(names)) < len(names) and len(set(alt)) == len(alt):  # suffixes alone told them apart (a.csv, a.npz)
+        names = alt
+    seen: dict[str, int] = {}
+    for i, n in enumerate(names):  # joining with _ can still merge two paths (a_b/x.csv, a/b_x.csv)
+        seen[n] = seen.get(n, 0) + 1
+        if seen[n] > 1:  # numbered, else both would write DIR/<name>/results.json and one be lost
+            k = seen[n]
+            while f"{n}~{k}" in names or f"{n}~{k}" in seen:
+                k += 1
+            names[i] = f"{n}~{k}"
+            seen[names[i]] = 1
     return names
 
 
