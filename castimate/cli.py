@@ -9,8 +9,16 @@ from pathlib import Path
 
 # One BLAS thread unless the user says otherwise, set before numpy loads. castimate's sparse solves
 # (SuperLU, MUMPS) call small dense BLAS kernels; on a loaded 2-core machine threaded OpenBLAS made
-# one covariance solve take 31 s instead of 0.05 s (measured).
+# one covariance solve take 31 s instead of 0.05 s (measured). Rechecked on MIMU4444 exp_1's dynamic
+# solve (alternating runs, load 4-5): OPENBLAS_NUM_THREADS=2 took 15.8 and 13.3 s CPU against 7.7 and
+# 8.2 s; with one BLAS thread the whole solve runs on one thread.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# No transparent-huge-page advice on numpy's large arrays unless the user says otherwise, also set
+# before numpy loads. With the kernel's THP defrag on "madvise" (a common default, and this VM's) every
+# advised fault may compact memory first: measured on MIMU4444 exp_1 (CPU user + sys, alternating runs at
+# load 5-7), the dynamic solve 7.49, 7.03 -> 6.48, 6.07 s (system 1.21, 1.04 -> 0.74, 0.40 s) and the
+# joint 16.99 -> 15.86 s (system 2.03 -> 0.74 s), results.json identical.
+os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
 
 
 from .errors import EXIT_INVALID_INPUT, EXIT_PARTIAL, CastimateError, InputError

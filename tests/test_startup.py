@@ -30,14 +30,28 @@ def test_cli_dynamic_solve_imports_only_what_it_needs(tmp_path):
     script = ("import json, runpy, sys\n"
               f"sys.argv = ['castimate', 'solve', {str(tmp_path / 'problem.yaml')!r}, '-o', {str(tmp_path / 'out')!r}, '-q']\n"
               "try:\n    runpy.run_module('castimate', run_name='__main__')\nexcept SystemExit as e:\n    code = e.code\n"
-              f"print(json.dumps([code, sorted(m for m in {NOT_IMPORTED!r} if m in sys.modules)]))\n")
+              "from numpy._core.multiarray import _get_madvise_hugepage\n"
+              f"print(json.dumps([code, sorted(m for m in {NOT_IMPORTED!r} if m in sys.modules), "
+              "_get_madvise_hugepage()]))\n")
     root = Path(__file__).resolve().parents[1]
     done = subprocess.run([sys.executable, "-c", script], check=False, capture_output=True, text=True, cwd=tmp_path,
                           env={**os.environ, "PYTHONPATH": str(root)}, timeout=300)
-    code, imported = json.loads(done.stdout.strip().splitlines()[-1])
+    code, imported, hugepage = json.loads(done.stdout.strip().splitlines()[-1])
     assert code == 0, done.stderr[-2000:]
     assert json.loads((tmp_path / "out" / "results.json").read_text())["kind"] == "dynamic_array"
     assert imported == []
+    assert hugepage is False  # numpy's huge-page advice off (castimate.cli)
+
+
+@pytest.mark.parametrize("env, advised", [({}, False), ({"NUMPY_MADVISE_HUGEPAGE": "1"}, True)])
+def test_cli_turns_numpy_huge_page_advice_off_unless_the_user_set_it(env, advised):
+    script = ("import castimate.cli\nimport numpy\nfrom numpy._core.multiarray import _get_madvise_hugepage\n"
+              "print(_get_madvise_hugepage())\n")
+    base = {k: v for k, v in os.environ.items() if k != "NUMPY_MADVISE_HUGEPAGE"}
+    root = Path(__file__).resolve().parents[1]
+    done = subprocess.run([sys.executable, "-c", script], check=True, capture_output=True, text=True,
+                          env={**base, **env, "PYTHONPATH": str(root)}, timeout=60)
+    assert done.stdout.split() == [str(advised)]
 
 
 class FakeLibc:
