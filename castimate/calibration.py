@@ -299,6 +299,13 @@ def imutk_gyro_file(acc_path: Path) -> Path | None:
     return g if g.is_file() else None
 
 
+def check_output_format(out_path, option: str = "") -> None:
+    """Refuse an output of ``apply`` that is neither .csv nor .npz (``option``: how the caller names it)."""
+    suffix = Path(out_path).suffix
+    if suffix.lower() not in (".csv", ".npz"):
+        raise InputError(out_path, option, f"expected an output file ending in .csv or .npz, found {suffix!r}")
+
+
 def apply_calibration(results_path, data_path, out_path, fmt: str | None = None, gyro_path=None,
                       log=None) -> int:
     """Write the calibrated recording (body frame, SI units) and return its number of samples.
@@ -314,8 +321,7 @@ def apply_calibration(results_path, data_path, out_path, fmt: str | None = None,
     fmt = fmt or EXTENSIONS.get(data_path.suffix.lower())
     if fmt is None:
         raise InputError(data_path, "", f"cannot tell the format from the extension {data_path.suffix!r}; pass --format")
-    if out_path.suffix.lower() not in (".csv", ".npz"):
-        raise InputError(out_path, "", f"expected an output file ending in .csv or .npz, found {out_path.suffix!r}")
+    check_output_format(out_path)
     units = read_results(results_path).get("units", {})
     log = log or (lambda msg: None)
     if gyro_path is not None and fmt != "imutk":

@@ -65,9 +65,10 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_apply(args) -> int:
-    from .calibration import apply_calibration
+    from .calibration import apply_calibration, check_output_format
     from .io.atomic import StagedOutput
 
+    check_output_format(args.output, "-o")  # here: inside, the staged file's name would be shown
     inputs = (args.results, args.data) + ((args.gyro,) if args.gyro else ())
     with StagedOutput(args.output, directory=False, inputs=inputs) as staged:
         n = apply_calibration(args.results, args.data, staged, fmt=args.format, gyro_path=args.gyro,

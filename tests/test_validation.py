@@ -624,11 +624,15 @@ def test_apply_triad_missing_in_data(solved, sim, tmp_path):
                  "the calibration has triad 'imu3'; the data has imu1, imu2")
 
 
-def test_apply_bad_output_extension(solved, sim, tmp_path):
+def test_apply_bad_output_extension(solved, sim, tmp_path, capsys):
     out = tmp_path / "calibrated.txt"
     expect_error(lambda: apply_calibration(solved / "results.json", sim / "data.csv", out), out, "",
                  "expected an output file ending in .csv or .npz, found '.txt'")
     assert not out.exists()
+    # the command named its hidden staging file (DIR/.castimate-stage-XXXX/calibrated.txt) instead of -o
+    assert main(["apply", str(solved / "results.json"), str(sim / "data.csv"), "-o", str(out)]) == EXIT_INVALID_INPUT
+    err = capsys.readouterr().err
+    assert f"{out}: -o: expected an output file ending in .csv or .npz, found '.txt'" in err and ".castimate-stage" not in err
 
 
 def test_apply_unknown_data_extension(solved, sim, tmp_path):
