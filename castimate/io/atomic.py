@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
+import signal
 import stat
 import tempfile
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Callable
 
@@ -106,6 +110,27 @@ def check_output(target: str | os.PathLike, directory: bool, names: tuple[str, .
                                                "choose another output")
 
 
+@contextlib.contextmanager
+def interrupts_deferred() -> Iterator[None]:
+    """Hold back Ctrl-C (SIGINT) until the block is done, then act on it as before (KeyboardInterrupt
+    by default): for a few renames that must happen all together. Outside the main thread signals
+    cannot be handled, and the block runs as it is."""
+    previous = signal.getsignal(signal.SIGINT)
+    if threading.current_thread() is not threading.main_thread() or previous is None:  # None: set outside Python
+        yield
+        return
+    caught: list[int] = []
+    signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if caught and previous in (signal.default_int_handler, signal.SIG_DFL):
+        raise KeyboardInterrupt
+    if caught and callable(previous):
+        previous(signal.SIGINT, None)
+
+
 class StagedOutput:
     """Write a command's outputs into a hidden staging directory; move them into place only on success.
 
@@ -145,7 +170,8 @@ class StagedOutput:
         try:
             for _, dest in moves:
                 dest.parent.mkdir(parents=True, exist_ok=True)
-            for src, dest in moves:
-                os.replace(src, dest)
+            with interrupts_deferred():  # a Ctrl-C between two renames would pair new and old files
+                for src, dest in moves:
+                    os.replace(src, dest)
         except OSError as e:
             raise InputError(self.target, self.option, f"cannot write the output ({e.strerror})") from None

@@ -1,0 +1,77 @@
+"""Ctrl-C (KeyboardInterrupt / SIGINT) while a command writes: nothing half-written, no stage left.
+
+A solve's outputs (results.json and details.npz) go to a hidden staging directory and are moved into
+place together (io.atomic.StagedOutput); an interrupt before the moves leaves the old outputs as they
+were, and one during the moves is held back until both are in place."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+
+import numpy as np
+import pytest
+
+from castimate.cli import main
+from castimate.simulate.scenarios import simulate_scenario
+
+
+@pytest.fixture(scope="module")
+def solved(tmp_path_factory):
+    """A small static session, simulated and solved once: (problem, output directory)."""
+    d = tmp_path_factory.mktemp("interrupt")
+    (d / "scenario.yaml").write_text("kind: static_array\ntriads: 2\nposes: 12\nseed: 3\n")
+    simulate_scenario(d / "scenario.yaml", d / "sim")
+    assert main(["solve", str(d / "sim" / "problem.yaml"), "-o", str(d / "out"), "-q"]) == 0
+    return d / "sim" / "problem.yaml", d / "out"
+
+
+def snapshot(directory):
+    return {p.name: p.read_bytes() for p in directory.iterdir()}
+
+
+def test_interrupt_while_writing_leaves_the_old_outputs(solved, monkeypatch):
+    import castimate.output as output
+
+    problem, out = solved
+    before = snapshot(out)
+    real = output.write_outputs
+
+    def interrupted(stage, outcome):
+        real(stage, outcome)
+        assert (stage / "results.json").exists()  # written in the stage, not yet moved
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(output, "write_outputs", interrupted)
+    assert main(["solve", str(problem), "-o", str(out), "-q"]) == 130
+    assert snapshot(out) == before
+    assert not [p for p in out.parent.iterdir() if p.name.startswith(".castimate-stage")]
+
+
+def test_interrupt_between_the_moves_is_held_back(solved, tmp_path, monkeypatch):
+    """SIGINT after the first of the two renames: before, KeyboardInterrupt struck there and left a new
+    results.json beside the old details.npz; now both are moved, then the command stops (exit 130)."""
+    import castimate.io.atomic as atomic
+
+    problem, out = solved
+    target = tmp_path / "out"
+    assert main(["solve", str(problem), "-o", str(target), "-q"]) == 0
+    (target / "results.json").write_text("old")
+    (target / "details.npz").write_bytes(b"old")
+    real, calls = os.replace, []
+
+    def replace(src, dest):
+        real(src, dest)
+        if ".castimate-stage" not in str(dest):  # a move into place, not a write into the stage
+            calls.append(dest)
+            if len(calls) == 1:
+                os.kill(os.getpid(), signal.SIGINT)
+
+    monkeypatch.setattr(atomic.os, "replace", replace)
+    assert main(["solve", str(problem), "-o", str(target), "-q"]) == 130
+    assert len(calls) == 2
+    assert (target / "results.json").read_bytes() != b"old" and (target / "details.npz").read_bytes() != b"old"
+    new, ref = (json.loads((d / "results.json").read_text()) for d in (target, out))
+    assert new["triads"] == ref["triads"] and np.load(target / "details.npz").files == np.load(out / "details.npz").files
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler is restored
