@@ -10,6 +10,7 @@ read only regular files (not a directory, a device or a FIFO) of a bounded size,
 from __future__ import annotations
 
 import os
+import re
 import stat
 from pathlib import Path
 from typing import Any
@@ -237,6 +238,15 @@ def _check_nodes(node: yaml.Node, path: object, where: str, sizes: dict[int, int
     return n
 
 
+class YamlLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, with YAML 1.2's floats without a dot (``1e-3``, ``2E+6``): YAML 1.1 reads
+    them as text, and ``tol: 1e-10`` was refused as "found '1e-10'"."""
+
+
+YamlLoader.add_implicit_resolver("tag:yaml.org,2002:float",
+                                 re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"), list("-+0123456789"))
+
+
 def load_yaml(path: str | os.PathLike, what: str = "problem file") -> Any:
     """A YAML file read at the edge: a regular UTF-8 file of at most 1 MB, nested at most 32 deep,
     without duplicate keys or integers longer than 30 digits (the key path named), before Python
@@ -252,7 +262,7 @@ def load_yaml(path: str | os.PathLike, what: str = "problem file") -> Any:
                                                                  f"{MAX_YAML_DEPTH} deep, found deeper nesting")
             elif isinstance(ev, (yaml.MappingEndEvent, yaml.SequenceEndEvent)):
                 depth -= 1
-        loader = yaml.SafeLoader(text)
+        loader = YamlLoader(text)
         try:
             node = loader.get_single_node()
             if node is None:

@@ -118,6 +118,18 @@ def test_problem_file_missing(tmp_path):
     expect_error(lambda: load_problem(p), p, "", "problem file not found")
 
 
+def test_numbers_without_a_dot(doc, tmp_path):
+    """YAML 1.1 (PyYAML) reads 1e-3 or 2E+5 as text unless it has a dot: `tol: 1e-10` was refused with
+    "found '1e-10'". Read as numbers now, as YAML 1.2 does; text stays text."""
+    p = tmp_path / "p.yaml"
+    p.write_text(yaml.safe_dump(doc).replace("solver:", "solver:\n  tol: 1e-10\n  max_iter: 2E+2", 1)
+                 if "solver:" in yaml.safe_dump(doc) else yaml.safe_dump(doc) + "solver: {tol: 1e-10, max_iter: 2E+2}\n")
+    spec = load_problem(p)
+    assert spec.solver.tol == 1e-10 and spec.solver.max_iter == 200
+    p.write_text(yaml.safe_dump(doc) + "noise_typo: 1e\n")
+    expect_error(lambda: load_problem(p), p, "noise_typo", "unknown key")
+
+
 def test_problem_file_not_yaml(tmp_path):
     p = tmp_path / "p.yaml"
     p.write_text("kind: static_array\ndata: [a, b\n")

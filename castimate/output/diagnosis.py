@@ -11,6 +11,7 @@ import yaml
 from ..kinds import CrossValidation
 from ..kinds.diagnose import Diagnosis, Model
 from ..problem.effects import BY_KEY
+from ..validation import load_yaml
 from .results import dynamic_results, static_results
 
 FORMAT = "castimate.diagnosis/1"
@@ -93,7 +94,7 @@ def diagnosis_document(d: Diagnosis) -> dict:
 def refined_problem(d: Diagnosis, out_dir: Path) -> str:
     """The problem file with the added effects declared, its paths rewritten relative to ``out_dir``
     (the original file is not touched)."""
-    raw = yaml.safe_load(Path(d.spec.path).read_text())
+    raw = load_yaml(d.spec.path)  # as the problem was read (1e-3 a number)
     base = Path(d.spec.path).resolve().parent
     rel = lambda p: os.path.relpath((base / p).resolve(), out_dir.resolve())  # noqa: E731
     data = raw["data"]
