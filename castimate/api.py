@@ -46,6 +46,15 @@ Log = Callable[[str], None]
 Problem = str | Path | dict[str, Any] | ProblemSpec
 
 
+def as_log(log: Any, function: str) -> Log | None:
+    """``log`` checked: None or a callable taking one progress line (a str); else a TypeError naming it
+    (deep inside the solve it was "'int' object is not callable")."""
+    if log is not None and not callable(log):
+        raise TypeError(f"{function}: log: expected a callable taking a str (e.g. print) or None, found "
+                        f"{type(log).__name__} {log!r}"[:300])
+    return log
+
+
 def load(source: Problem, base_dir: str | Path = ".") -> ProblemSpec:
     """A validated problem from a YAML file, or from a dict with the file's content (relative data
     paths then count from ``base_dir``). A ProblemSpec is returned as it is.
@@ -87,6 +96,7 @@ def solve(problem: Problem, log: Log | None = None):
     """
     from .kinds import calibrate
 
+    log = as_log(log, "castimate.solve")  # before the work, not deep inside the solve
     return calibrate(load(problem), log)
 
 
@@ -131,4 +141,5 @@ def diagnose(problem: Problem, log: Log | None = None):
     from .kinds import quiet
     from .kinds.diagnose import diagnose as run
 
+    log = as_log(log, "castimate.diagnose")
     return run(load(problem), log or quiet)

@@ -126,6 +126,9 @@ BAD_TYPES = [
     ("solve a number", lambda: castimate.solve(5), "castimate.load: source"),
     ("diagnose a number", lambda: castimate.diagnose(5), "castimate.load: source"),
     ("write None", lambda: castimate.write(None, "x"), "castimate.write: outcome"),
+    # log=5 failed deep in the solve with "'int' object is not callable"
+    ("solve log a number", lambda: castimate.solve(5, log=5), "castimate.solve: log: expected a callable"),
+    ("diagnose log a string", lambda: castimate.diagnose(5, log="x"), "castimate.diagnose: log: expected a callable"),
     ("read None", lambda: Calibration.read(None), "Calibration.read: path"),
 ]
 
