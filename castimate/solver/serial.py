@@ -180,27 +180,28 @@ def _elimination(solver, x, pf, d):
 
 def _rows(solver, x, pf, d):
     """Per factor block (then the priors): (name, sparse whitened Jacobian rows (layout order, scaled x),
-    whitened residuals, the block's FactorBlock.series or None, rows per instance, valid rows)."""
+    whitened residuals, the block's FactorBlock.series or None, rows per instance, valid rows). The
+    rows are the solver's own Jacobian (:meth:`Solver.jacobians`, its CSR planned once), a block's
+    masked rows empty."""
     n, scale = solver.n_x, solver.problem.layout.x_scale
-    xo = solver.nlp_order(x)
-    res = solver.assembly.local(xo, pf, d, "res")
-    jac = solver.assembly.local(xo, pf, d, "jac")
-    for b, Rb, Jb in zip(solver.blocks, res, jac):
+    res = solver.assembly.local(solver.nlp_order(x), pf, d, "res")
+    J_all = solver.jacobians(x, pf, d)[0]  # the valid rows, then the priors
+    row0 = k0 = 0
+    for b, Rb in zip(solver.blocks, res):
         N, f = b.block.n, b.f
-        Jl = Jb.reshape(N, len(f.act), f.m)
-        t, a = np.nonzero(b.w_idx[:, f.act] < n)
-        gi = b.w_idx[t, f.act[a]]
-        rows = np.concatenate([t * f.m + i for i in range(f.m)])
-        vals = np.concatenate([Jl[t, a, i] * scale[gi] for i in range(f.m)])
-        J = sp.csr_matrix((vals, (rows, np.tile(gi, f.m))), shape=(N * f.m, n))
-        valid = np.ones(N * f.m, bool) if b.block.valid is None else np.broadcast_to(
-            np.asarray(b.block.valid, bool).reshape(N, -1), (N, f.m)).ravel()
+        valid = solver.keep[row0: row0 + N * f.m]
+        k1 = k0 + int(valid.sum())
+        counts = np.zeros(N * f.m, np.int64)
+        counts[valid] = np.diff(J_all.indptr[k0: k1 + 1])
+        lo, hi = J_all.indptr[k0], J_all.indptr[k1]
+        J = sp.csr_matrix((J_all.data[lo:hi], J_all.indices[lo:hi], np.concatenate([[0], np.cumsum(counts)])),
+                          shape=(N * f.m, n))
         yield b.block.name, J, Rb.reshape(-1), getattr(b.block, "series", None), f.m, valid
+        row0, k0 = row0 + N * f.m, k1
     pi, pm, ps = solver.prior
     if len(pi):
         w = np.asarray(x, float)[pi] * scale[pi]
-        J = sp.csr_matrix((scale[pi] / ps, (np.arange(len(pi)), pi)), shape=(len(pi), n))
-        yield "prior", J, (w - pm) / ps, None, 1, np.ones(len(pi), bool)
+        yield "prior", J_all[k0:], (w - pm) / ps, None, 1, np.ones(len(pi), bool)
 
 
 def serial_covariance(solver, x, p_fixed=None, data=None, lags: int | None = None,
