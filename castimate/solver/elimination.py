@@ -373,6 +373,10 @@ class _StageFunctions:
     K-fold sums and the gathers of the local entries (two thirds of an assembly at 32 × 20 000)
     run in the compiled code."""
 
+    # scattered targets added by flat indices into their slab (False: numpy's (rows, columns) fancy
+    # indexing, as a reference; one addition per entry either way, so the same bits)
+    flat_add = True
+
     @staticmethod
     def applies(sb) -> bool:
         """Every instance of a stage group sees the same stage inputs."""
@@ -405,6 +409,7 @@ class _StageFunctions:
         # without the shared part, for data whose declared-shared columns are not (built when needed)
         self._plain_args, self._plain_fns = (specs, f, inner_fn, K, nc, nd, widths, (), jit), None
         self._buffers: dict = {}
+        self._flat: dict = {}  # (mode, segment, stage groups) -> flat indices of a scattered target in its slab
 
     @classmethod
     def _functions(cls, specs, f, inner_fn, K, nc, nd, widths, shared, jit):
@@ -558,7 +563,7 @@ class _StageFunctions:
                 target[M.dest] += _reduce(M, red[pos: pos + n])
             pos += n
         nJ = j1 - j0
-        for label, key, a, b, dest in segs:
+        for si, (label, key, a, b, dest) in enumerate(segs):
             if label == "G":
                 tgt = parts.G[fi][base + key + j0: base + key + j1]
             elif label == "Hsc":
@@ -570,6 +575,14 @@ class _StageFunctions:
                 tgt = (parts.B if label == "B" else parts.Bgn)[fi][o][base + d + j0: base + d + j1].reshape(nJ, -1)
             if dest is None:  # every target entry, in order
                 tgt += T[:, a:b]
+            elif self.flat_add and tgt.flags.c_contiguous:
+                # by flat indices into the slab: one addition per entry as below, in a third of the
+                # time of numpy's (rows, columns) fancy indexing (the gyroscopes' 198 of 1620 H_mθ
+                # entries per sample on MIMU4444 exp_1)
+                flat = self._flat.get((mode, si, nJ))
+                if flat is None:
+                    flat = self._flat[mode, si, nJ] = (np.arange(nJ)[:, None] * tgt.shape[1] + dest).ravel()
+                np.add.at(tgt.reshape(-1), flat, T[:, a:b].ravel())
             else:
                 tgt[:, dest] += T[:, a:b]
 
