@@ -18,7 +18,7 @@ import numpy as np
 
 from . import CrossValidation, Log, Residuals, quiet
 from .intrinsics import read_intrinsics, reused
-from .static import check_estimates, check_gyroscope_effects, check_gyroscope_noise_used, check_plausible, check_temperature, declared, load_recording
+from .static import check_estimates, check_gyroscope_effects, check_gyroscope_noise_used, check_plausible, gyroscopes_read, check_temperature, declared, load_recording
 from ..errors import InputError, NotConvergedError
 from ..io.readers import read_recording
 from ..io.recording import Recording
@@ -79,8 +79,7 @@ def noise_from_static(spec: ProblemSpec, full: Recording, log: Log, cache: dict 
     check_gyroscope_noise_used(spec, full)  # σ's of a sensor the session lacks would be silently dropped
     out_a = {n: np.full(3, acc[n]) for n in names} if acc else None
     out_g = {n: np.full(3, gyro[n]) for n in names if n in full.gyro} if gyro else None
-    used_gyro = any(t.gyroscope is not False and t.name in full.gyro for t in spec.array.triads)
-    if out_a is None or (out_g is None and used_gyro):  # no σ to estimate for gyroscopes switched off
+    if out_a is None or (out_g is None and gyroscopes_read(spec, full)):  # none to estimate for gyroscopes off
         if not full_static(spec, full, cache).segments:
             raise InputError(spec.path, "noise.accelerometer" if out_a is None else "noise.gyroscope",
                              "auto needs static segments in the recording to estimate the noise; none were found; "
@@ -328,7 +327,9 @@ GYRO_FREE_START = {
        "sample; the motion starts at zero and its sign may flip between samples, which the fit (χ²/dof) does not "
        "show; add a gyroscope or a triad off the line",
 }
-GYRO_FREE_START[0] = GYRO_FREE_START[1].replace("lie on one line", "coincide").replace("off the line", "elsewhere")
+GYRO_FREE_START[0] = ("warning: no gyroscope and the positions coincide: the accelerometers cannot give ω; the motion "
+                      "starts at zero and its sign may flip between samples, which the fit (χ²/dof) does not show; "
+                      "add a gyroscope or triads elsewhere")
 
 
 def check_information(spec: ProblemSpec, data: DynamicData, nominal: dict[str, np.ndarray], log: Log) -> None:

@@ -143,11 +143,16 @@ def check_estimates(spec: ProblemSpec, values: dict, names: list[str]) -> None:
                                  "reversed sign, mislabelled poses or wrong units)")
 
 
+def gyroscopes_read(spec: ProblemSpec, rec: Recording) -> list[str]:
+    """The triads whose gyroscope the problem uses: read in ``rec`` and not switched off (array gyroscope: false)."""
+    return [t.name for t in spec.array.triads if t.gyroscope is not False and t.name in rec.gyro]
+
+
 def check_gyroscope_noise_used(spec: ProblemSpec, rec: Recording) -> None:
     """Refuse gyroscope σ's (``noise.gyroscope``, a fixed ``noise.motion_dependent.gyroscope``
     component) for a session in which no triad's gyroscope reads: they would be silently dropped."""
     names = spec.array.names
-    if any(t.gyroscope is not False and t.name in rec.gyro for t in spec.array.triads):
+    if gyroscopes_read(spec, rec):
         return
     gyro = spec.noise.gyroscope
     one = set(gyro.values()) if gyro else set()
