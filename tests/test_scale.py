@@ -6,6 +6,7 @@ from N, not tuned. Seeds are fixed: the outcomes are deterministic.
 """
 
 import json
+import re
 import threading
 from pathlib import Path
 
@@ -540,3 +541,17 @@ def test_in_process_tasks_are_guarded_like_the_cluster_ones():
     assert out[0].ok and out[0].value == 0.5 and out[0].cpu_s >= 0
     assert not out[1].ok and out[1].error.startswith("internal error: ZeroDivisionError")
     assert lines[0].startswith("[1/2] a: ok") and "FAILED" in lines[1]
+
+
+def test_scenario_kind_checked_before_the_cluster(tmp_path, capsys):
+    """kind: ferraris (which castimate simulate cannot simulate) was found by the first simulation on a
+    worker, after the cluster had started, as "the 1 s case cannot be solved: kind: ..."; now by the
+    scenario's reading, with its key, before any cluster."""
+
+    sc = tmp_path / "s.yaml"
+    sc.write_text("kind: ferraris\nseed: 1\nplan: {durations: [1]}\n")
+    with pytest.raises(InputError, match=re.escape(f"{sc}: kind: expected one of static_array, dynamic_array, "
+                                                   "found 'ferraris'")):
+        load_plan(sc)
+    assert main(["montecarlo", str(sc), "--runs", "2", "-o", str(tmp_path / "mc"), "--workers", "1"]) == 2
+    assert capsys.readouterr().err.count("\n") == 1 and not (tmp_path / "mc").exists()

@@ -30,7 +30,7 @@ from ..errors import InputError
 from ..kinds import kind_of
 from ..kinds.dynamic import MOTION_LEVEL_KEYS
 from ..output import OUTPUTS
-from ..simulate.scenarios import simulate_scenario
+from ..simulate.scenarios import scenario_kind, simulate_scenario
 from ..solver.ipopt import Solver
 from ..solver.uncertainty import partial_bound
 from ..spec import load_problem, motion_noise_setting
@@ -110,6 +110,7 @@ def load_scenario(path: str | Path, drop: tuple[str, ...] = ()) -> dict:
     if "data" in raw or "array" in raw:
         Check(Path(path)).fail("", f"this is a problem file (it has {' and '.join(k for k in ('data', 'array') if k in raw)})"
                                    ", not a scenario: expected a scenario as for `castimate simulate`")
+    scenario_kind(Check(Path(path)), raw)  # here, not from every worker's simulation after the cluster started
     return {k: v for k, v in raw.items() if k not in drop}
 
 

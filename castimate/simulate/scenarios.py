@@ -84,9 +84,7 @@ def simulate_scenario(path: str | Path, out: str | Path, *, noise_seed: int | No
     if "data" in raw or "array" in raw:
         c.fail("", f"this is a problem file (it has {' and '.join(k for k in ('data', 'array') if k in raw)}), not a "
                    f"scenario: solve it with `castimate solve {path} -o DIR`")
-    if "kind" not in raw:
-        c.fail("(top level)", "missing required key 'kind'")
-    kind = c.choice(raw["kind"], "kind", ("static_array", "dynamic_array"))
+    kind = scenario_kind(c, raw)
     draw = NoiseDraw(noise_seed, NOISE_FREE_DITHER if noise_free else 1.0)
     if kind == "dynamic_array":
         return _dynamic_scenario(c, raw, path, out, draw)
@@ -94,6 +92,13 @@ def simulate_scenario(path: str | Path, out: str | Path, *, noise_seed: int | No
         c.fail("time_series", "a noise-free session (plan, the Monte Carlo CRB) needs pose means, whose σ is declared: "
                               "set time_series: false")
     return _static_scenario(c, raw, path, out, draw)
+
+
+def scenario_kind(c: Check, raw: dict) -> str:
+    """A scenario's kind, of those that can be simulated."""
+    if "kind" not in raw:
+        c.fail("(top level)", "missing required key 'kind'")
+    return c.choice(raw["kind"], "kind", ("static_array", "dynamic_array"))
 
 
 class NoiseDraw:
