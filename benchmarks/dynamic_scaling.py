@@ -10,9 +10,9 @@ Each simulated problem is solved side by side in one run, on the same data, by
    path (``elimination="none"``: the full NLP, its KKT system factorised by MUMPS); the local
    functions are compiled to C and cached on disk (``castimate.jit``), so the timed builds are
    warm, and for ``schopp`` and ``carlsson_1k`` once more from an empty cache (cold: the build
-   includes gcc); the default once more with ``SolverOptions(threads=2)`` (the compiled local
-   functions on two worker threads, both cores of the benchmark machine; BLAS stays single-threaded
-   in every worker, see below);
+   includes gcc); all of these with ``threads=1``, and the default once more with ``threads=2``
+   (the compiled local functions on two worker threads: both cores of the benchmark machine, what
+   the default ``threads: auto`` picks there; BLAS stays single-threaded in every worker, see below);
 2. ``scipy.optimize.least_squares`` (``method="trf"``, ``tr_solver="lsmr"`` with tolerances 1e-12) on
    the same whitened residual, written here in numpy with an analytic sparse Jacobian: positions
    (and for Schopp the orientations) plus ω, ω̇, s of every sample, with the process-model rows
@@ -640,8 +640,8 @@ def summarise(case: str, d: dict, runs: dict) -> dict:
             "agree": bool(diffs) and max(diffs) <= AGREE_UM, "runs": runs}
 
 
-METHOD_LABEL = {"castimate": "castimate (IPOPT exact Hessian, motion eliminated)",
-                "castimate_threads": "castimate (IPOPT exact Hessian, motion eliminated, 2 threads)",
+METHOD_LABEL = {"castimate": "castimate (IPOPT exact Hessian, motion eliminated, 1 thread)",
+                "castimate_threads": "castimate (IPOPT exact Hessian, motion eliminated, 2 threads: auto on 2 cores)",
                 "castimate_ref": "castimate reference (full NLP, KKT by MUMPS; elimination: none)",
                 "castimate_gn": "castimate (IPOPT Gauss-Newton, motion eliminated)",
                 "castimate_cold": "castimate (exact Hessian, empty compile cache)",

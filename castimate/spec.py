@@ -674,6 +674,11 @@ def _solver(c: Check, s) -> SolverOptions:
             kw[k] = c.choice(v, w, ("ipopt", "bcd"))
         elif k == "elimination":
             kw[k] = c.choice(v, w, ("motion", "none"))
+        elif k == "threads":  # auto: SolverOptions' default (None)
+            if v != "auto":
+                if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 256:
+                    c.fail(w, f"expected auto or an integer from 1 to 256, found {v!r}")
+                kw[k] = v
         elif isinstance(default, bool):
             if not isinstance(v, bool):
                 c.fail(w, f"expected true or false, found {v!r}")
@@ -684,8 +689,6 @@ def _solver(c: Check, s) -> SolverOptions:
                 c.fail(w, f"expected a positive integer, found {v!r}")
             if k == "print_level" and not 0 <= kw[k] <= 12:
                 c.fail(w, f"expected an integer from 0 to 12, found {v!r}")
-            if k == "threads" and not 1 <= kw[k] <= 256:
-                c.fail(w, f"expected an integer from 1 to 256, found {v!r}")
             kw[k] = c.number(v, w, integer=True, hi=10 ** 7)
         else:
             kw[k] = c.number(v, w, positive=True, hi=SOLVER_TOL_MAX.get(k, 1e6))

@@ -85,11 +85,30 @@ def test_an_error_in_a_chunk_reaches_the_caller(monkeypatch):
         P.assemble(th, Xs, pf, None, "full")
 
 
-@pytest.mark.parametrize("threads", [0, -1, 1.5])
+@pytest.mark.parametrize("threads", [0, -1, 1.5, True])
 def test_threads_must_be_a_positive_integer(threads):
     prob = dynamic_case(20, False)
     with pytest.raises(ValueError, match=f"solver threads: expected a positive integer, found {threads!r}"):
         Solver(prob.lsq, SolverOptions(threads=threads))
+
+
+def test_default_threads_are_the_cores_but_one_per_task(monkeypatch):
+    """threads None (the default): one per core the process may run on, at most 8; 1 inside a task
+    of batch/montecarlo/plan (scale.engine.guarded), whose workers already take a core each; a
+    number given is kept there too."""
+    from castimate.problem import graph
+    from castimate.scale.engine import guarded
+
+    prob = dynamic_case(20, False)
+    for cores, expected in ((1, 1), (2, 2), (6, 6), (64, graph.MAX_THREADS)):
+        monkeypatch.setattr(graph.os, "sched_getaffinity", lambda pid, n=cores: set(range(n)))
+        assert Solver(prob.lsq).projection.threads == expected
+        task = guarded(lambda: Solver(prob.lsq).projection.threads, "task")
+        assert task.ok and task.value == 1
+        assert guarded(lambda: Solver(prob.lsq, SolverOptions(threads=3)).projection.threads, "task").value == 3
+        assert Solver(prob.lsq).projection.threads == expected  # the task's setting ends with it
+    failed = guarded(lambda: 1 / 0, "failing")  # reset after a failed task too
+    assert not failed.ok and graph.TASK_THREADS.get() is None
 
 
 def test_lower_in_place_on_threads():
@@ -133,3 +152,16 @@ def test_gram_of_halves(rows):
     P.threads = 2
     np.testing.assert_array_equal(P._gram(Y), one)
     np.testing.assert_allclose(np.triu(one), np.triu(Y.T @ Y), rtol=1e-13, atol=1e-13)
+
+
+@pytest.mark.parametrize("value, expected", [("auto", None), (2, 2), (1, 1)])
+def test_problem_file_threads(value, expected):
+    """solver.threads in a problem file: auto (SolverOptions' default, None) or a number of threads;
+    the other values are refused in test_validation."""
+    from pathlib import Path
+
+    from castimate.spec import _solver
+    from castimate.validation import Check
+
+    assert _solver(Check(Path("p.yaml")), {"threads": value}).threads == expected
+    assert _solver(Check(Path("p.yaml")), {}).threads is None

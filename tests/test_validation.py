@@ -346,8 +346,9 @@ SPEC_CASES = [
     ("tol_negative", {"solver.tol": -1e-8}, "solver.tol", "expected a positive finite number, found -1e-08"),
     ("print_level_range", {"solver.print_level": 13}, "solver.print_level",
      "expected an integer from 0 to 12, found 13"),
-    ("threads_zero", {"solver.threads": 0}, "solver.threads", "expected an integer from 1 to 256, found 0"),
-    ("threads_fraction", {"solver.threads": 1.5}, "solver.threads", "expected an integer, found 1.5"),
+    ("threads_zero", {"solver.threads": 0}, "solver.threads", "expected auto or an integer from 1 to 256, found 0"),
+    ("threads_fraction", {"solver.threads": 1.5}, "solver.threads", "expected auto or an integer from 1 to 256, found 1.5"),
+    ("threads_word", {"solver.threads": "all"}, "solver.threads", "expected auto or an integer from 1 to 256, found 'all'"),
 ]
 
 

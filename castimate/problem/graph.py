@@ -4,6 +4,8 @@ solver options and the solution object (shared by problem/ and solve/).
 
 from __future__ import annotations
 
+import contextvars
+import os
 from dataclasses import dataclass, field
 
 import casadi as ca
@@ -51,9 +53,11 @@ class SolverOptions:
         used, e.g. the folds of a cross-validation (not a problem-file key).
     threads
         Worker threads for the compiled local functions of the eliminated problem (``elimination:
-        motion``): 1 (default) evaluates them in the calling thread; more run chunks of samples
-        in parallel (the compiled code runs without Python's lock) with identical results. Leave
-        it at 1 where several solves already share the cores (``castimate batch``, ``montecarlo``).
+        motion``): more than 1 runs chunks of samples in parallel (the compiled code runs without
+        Python's lock) with results identical to one thread's. None (default, ``auto`` in a problem
+        file): one per core this process may run on, at most 8, and 1 inside the tasks of
+        ``castimate batch``, ``montecarlo`` and ``plan``, which already put one solve on each core
+        (:func:`castimate.solver.ipopt.solver_threads`).
     """
 
     method: str = "ipopt"
@@ -66,7 +70,7 @@ class SolverOptions:
     jit: bool = True
     elimination: str = "motion"
     covariance: bool = True
-    threads: int = 1
+    threads: int | None = None
 
     def ipopt(self) -> dict:
         return {
@@ -84,6 +88,24 @@ class SolverOptions:
             "record_time": True,
             "calc_lam_p": False,
         }
+
+
+#: The default number of worker threads where castimate already runs one solve per core (the tasks of
+#: batch, montecarlo and plan: scale.engine.guarded sets it to 1 around each); None elsewhere.
+TASK_THREADS: contextvars.ContextVar[int | None] = contextvars.ContextVar("castimate_task_threads", default=None)
+MAX_THREADS = 8
+
+
+def solver_threads(threads: int | None) -> int:
+    """SolverOptions.threads resolved: the number given, or for None the cores this process may run
+    on (at most MAX_THREADS), or TASK_THREADS inside a task that shares the cores with others."""
+    if threads is None:
+        task = TASK_THREADS.get()
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+        return task if task is not None else max(1, min(MAX_THREADS, cores))
+    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+        raise ValueError(f"solver threads: expected a positive integer, found {threads!r}")
+    return threads
 
 
 @dataclass

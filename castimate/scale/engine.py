@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, Iterator, Sequence
 
 from ..errors import CastimateError, InputError
+from ..problem.graph import TASK_THREADS
 
 Log = Callable[[str], None]
 
@@ -39,6 +40,7 @@ def guarded(fn: Callable, name: str, *args) -> TaskResult:
     """Run ``fn(*args)`` on a worker, turning any exception into a failed TaskResult: one task's
     bad input or non-convergence never reaches the others (or the client as an exception)."""
     t0, c0 = time.perf_counter(), time.process_time()
+    token = TASK_THREADS.set(1)  # one solve per core already: its own worker threads would oversubscribe them
     try:
         value = fn(*args)
         return TaskResult(name, True, value, "", time.perf_counter() - t0, time.process_time() - c0)
@@ -48,6 +50,8 @@ def guarded(fn: Callable, name: str, *args) -> TaskResult:
         where = traceback.extract_tb(e.__traceback__)[-1]
         return TaskResult(name, False, None, f"internal error: {type(e).__name__}: {e} (at {os.path.basename(where.filename)}:"
                                              f"{where.lineno})", time.perf_counter() - t0, time.process_time() - c0)
+    finally:
+        TASK_THREADS.reset(token)
 
 
 def check_workers(workers: int | None) -> int | None:

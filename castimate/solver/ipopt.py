@@ -13,7 +13,7 @@ import time
 import casadi as ca
 import numpy as np
 import scipy.sparse as sp
-from ..problem.graph import LeastSquaresProblem, Solution, SolverOptions
+from ..problem.graph import LeastSquaresProblem, Solution, SolverOptions, solver_threads
 from . import uncertainty
 from .assembly import Assembly, Block, Callback, EvaluationError, Stages
 from .elimination import Projection
@@ -35,14 +35,13 @@ class Solver:
         self.blocks = [Block(b, lay) for b in problem.blocks if b.n]
         if options.elimination not in ("motion", "none"):
             raise ValueError(f"unknown elimination {options.elimination!r}")
-        if not isinstance(options.threads, int) or options.threads < 1:
-            raise ValueError(f"solver threads: expected a positive integer, found {options.threads!r}")
+        threads = solver_threads(options.threads)
         # the nuisance rows eliminated by variable projection (compiles the blocks), or None
         self.projection, self.elimination_note = Projection.build(self.blocks, lay, options.hessian, options.jit) \
             if options.elimination == "motion" else (None, "full NLP (elimination: none)")
         P = self.projection
         if P is not None:
-            P.threads = options.threads
+            P.threads = threads
         self.stages, self.staged = st, staged = Stages.find(lay, self.blocks) if P is None else (None, {})
         cache: dict = {}
         off = 0
