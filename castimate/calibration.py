@@ -201,6 +201,9 @@ TEMPERATURE_RANGE = (173.0, 423.0)
 def _numeric(x, where: str) -> np.ndarray:
     a = np.asarray(x) if not isinstance(x, np.ndarray) else x
     if a.dtype == object:
+        text = next((v for v in a.ravel() if isinstance(v, (str, bytes))), None)
+        if text is not None:  # numpy would read "9" as 9.0
+            raise InputError("Calibration.apply", where, f"expected numbers, found text {text!r}")
         try:
             a = np.asarray(x, float)
         except (TypeError, ValueError):

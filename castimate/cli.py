@@ -45,7 +45,9 @@ def cmd_solve(args) -> int:
     log = _progress(args)
     # refused up front (a file where the directory goes, an input in the way), written only on success;
     # freed memory kept on the heap throughout (heap_allocation): fresh pages cost system time
-    with StagedOutput(out, names=("results.json", "details.npz"), inputs=spec.inputs) as stage, heap_allocation():
+    # a report.html of earlier results there goes (castimate report renders the new ones)
+    with StagedOutput(out, names=("results.json", "details.npz"), inputs=spec.inputs, stale=("report.html",)) \
+            as stage, heap_allocation():
         summary = write_outputs(stage, calibrate(spec, log))
     print(summary)
     print(f"wrote {out / 'results.json'}")

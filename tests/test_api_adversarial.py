@@ -64,6 +64,8 @@ BAD_APPLY = [
     ("acc 3-D", lambda p, f: p.apply(_with(ACC, value=np.zeros((2, N, 3)))), ("acc['imu1']", "(2, 10, 3)")),
     ("acc empty", lambda p, f: p.apply(_with(ACC, value=np.zeros((0, 3)))), ("acc['imu1']", "N >= 1")),
     ("acc strings", lambda p, f: p.apply(_with(ACC, value=np.full((N, 3), "a"))), ("acc['imu1']", "real numbers")),
+    ("acc numeric text", lambda p, f: p.apply(_with(ACC, value=np.array([[0, 0, "9.8"]] * N, object))),
+     ("acc['imu1']", "text '9.8'")),
     ("acc complex", lambda p, f: p.apply(_with(ACC, value=np.zeros((N, 3)) + 1j)), ("acc['imu1']", "complex")),
     ("acc booleans", lambda p, f: p.apply(_with(ACC, value=np.zeros((N, 3), bool))), ("acc['imu1']", "bool")),
     ("acc ragged", lambda p, f: p.apply(_with(ACC, value=[[0, 0, 9.8], [1, 2]])), ("acc['imu1']", "lengths")),

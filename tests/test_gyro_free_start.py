@@ -162,8 +162,12 @@ def test_gyro_free_board_solves(tmp_path):
     for i, t in enumerate(doc["array"]["triads"]):
         t["position"] = true[i].tolist()
     (tmp_path / "problem.yaml").write_text(yaml.safe_dump(doc))
-    sol = api.solve(tmp_path / "problem.yaml").solution
+    lines = []
+    sol = api.solve(tmp_path / "problem.yaml", log=lines.append).solution
     assert sol.success and 0.8 < sol.chi2_per_dof < 1.2, sol.chi2_per_dof
+    # the HAC line names what it can: no position is free ("position σ × nan" before)
+    hac = [ln for ln in lines if ln.startswith("residual correlation")]
+    assert hac and "no calibration parameter is free" in hac[0] and "nan" not in hac[0], hac
     # on one line the start cannot give ω: a warning before the solve (kinds.dynamic.check_information)
     from castimate.kinds.dynamic import dynamic_inputs
     from castimate.spec import load_problem
@@ -174,3 +178,16 @@ def test_gyro_free_board_solves(tmp_path):
     lines = []
     dynamic_inputs(load_problem(tmp_path / "problem.yaml"), lines.append)
     assert any(ln.startswith("warning: no gyroscope and the positions lie on one line") for ln in lines), lines
+
+
+def test_inflation_phrase():
+    """The HAC line's inflation in words (kinds.dynamic.inflation_phrase), by hand: over the
+    positions where any is free, else over the free parameters, else none to name."""
+    from castimate.kinds.dynamic import inflation_phrase
+
+    nan = float("nan")
+    assert inflation_phrase({"position_rms": 1.694, "rms": 1.5}) == "position σ × 1.69 (RMS over positions)"
+    assert inflation_phrase({"position_rms": nan, "rms": 1.234}) == \
+        "σ × 1.23 (RMS over the free parameters; no position is free)"
+    assert inflation_phrase({"position_rms": nan, "rms": nan}) == \
+        "no calibration parameter is free (only the motion is estimated)"

@@ -75,3 +75,28 @@ def test_interrupt_between_the_moves_is_held_back(solved, tmp_path, monkeypatch)
     new, ref = (json.loads((d / "results.json").read_text()) for d in (target, out))
     assert new["triads"] == ref["triads"] and np.load(target / "details.npz").files == np.load(out / "details.npz").files
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler is restored
+
+
+def test_a_new_solve_removes_the_report_of_the_old_results(solved, tmp_path):
+    """castimate report's report.html describes the results beside it: a new solve into that directory
+    removes it with the moves (it was left beside the new results.json); an interrupted solve keeps it,
+    and files of the user's stay."""
+    import castimate.output as output
+
+    problem, _ = solved
+    out = tmp_path / "out"
+    assert main(["solve", str(problem), "-o", str(out), "-q"]) == 0
+    assert main(["report", str(out), "-q"]) == 0
+    (out / "notes.txt").write_text("mine")
+    before = snapshot(out)
+    assert "report.html" in before
+
+    def interrupted(stage, outcome):
+        raise KeyboardInterrupt
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(output, "write_outputs", interrupted)
+        assert main(["solve", str(problem), "-o", str(out), "-q"]) == 130
+    assert snapshot(out) == before
+    assert main(["solve", str(problem), "-o", str(out), "-q"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["details.npz", "notes.txt", "results.json"]

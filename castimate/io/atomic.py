@@ -138,12 +138,15 @@ class StagedOutput:
     first (:func:`check_output`), yields the staging directory (or, for a file target, the staged
     file's path), and on a normal exit moves every staged file to the target (each an atomic rename,
     after all are checked). On an exception nothing is moved and the stage is removed: a failed
-    command leaves no partial output.
+    command leaves no partial output. ``stale``: files of the target directory that describe its
+    previous outputs (``castimate report``'s report.html beside results.json), removed together with
+    the moves so that none is left beside new outputs it does not describe.
     """
 
     def __init__(self, target: str | os.PathLike, directory: bool = True, names: tuple[str, ...] = (),
-                 inputs: tuple = (), option: str = "-o"):
+                 inputs: tuple = (), option: str = "-o", stale: tuple[str, ...] = ()):
         self.target, self.directory, self.inputs, self.option = Path(target), directory, tuple(inputs), option
+        self.stale = stale
         check_output(self.target, directory, names, self.inputs, option)
         self.stage: Path | None = None
 
@@ -173,5 +176,8 @@ class StagedOutput:
             with interrupts_deferred():  # a Ctrl-C between two renames would pair new and old files
                 for src, dest in moves:
                     os.replace(src, dest)
+                for name in self.stale:
+                    with contextlib.suppress(FileNotFoundError):
+                        (self.target / name).unlink()
         except OSError as e:
             raise InputError(self.target, self.option, f"cannot write the output ({e.strerror})") from None

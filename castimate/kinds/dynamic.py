@@ -437,9 +437,18 @@ def serial_uncertainty(spec: ProblemSpec, problem, solver: Solver, sol: Solution
                           "max": float(np.nanmax(infl)) if infl.size else float("nan")},
             "fisher_std": sol.std, "hac_std": std_by_group(solver, hc.covariance)}
     log(f"residual correlation: lag-1 autocorrelation {np.nanmedian(hc.rho):.2f} (median over channels), "
-        f"bandwidth {hc.bandwidth:.1f} samples, position σ × {info['inflation']['position_rms']:.2f} "
-        f"(RMS over positions); reported: HAC σ's")
+        f"bandwidth {hc.bandwidth:.1f} samples, {inflation_phrase(info['inflation'])}; reported: HAC σ's")
     return replace(sol, covariance=hc.covariance, std=info["hac_std"]), info
+
+
+def inflation_phrase(inflation: dict) -> str:
+    """How much the HAC σ's exceed the Fisher ones (results.json's uncertainty.inflation), in words:
+    over the positions, or over every free parameter where no position is free."""
+    if np.isfinite(inflation["position_rms"]):
+        return f"position σ × {inflation['position_rms']:.2f} (RMS over positions)"
+    if np.isfinite(inflation["rms"]):
+        return f"σ × {inflation['rms']:.2f} (RMS over the free parameters; no position is free)"
+    return "no calibration parameter is free (only the motion is estimated)"
 
 
 def solve_dynamic(config: DynamicConfig, data: DynamicData, nominal: dict, options: SolverOptions | None = None,

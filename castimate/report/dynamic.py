@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from . import figures
+from ..kinds.dynamic import inflation_phrase
 from .page import (DEG, fig_html, chi2_text, finite, format_pm, kv, matrix, page_head, parameter_tables, status_row,
                    time_base_row, wide)
 REQUIRED_DYNAMIC_DETAILS = ("triads", "t", "omega", "omega_dot", "s", "residual_acc", "acc_sigma", "position",
@@ -278,8 +279,8 @@ def render_dynamic_report(results: dict, details: dict[str, np.ndarray]) -> str:
         span = f"{min(rho):.2f}–{max(rho):.2f}" if rho else "n/a"
         rows.append(("reported σ's", f"{sigma_source(results)}; whitened residuals' lag-1 autocorrelation "
                                      f"{span} per triad and sensor, bandwidth "
-                                     f"{u['bandwidth_samples']:.1f} samples, position σ × "
-                                     f"{u['inflation']['position_rms']:.2f} against the Fisher σ's (RMS)"))
+                                     f"{u['bandwidth_samples']:.1f} samples, "
+                                     f"{inflation_phrase(u['inflation'])} against the Fisher σ's"))
     nom, est, sd = (np.asarray(details[k], float) for k in ("nominal_position", "position", "position_std"))
     rows.append(("positions", f"RMS distance estimated–nominal {figures.position_rms_um(nom, est, sd):.1f} µm "
                               f"over the {int(np.any(sd > 0, axis=1).sum())} estimated triad(s)"))
