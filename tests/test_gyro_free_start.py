@@ -168,6 +168,24 @@ def test_gyro_free_board_solves(tmp_path):
     # the HAC line names what it can: no position is free ("position σ × nan" before)
     hac = [ln for ln in lines if ln.startswith("residual correlation")]
     assert hac and "no calibration parameter is free" in hac[0] and "nan" not in hac[0], hac
+    assert not any("does not fit" in ln for ln in lines)
+    # positions fixed 1 mm off the truth: the noise model fits σ's to the misfit (χ²/dof below 1), but
+    # the residuals are nearly deterministic and the log, the summary and the report say so
+    from castimate.output import dynamic_summary
+    from castimate.report.page import fit_verdict
+
+    for i, t in enumerate(doc["array"]["triads"]):
+        t["position"] = nominal[i].tolist()
+    (tmp_path / "problem.yaml").write_text(yaml.safe_dump(doc))
+    lines = []
+    outcome = api.solve(tmp_path / "problem.yaml", log=lines.append)
+    assert outcome.solution.success and outcome.solution.chi2_per_dof < 1.2
+    assert any(ln.startswith("warning: the model does not fit: the residuals' lag-1 autocorrelation") for ln in lines)
+    assert "warning: the model does not fit" in dynamic_summary(outcome)
+    lag1 = outcome.serial["lag1_autocorrelation"]
+    verdict = fit_verdict({"status": {"success": True}, "uncertainty": {"lag1_autocorrelation": lag1},
+                           "residuals": {"chi2_per_dof": outcome.solution.chi2_per_dof, "dof": outcome.solution.dof}})
+    assert verdict[0] == "bad" and verdict[1].startswith("The model does not fit"), verdict
     # on one line the start cannot give ω: a warning before the solve (kinds.dynamic.check_information)
     from castimate.kinds.dynamic import dynamic_inputs
     from castimate.spec import load_problem
@@ -191,3 +209,16 @@ def test_inflation_phrase():
         "σ × 1.23 (RMS over the free parameters; no position is free)"
     assert inflation_phrase({"position_rms": nan, "rms": nan}) == \
         "no calibration parameter is free (only the motion is estimated)"
+
+
+def test_misfit_warning():
+    """kinds.dynamic.misfit_warning by hand: the median over the channels against 0.9."""
+    from castimate.kinds.dynamic import MISFIT_AUTOCORRELATION, misfit_warning
+
+    assert MISFIT_AUTOCORRELATION == 0.9
+    exp1 = {"accelerometer": {"imu1": 0.05, "imu2": 0.06}, "gyroscope": {"imu1": 0.53, "imu2": 0.64}}
+    assert misfit_warning(exp1) is None and misfit_warning({}) is None
+    assert misfit_warning({"accelerometer": {"a": float("nan")}}) is None
+    w = misfit_warning({"accelerometer": {"a": 0.98, "b": 0.97, "c": 0.2}})
+    assert w.startswith("the model does not fit: the residuals' lag-1 autocorrelation is 0.97 (median")
+    assert misfit_warning({"accelerometer": {"a": 0.9, "b": 0.9}}) is None  # at the threshold: no

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..kinds.dynamic import misfit_warning
+
 DEG = 180 / np.pi
 
 
@@ -64,6 +66,9 @@ def dynamic_summary(outcome) -> str:
                 f"{k} {c['value']:.3g}±{c['std']:.2g} {c['unit']}" for k, c in comps.items() if c["value"]))
     if (outcome.motion_noise or {}).get("status"):
         lines.append(f"  motion-dependent noise: {outcome.motion_noise['status']}")
+    misfit = misfit_warning((outcome.serial or {}).get("lag1_autocorrelation", {}))
+    if misfit:
+        lines.append(f"  warning: {misfit}")
     lines.append("  position [mm] (body frame, origin at the reference triad)  estimate ± σ   | nominal")
     for n in outcome.config.names:
         r, s = outcome.positions[n]

@@ -238,6 +238,10 @@ def fit_verdict(results: dict) -> tuple[str, str]:
         return "bad", (f"The model does not fit the data: χ²/dof = {chi2:.4g}, the residuals are about "
                        f"{math.sqrt(chi2):.3g} × the noise σ. The solver converged, but the estimates and their σ's "
                        "carry unmodelled errors (try <code>castimate diagnose</code>).")
+    from ..kinds.dynamic import misfit_warning  # the dynamic kind's residual test, where it was made
+    misfit = misfit_warning((results.get("uncertainty") or {}).get("lag1_autocorrelation") or {})
+    if misfit:
+        return "bad", f"{misfit[0].upper()}{escape(misfit[1:])} (χ²/dof = {chi2:.3g})."
     if chi2 > 1 + band:
         return "warn", (f"The model fits approximately: χ²/dof = {chi2:.3g}, the residuals exceed the noise model "
                         f"(σ's about {math.sqrt(chi2):.2g} × too small for the σ's reported).")
