@@ -326,10 +326,10 @@ GYRO_FREE_START = {
     1: "warning: no gyroscope and the positions lie on one line: the accelerometers cannot give ω sample by "
        "sample; the motion starts at zero and its sign may flip between samples, which the fit (χ²/dof) does not "
        "show; add a gyroscope or a triad off the line",
+    0: "warning: no gyroscope and the positions coincide: the accelerometers cannot give ω; the motion starts at "
+       "zero and its sign may flip between samples, which the fit (χ²/dof) does not show; add a gyroscope or "
+       "triads elsewhere",
 }
-GYRO_FREE_START[0] = ("warning: no gyroscope and the positions coincide: the accelerometers cannot give ω; the motion "
-                      "starts at zero and its sign may flip between samples, which the fit (χ²/dof) does not show; "
-                      "add a gyroscope or triads elsewhere")
 
 
 def check_information(spec: ProblemSpec, data: DynamicData, nominal: dict[str, np.ndarray], log: Log) -> None:
@@ -438,8 +438,9 @@ def serial_uncertainty(spec: ProblemSpec, problem, solver: Solver, sol: Solution
             "fisher_std": sol.std, "hac_std": std_by_group(solver, hc.covariance)}
     log(f"residual correlation: lag-1 autocorrelation {np.nanmedian(hc.rho):.2f} (median over channels), "
         f"bandwidth {hc.bandwidth:.1f} samples, {inflation_phrase(info['inflation'])}; reported: HAC σ's")
-    if misfit_warning(rho):
-        log(f"warning: {misfit_warning(rho)}")
+    misfit = misfit_warning(rho)
+    if misfit:
+        log(f"warning: {misfit}")
     return replace(sol, covariance=hc.covariance, std=info["hac_std"]), info
 
 

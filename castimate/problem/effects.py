@@ -60,7 +60,7 @@ at their own instant, which makes d identifiable on the reference IMU too. The e
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable
 
 import casadi as ca
@@ -193,8 +193,10 @@ TIMING_RANGE = (-1.0, 1.0)
 
 
 def _timing(name: str, sensor: str, group: GroupDef, age: Callable[[Any, Context], Any], **kw) -> Effect:
-    """A timing effect: it adds ``age`` to the reading's sample age (``Effect.age``)."""
-    return Effect(name, sensor, group, lambda c, x: fx.sample_age(age(c, x), x.u_dot, x.u_ddot), kinds=(DYNAMIC,),
+    """A timing effect: it adds ``age`` to the reading's sample age (``Effect.age``); its components
+    are ages in s, within TIMING_RANGE."""
+    return Effect(name, sensor, replace(group, limits=TIMING_RANGE),
+                  lambda c, x: fx.sample_age(age(c, x), x.u_dot, x.u_ddot), kinds=(DYNAMIC,),
                   needs=(RATE,), sample_wise=False, age=age, **kw)
 
 
@@ -231,7 +233,7 @@ EFFECTS: tuple[Effect, ...] = (
            gauge=fx.chip_offsets_gauge,
            title="accelerometer sensing-element offsets of the chip model (size effect): y and z elements relative "
                  "to x in the chip's frame, shared by every triad of the board"),
-    _timing("age", "accelerometer", GroupDef(("a",), (0.0,), 1e-3, "s", limits=TIMING_RANGE), lambda c, x: c,
+    _timing("age", "accelerometer", GroupDef(("a",), (0.0,), 1e-3, "s"), lambda c, x: c,
             relative=True, shared=True,
             title="chip sample age: the IMU's accelerometer and gyroscope read the motion a late "
                  "(constant, relative to the reference triad's)"),
@@ -240,7 +242,7 @@ EFFECTS: tuple[Effect, ...] = (
     Effect("g_sensitivity", "gyroscope",
            GroupDef(("xx", "xy", "xz", "yx", "yy", "yz", "zx", "zy", "zz"), (0.0,) * 9, 1e-4, "rad/s per m/s^2"),
            lambda c, x: fx.g_sensitivity(c, x.f), needs=(SPECIFIC_FORCE,), title="gyroscope g-sensitivity"),
-    _timing("delay", "gyroscope", GroupDef(("d",), (0.0,), 1e-3, "s", limits=TIMING_RANGE), lambda c, x: c,
+    _timing("delay", "gyroscope", GroupDef(("d",), (0.0,), 1e-3, "s"), lambda c, x: c,
             title="accelerometer-gyroscope delay: the gyroscope reads the motion d later than its own "
                  "accelerometer (filter group delays)"),
     Effect("coupling", "gyroscope", GroupDef(("yx", "zx", "zy"), (0.0,) * 3, 1e-2, "-", limits=(-1.0, 1.0)),
@@ -250,7 +252,7 @@ EFFECTS: tuple[Effect, ...] = (
             relative=True, shared=True,
             title="chip clock-rate drift: the IMU's sample age (accelerometer and gyroscope) linear in time, "
                  "its value at the session's end, relative to the reference triad's"),
-    _timing("clock_beat", "accelerometer", GroupDef(("A",), (0.0,), 1e-3, "s", limits=TIMING_RANGE),
+    _timing("clock_beat", "accelerometer", GroupDef(("A",), (0.0,), 1e-3, "s"),
             lambda c, x: c * x.beat, shared=True,
             title="chip clock: the IMU's sample age (accelerometer and gyroscope) a sawtooth A (frac(ν t + φ) − ½) "
                  "at the beat with the read-out; ν, φ from the implied age"),
