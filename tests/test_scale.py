@@ -269,6 +269,22 @@ def test_validation_errors(tmp_path, call, message):
         call(tmp_path)
 
 
+def test_a_problem_file_is_refused_as_a_scenario_with_one_message(tmp_path):
+    """simulate, montecarlo and plan tell a scenario from a problem file in one place
+    (simulate.scenarios.read_scenario): the same one line, naming the file and what to run."""
+    problem = write(tmp_path / "problem.yaml", {"kind": "static_array", "data": {"path": "d.csv"},
+                                                "array": {"reference": "imu1", "triads": [{"name": "imu1"}]}})
+    messages = []
+    for call in (lambda: simulate_scenario(problem, tmp_path / "o"), lambda: load_scenario(problem),
+                 lambda: load_plan(problem)):
+        with pytest.raises(InputError) as e:
+            call()
+        messages.append(str(e.value))
+    assert len(set(messages)) == 1, messages
+    assert "problem.yaml" in messages[0] and "not a scenario" in messages[0] and "castimate solve" in messages[0]
+    assert "\n" not in messages[0] and not (tmp_path / "o").exists()
+
+
 @pytest.mark.parametrize("argv, message", [
     (["montecarlo", "S", "--runs", "0", "-o", "O"], "--runs: expected a number of runs"),
     (["batch", "T", "nothing_here_*.bin", "-o", "O"], "the glob matches no file"),

@@ -30,11 +30,11 @@ from ..errors import InputError
 from ..kinds import kind_of
 from ..kinds.dynamic import MOTION_LEVEL_KEYS
 from ..output import OUTPUTS
-from ..simulate.scenarios import scenario_kind, simulate_scenario
+from ..simulate.scenarios import read_scenario, simulate_scenario
 from ..solver.ipopt import Solver
 from ..solver.uncertainty import partial_bound
 from ..spec import load_problem, motion_noise_setting
-from ..validation import Check, load_yaml
+from ..validation import Check
 from .engine import TaskResult, run_tasks
 from .stats import Estimate, MonteCarloResult, estimates, score_runs, truth_values
 
@@ -104,13 +104,7 @@ def bound_problem(settings: StudySettings, levels: dict | None = None) -> dict:
 def load_scenario(path: str | Path, drop: tuple[str, ...] = ()) -> dict:
     """A scenario file's mapping (checked fully when first simulated); ``drop``: keys of the caller's
     own (a plan's ``plan``) taken out before."""
-    raw = load_yaml(path, "scenario file")
-    if not isinstance(raw, dict):
-        Check(Path(path)).fail("", f"expected a scenario mapping, found {type(raw).__name__}")
-    if "data" in raw or "array" in raw:
-        Check(Path(path)).fail("", f"this is a problem file (it has {' and '.join(k for k in ('data', 'array') if k in raw)})"
-                                   ", not a scenario: expected a scenario as for `castimate simulate`")
-    scenario_kind(Check(Path(path)), raw)  # here, not from every worker's simulation after the cluster started
+    raw = read_scenario(path)  # here, not from every worker's simulation after the cluster started
     return {k: v for k, v in raw.items() if k not in drop}
 
 

@@ -77,13 +77,8 @@ def simulate_scenario(path: str | Path, out: str | Path, *, noise_seed: int | No
     whose σ is declared rather than estimated from the data.
     """
     path, out = Path(path), Path(out)
-    raw = load_yaml(path, "scenario file")
+    raw = read_scenario(path)
     c = Check(path)
-    if not isinstance(raw, dict):
-        c.fail("", f"expected a mapping, found {type(raw).__name__} {shown(raw)}")
-    if "data" in raw or "array" in raw:
-        c.fail("", f"this is a problem file (it has {' and '.join(k for k in ('data', 'array') if k in raw)}), not a "
-                   f"scenario: solve it with `castimate solve {path} -o DIR`")
     kind = scenario_kind(c, raw)
     draw = NoiseDraw(noise_seed, NOISE_FREE_DITHER if noise_free else 1.0)
     if kind == "dynamic_array":
@@ -92,6 +87,23 @@ def simulate_scenario(path: str | Path, out: str | Path, *, noise_seed: int | No
         c.fail("time_series", "a noise-free session (plan, the Monte Carlo CRB) needs pose means, whose σ is declared: "
                               "set time_series: false")
     return _static_scenario(c, raw, path, out, draw)
+
+
+def read_scenario(path: str | Path) -> dict:
+    """A scenario file's mapping, with its kind checked (the other keys are checked when it is
+    simulated): the one place that tells a scenario from a problem file, for simulate, montecarlo
+    and plan alike."""
+    path = Path(path)
+    raw = load_yaml(path, "scenario file")
+    c = Check(path)
+    if not isinstance(raw, dict):
+        c.fail("", f"expected a scenario mapping, found {type(raw).__name__} {shown(raw)}")
+    if "data" in raw or "array" in raw:
+        c.fail("", f"this is a problem file (it has {' and '.join(k for k in ('data', 'array') if k in raw)}), not a "
+                   f"scenario: solve it with `castimate solve {path} -o DIR`; simulate, montecarlo and plan take a "
+                   "scenario (e.g. problems/sim_*.yaml)")
+    scenario_kind(c, raw)
+    return raw
 
 
 def scenario_kind(c: Check, raw: dict) -> str:
