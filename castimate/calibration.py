@@ -302,6 +302,15 @@ def imutk_gyro_file(acc_path: Path) -> Path | None:
     return g if g.is_file() else None
 
 
+def apply_inputs(results_path, data_path, fmt: str | None = None, gyro_path=None) -> tuple:
+    """The files ``apply`` reads: the results, the data and the gyroscope file (imu_tk: by default
+    the one beside the data, :func:`imutk_gyro_file`), none of which its output may replace."""
+    data_path = Path(data_path)
+    if gyro_path is None and (fmt or EXTENSIONS.get(data_path.suffix.lower())) == "imutk":
+        gyro_path = imutk_gyro_file(data_path)
+    return (results_path, data_path) + ((gyro_path,) if gyro_path is not None else ())
+
+
 def check_output_format(out_path, option: str = "") -> None:
     """Refuse an output of ``apply`` that is neither .csv nor .npz (``option``: how the caller names it)."""
     suffix = Path(out_path).suffix
@@ -368,4 +377,4 @@ def apply_calibration(results_path, data_path, out_path, fmt: str | None = None,
     return len(out)
 
 
-__all__ = ["Calibration", "apply_calibration"]
+__all__ = ["Calibration", "apply_calibration", "apply_inputs"]

@@ -67,12 +67,12 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_apply(args) -> int:
-    from .calibration import apply_calibration, check_output_format
+    from .calibration import apply_calibration, apply_inputs, check_output_format
     from .io.atomic import StagedOutput
 
     check_output_format(args.output, "-o")  # here: inside, the staged file's name would be shown
-    inputs = (args.results, args.data) + ((args.gyro,) if args.gyro else ())
-    with StagedOutput(args.output, directory=False, inputs=inputs) as staged:
+    with StagedOutput(args.output, directory=False,
+                      inputs=apply_inputs(args.results, args.data, args.format, args.gyro)) as staged:
         n = apply_calibration(args.results, args.data, staged, fmt=args.format, gyro_path=args.gyro,
                                log=_progress(args))
     print(f"wrote {args.output}: {n} samples calibrated")
@@ -152,11 +152,12 @@ def cmd_noise(args) -> int:
 
 
 def cmd_codegen(args) -> int:
-    from .codegen import CodegenOptions, generate_c
+    from .codegen import CodegenOptions, codegen_io, generate_c
     from .io.atomic import StagedOutput
 
     out = Path(args.output)
-    with StagedOutput(out, inputs=(args.source,)) as stage:
+    inputs, names = codegen_io(args.source)
+    with StagedOutput(out, names=names, inputs=inputs) as stage:
         files = generate_c(args.source, stage, CodegenOptions(window=args.window, start=args.start,
                                                               motion_only=args.motion_only), log=_progress(args))
     for name in files:
@@ -177,15 +178,19 @@ def cmd_batch(args) -> int:
     from .io.atomic import StagedOutput, write_atomic
     from .io.results import write_json
     from .report.scale import render_batch
-    from .scale.batch import check_threshold, load_template, recordings_of, run_batch
+    from .scale.batch import check_threshold, load_template, recording_names, recordings_of, run_batch
     from .scale.engine import check_workers, dask_client
 
     out = Path(args.output)
     check_workers(args.workers)
     check_threshold(args.outlier_threshold)
-    load_template(args.template)
+    template, recordings = load_template(args.template), recordings_of(args.recordings)
     names = ("summary.csv", "summary.json", "summary.html")
-    with StagedOutput(out, names=names, inputs=(args.template, *recordings_of(args.recordings))) as stage:
+    per_recording = ("results.json", "diagnose.json") if args.diagnose else ("results.json", "details.npz")
+    # the files every recording's problem reads (the template, its model.intrinsics) are inputs too
+    inputs = (*template.problem(recordings[0]).inputs, *recordings)
+    with StagedOutput(out, names=names + tuple(f"{n}/{f}" for n in recording_names(recordings) for f in per_recording),
+                      inputs=inputs) as stage:
         with dask_client(args.scheduler, args.workers) as client:
             summary = run_batch(client, args.template, args.recordings, _progress(args), args.outlier_threshold, args.diagnose)
         for name, r in zip(summary.names, summary.results):

@@ -897,6 +897,42 @@ def solve_output_overwrites_data(base, tmp):
 
 
 @case("touched")
+def codegen_output_overwrites_data(base, tmp):
+    """The problem's data file (csv, whatever its name) is DIR/test_vectors.txt, a file codegen writes;
+    only the problem file itself was kept from the outputs."""
+    out = tmp / "c"
+    out.mkdir()
+    copy(base / "rows" / "data.csv", out, "test_vectors.txt")
+    doc = problem_doc(base, "rows")
+    doc["data"]["path"] = str(out / "test_vectors.txt")
+    p = write_yaml(tmp / "problem.yaml", doc)
+    return Spec(["codegen", str(p), "-o", str(out), "-q"], 2, ("test_vectors.txt", "input"))
+
+
+@case("touched")
+def apply_output_overwrites_the_imutk_gyroscope_beside_the_data(base, tmp):
+    """imu_tk data acc.csv read with its gyroscope gyro.csv beside it (found by name, no --gyro):
+    -o gyro.csv would replace that input."""
+    data = copy(base / "acc.mat", tmp, "acc.csv")
+    copy(base / "gyro.mat", tmp, "gyro.csv")
+    return Spec(["apply", str(base / "imutk_solved" / "results.json"), str(data), "--format", "imutk", "-o",
+                 str(tmp / "gyro.csv")], 2, ("gyro.csv", "input"))
+
+
+@case("touched")
+def batch_output_overwrites_the_templates_intrinsics(base, tmp):
+    """A batch template whose model.intrinsics is DIR/<recording>/results.json, batched into DIR: the
+    recording's results.json would replace it (refused before the cluster starts)."""
+    (tmp / "out" / "data").mkdir(parents=True)
+    shutil.copyfile(base / "rows_solved" / "results.json", tmp / "out" / "data" / "results.json")
+    doc = problem_doc(base, "rows")
+    doc["model"]["intrinsics"] = "out/data/results.json"
+    p = write_yaml(tmp / "template.yaml", doc)
+    return Spec(["batch", str(p), str(base / "rows" / "data.csv"), "-o", str(tmp / "out"), "--workers", "1", "-q"],
+                2, ("results.json", "input"))
+
+
+@case("touched")
 def diagnose_into_the_problem_directory(base, tmp):
     """diagnose writing beside its own problem and data: the inputs stay as they were."""
     (tmp / "data.csv").write_bytes((base / "rows" / "data.csv").read_bytes())

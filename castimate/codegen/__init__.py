@@ -20,6 +20,20 @@ def is_problem_file(path: str | Path) -> bool:
     return Path(path).suffix.lower() in (".yaml", ".yml")
 
 
+def codegen_io(source: str | Path) -> tuple[tuple, tuple[str, ...]]:
+    """(the files codegen of ``source`` reads, the names it writes into its directory), for the
+    output check before any work: a problem file reads its data, gyroscope file, sections and
+    intrinsics too, and none of them may be replaced by a generated file."""
+    if is_problem_file(source):
+        from ..spec import load_problem
+        from .solvers import FILES
+
+        return load_problem(source).inputs, FILES
+    from .compensation import FILES
+
+    return (source,), FILES
+
+
 def generate_c(source: str | Path, out_dir: str | Path, options: CodegenOptions = CodegenOptions(),
                log: Callable[[str], None] = lambda m: None) -> dict[str, Path]:
     """Write C sources, header, test vectors, test program, Makefile and README into out_dir.
@@ -49,4 +63,4 @@ def generate_c(source: str | Path, out_dir: str | Path, options: CodegenOptions 
     return written
 
 
-__all__ = ["CodegenOptions", "generate_c", "generate_files", "is_problem_file", "load_calibration"]
+__all__ = ["CodegenOptions", "codegen_io", "generate_c", "generate_files", "is_problem_file", "load_calibration"]
