@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -100,3 +101,72 @@ def test_a_new_solve_removes_the_report_of_the_old_results(solved, tmp_path):
     assert snapshot(out) == before
     assert main(["solve", str(problem), "-o", str(out), "-q"]) == 0
     assert sorted(p.name for p in out.iterdir()) == ["details.npz", "notes.txt", "results.json"]
+
+
+def _failing_move(monkeypatch, fail_at: int, errno_: int = 28, persistent: bool = False) -> list:
+    """os.replace in io.atomic failing with ``errno_`` (28: ENOSPC) at the ``fail_at``-th move into
+    place (writes into the stage pass); ``persistent``: every move into place after it fails too,
+    restores included. Returns the list of destinations moved."""
+    import castimate.io.atomic as atomic
+
+    real, calls = os.replace, []
+
+    def replace(src, dest):
+        if ".castimate-stage" not in str(dest):
+            calls.append(dest)
+            if len(calls) == fail_at or (persistent and len(calls) > fail_at):
+                raise OSError(errno_, os.strerror(errno_))
+        real(src, dest)
+
+    monkeypatch.setattr(atomic.os, "replace", replace)
+    return calls
+
+
+@pytest.mark.parametrize("fail_at", [1, 2])
+def test_a_disk_error_between_the_moves_rolls_back(fail_at, solved, tmp_path, monkeypatch, capsys):
+    """ENOSPC at the first or second move into place: the previous results.json, details.npz and the
+    report that describes them are all in place again (before, a new results.json was left beside the
+    old details.npz); one line names the directory and the error; no stage is left."""
+    problem, _ = solved
+    out = tmp_path / "out"
+    assert main(["solve", str(problem), "-o", str(out), "-q"]) == 0
+    (out / "results.json").write_text("old results")
+    (out / "details.npz").write_bytes(b"old details")
+    (out / "report.html").write_text("old report")
+    before = snapshot(out)
+    capsys.readouterr()
+    calls = _failing_move(monkeypatch, fail_at)
+    assert main(["solve", str(problem), "-o", str(out), "-q"]) == 2
+    assert snapshot(out) == before
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(out) in err[0] and "No space left on device" in err[0] \
+        and "previous outputs are in place again" in err[0], err
+    assert len(calls) >= fail_at
+    assert not [p for p in tmp_path.rglob(".castimate-stage*")]
+
+
+def test_a_disk_error_into_a_new_directory_leaves_nothing(solved, tmp_path, monkeypatch):
+    """EIO at the second move of a solve into a directory that did not exist: no results.json alone,
+    and the directories created for the outputs are removed again."""
+    problem, _ = solved
+    out = tmp_path / "new" / "out"
+    _failing_move(monkeypatch, 2, errno_=5)
+    assert main(["solve", str(problem), "-o", str(out), "-q"]) == 2
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_roll_back_that_fails_keeps_the_previous_outputs_and_says_where(solved, tmp_path, monkeypatch, capsys):
+    """The disk keeps failing, restores included: the error says which outputs could not be restored and
+    where their previous versions are kept (the stage is left for that)."""
+    problem, _ = solved
+    out = tmp_path / "out"
+    assert main(["solve", str(problem), "-o", str(out), "-q"]) == 0
+    (out / "results.json").write_text("old results")
+    (out / "details.npz").write_bytes(b"old details")
+    capsys.readouterr()
+    _failing_move(monkeypatch, 2, errno_=5, persistent=True)
+    assert main(["solve", str(problem), "-o", str(out), "-q"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "could not restore" in err and str(out / "details.npz") in err, err
+    kept = err.split("kept in ")[1].split(",")[0]
+    assert sorted(p.read_bytes() for p in Path(kept).iterdir()) == [b"old details", b"old results"]

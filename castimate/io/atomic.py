@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import shutil
 import signal
@@ -138,9 +139,11 @@ class StagedOutput:
     first (:func:`check_output`), yields the staging directory (or, for a file target, the staged
     file's path), and on a normal exit moves every staged file to the target (each an atomic rename,
     after all are checked). On an exception nothing is moved and the stage is removed: a failed
-    command leaves no partial output. ``stale``: files of the target directory that describe its
-    previous outputs (``castimate report``'s report.html beside results.json), removed together with
-    the moves so that none is left beside new outputs it does not describe.
+    command leaves no partial output. A move that fails (a disk error between two renames) undoes
+    the others and puts the previous outputs back (:class:`_Publication`). ``stale``: files of the
+    target directory that describe its previous outputs (``castimate report``'s report.html beside
+    results.json), removed together with the moves so that none is left beside new outputs it does
+    not describe.
     """
 
     def __init__(self, target: str | os.PathLike, directory: bool = True, names: tuple[str, ...] = (),
@@ -163,21 +166,96 @@ class StagedOutput:
             if exc_type is None:
                 self._commit()
         finally:
-            shutil.rmtree(self.stage, ignore_errors=True)
+            if self.stage is not None:
+                shutil.rmtree(self.stage, ignore_errors=True)
 
     def _commit(self) -> None:
         staged = sorted(p for p in self.stage.rglob("*") if p.is_file())
         moves = [(p, (self.target / p.relative_to(self.stage)) if self.directory else self.target) for p in staged]
         check_output(self.target, self.directory, tuple(str(d.relative_to(self.target)) for _, d in moves)
                      if self.directory else (), self.inputs, self.option)
+        stale = [self.target / name for name in self.stale if os.path.lexists(self.target / name)]
+        publication = _Publication(self.stage)
         try:
-            for _, dest in moves:
-                dest.parent.mkdir(parents=True, exist_ok=True)
             with interrupts_deferred():  # a Ctrl-C between two renames would pair new and old files
+                for _, dest in moves:
+                    publication.make_parents(dest)
+                for i, (_, dest) in enumerate(moves):  # the previous outputs kept until all are in place
+                    publication.keep(dest, f"{i}")
+                for i, path in enumerate(stale):
+                    publication.keep(path, f"stale{i}")
                 for src, dest in moves:
-                    os.replace(src, dest)
-                for name in self.stale:
-                    with contextlib.suppress(FileNotFoundError):
-                        (self.target / name).unlink()
+                    publication.replace(src, dest)
+                for path in stale:
+                    publication.remove(path)
         except OSError as e:
-            raise InputError(self.target, self.option, f"cannot write the output ({e.strerror})") from None
+            failed = publication.roll_back()
+            what = ("; the previous outputs are in place again" if not failed else
+                    f"; could not restore {', '.join(map(str, failed))} (the previous versions are kept in "
+                    f"{publication.backup}, which is left in place)")
+            if failed:
+                self.stage = None  # keep the stage: it holds the previous outputs
+            raise InputError(self.target, self.option, f"cannot write the output ({e.strerror or e}){what}") from None
+
+
+class _Publication:
+    """The moves of a set of staged outputs into place, undone together if one of them fails.
+
+    Before any move, every file about to be replaced or removed is hard-linked (or copied, where the
+    file system has no hard links) into ``backup``, a directory in the stage (so on the outputs' file
+    system, and removed with it on success); :meth:`roll_back` puts those back by rename and
+    removes the new files and the directories created, so that a disk error (ENOSPC, EIO) between two
+    renames leaves the previous set of outputs, not a mix. POSIX renames a single file atomically, not
+    several: a reader may see the new files for the moment before the roll back."""
+
+    def __init__(self, stage: Path):
+        self.stage = stage
+        self.kept: dict[Path, Path] = {}  # destination -> its previous version
+        self.done: list[tuple[str, Path]] = []  # ("mkdir" | "placed" | "removed", path), in order
+
+    @functools.cached_property
+    def backup(self) -> Path:
+        return Path(tempfile.mkdtemp(prefix=".previous-", dir=self.stage))
+
+    def make_parents(self, dest: Path) -> None:
+        missing = [p for p in (dest.parent, *dest.parent.parents) if not os.path.lexists(p)]
+        for p in reversed(missing):
+            p.mkdir()
+            self.done.append(("mkdir", p))
+
+    def keep(self, dest: Path, name: str) -> None:
+        if not os.path.lexists(dest) or dest in self.kept:
+            return
+        copy = self.backup / name
+        if dest.is_symlink():
+            os.symlink(os.readlink(dest), copy)
+        else:
+            try:
+                os.link(dest, copy)
+            except OSError:
+                shutil.copy2(dest, copy)
+        self.kept[dest] = copy
+
+    def replace(self, src: Path, dest: Path) -> None:
+        os.replace(src, dest)
+        self.done.append(("placed", dest))
+
+    def remove(self, path: Path) -> None:
+        with contextlib.suppress(FileNotFoundError):
+            path.unlink()
+            self.done.append(("removed", path))
+
+    def roll_back(self) -> list[Path]:
+        """Undo the moves, newest first; the paths that could not be restored."""
+        failed = []
+        for what, path in reversed(self.done):
+            try:
+                if what == "mkdir":
+                    path.rmdir()
+                elif path in self.kept:
+                    os.replace(self.kept[path], path)
+                elif what == "placed":
+                    path.unlink()
+            except OSError:
+                failed.append(path)
+        return failed
