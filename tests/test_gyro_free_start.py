@@ -4,7 +4,9 @@
 import json
 
 import numpy as np
+import pytest
 
+from castimate.errors import InputError
 from castimate.models.motion import affine_dimension, angular_motion_from_specific_forces
 from castimate.simulate.dynamic import SCHOPP_POSITIONS_CM, sinusoid_motion
 
@@ -186,16 +188,30 @@ def test_gyro_free_board_solves(tmp_path):
     verdict = fit_verdict({"status": {"success": True}, "uncertainty": {"lag1_autocorrelation": lag1},
                            "residuals": {"chi2_per_dof": outcome.solution.chi2_per_dof, "dof": outcome.solution.dof}})
     assert verdict[0] == "bad" and verdict[1].startswith("The model does not fit"), verdict
-    # on one line the start cannot give ω: a warning before the solve (kinds.dynamic.check_information)
+    # on one line (or at one point) the spin about the line is unobservable: refused before the solve
+    # (kinds.dynamic.check_gyro_free_span), whether the positions are free or fixed; it was a warning, then
+    # a wrong motion at chi2/dof 1.0 (positions fixed) or no convergence after 3 attempts (free)
+    from castimate.cli import main
     from castimate.kinds.dynamic import dynamic_inputs
     from castimate.spec import load_problem
 
-    for i, t in enumerate(doc["array"]["triads"]):
-        t["position"] = [0.05 * i, 0.0, 0.0]
-    (tmp_path / "problem.yaml").write_text(yaml.safe_dump(doc))
-    lines = []
-    dynamic_inputs(load_problem(tmp_path / "problem.yaml"), lines.append)
-    assert any(ln.startswith("warning: no gyroscope and the positions lie on one line") for ln in lines), lines
+    for positions, what in (([[0.05 * i, 0.0, 0.0] for i in range(5)], "lie on one line"),
+                            ([[0.0, 0.01 * i, -0.02 * i] for i in range(5)], "lie on one line"),
+                            ([None] * 5, "coincide")):
+        for free in ("free", "fixed"):
+            doc["model"]["position"] = free
+            for t, p in zip(doc["array"]["triads"], positions):
+                t.pop("position", None)
+                if p is not None:
+                    t["position"] = p
+            (tmp_path / "problem.yaml").write_text(yaml.safe_dump(doc))
+            with pytest.raises(InputError) as e:
+                dynamic_inputs(load_problem(tmp_path / "problem.yaml"))
+            msg = str(e.value)
+            assert msg.startswith(f"{tmp_path / 'problem.yaml'}: array.triads: no triad has a gyroscope") and what in msg \
+                and "at least 3 triads not on one line, or gyroscope readings" in msg and "\n" not in msg, msg
+    assert main(["solve", str(tmp_path / "problem.yaml"), "-o", str(tmp_path / "out"), "-q"]) == 2
+    assert not (tmp_path / "out").exists()
 
 
 def test_inflation_phrase():
