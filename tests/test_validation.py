@@ -661,7 +661,7 @@ def test_apply_unknown_data_extension(solved, sim, tmp_path):
 SCENARIO_CASES = [
     ("unknown_key", "kind: static_array\ntriad: 3\n", "triad", "unknown key; expected one of effects, gravity"),
     ("missing_kind", "triads: 3\n", "(top level)", "missing required key 'kind'"),
-    ("not_mapping", "- kind\n", "", "expected a mapping, found list"),
+    ("not_mapping", "- kind\n", "", "expected a scenario mapping, found list"),
     ("bad_kind", "kind: dynamic\n", "kind", "expected one of static_array, dynamic_array, found 'dynamic'"),
     ("seed_fraction", "kind: static_array\nseed: 1.5\n", "seed", "expected an integer, found 1.5"),
     ("seed_negative", "kind: static_array\nseed: -1\n", "seed", "expected a non-negative integer, found -1"),
