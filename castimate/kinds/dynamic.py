@@ -423,12 +423,26 @@ def serial_uncertainty(spec: ProblemSpec, problem, solver: Solver, sol: Solution
     the solution's covariance and σ's become the HAC ones; with ``none`` they stay the Fisher ones
     (nothing computed).
     Returns what results.json records: which σ's are reported and, with ``auto``, the residuals'
-    lag-1 autocorrelation per triad and sensor, the bandwidth, the σ inflation and the Fisher σ's."""
+    lag-1 autocorrelation per triad and sensor, the bandwidth, the σ inflation and the Fisher σ's.
+    The Fisher covariance, where the solve skipped it (the noise model's refits) and
+    ``solver.options.covariance`` asks for it, is computed here: after the HAC covariance's
+    elimination of the nuisance variables, whose marginal information it takes (one elimination
+    for both)."""
+    d = problem.data_vector(data)
+
+    def fisher(sol):
+        if sol.covariance is not None or not solver.options.covariance:
+            return sol
+        cov = solver.covariance(sol.x, data=d)
+        return replace(sol, covariance=cov, std=std_by_group(solver, cov))
+
     if spec.uncertainty.residual_correlation == "none":
-        return sol, {"reported": "fisher", "residual_correlation": "none"}
-    hc = serial_covariance(solver, sol.x, None, problem.data_vector(data), fisher=sol.covariance)
+        return fisher(sol), {"reported": "fisher", "residual_correlation": "none"}
+    hc = serial_covariance(solver, sol.x, None, d, fisher=sol.covariance)
     if hc is None:
-        return sol, None
+        return fisher(sol), None
+    if sol.covariance is None:
+        sol = replace(sol, covariance=hc.fisher, std=std_by_group(solver, hc.fisher))
     names = {"accelerometer_sample": ("accelerometer", problem.config.names),
              "gyroscope_sample": ("gyroscope", problem.gyro_triads)}
     pooled: dict = {}
@@ -705,7 +719,9 @@ def fit_motion_noise(spec: ProblemSpec, problem, solver: Solver, sol: Solution, 
     fits: dict = {}
     warm: dict = {}  # per sensor, the variance components' fits of the previous round (fit_noise)
     structure: dict = {}  # the leverages' (hat_diagonal): the Jacobian's sparsity is the same every round
-    state = {"data": data, "sol": sol, "regressors": None, "params": params, "estimate": None, "leverages": None}
+    # the data vector of the current σ's (problem.data_vector) made once per refit
+    state = {"data": data, "vector": problem.data_vector(data), "sol": sol, "regressors": None, "params": params,
+             "estimate": None, "leverages": None}
 
     def propose(reused=False):
         data, sol = state["data"], state["sol"]
@@ -719,7 +735,7 @@ def fit_motion_noise(spec: ProblemSpec, problem, solver: Solver, sol: Solution, 
                 log("  leverages of the previous fit")
             else:
                 t0 = time.process_time()
-                J, G = solver.jacobians(sol.x, data=problem.data_vector(data))
+                J, G = solver.jacobians(sol.x, data=state["vector"])
                 h = state["leverages"] = problem.per_triad(
                     hat_diagonal(J, G, stages, np.arange(solver.n_data_residuals), structure))
                 log(f"  leverages of {solver.n_data_residuals} residuals: {time.process_time() - t0:.2f} s CPU")
@@ -745,11 +761,12 @@ def fit_motion_noise(spec: ProblemSpec, problem, solver: Solver, sol: Solution, 
 
     def refit(z, tight):
         data = state["data"] = _with_log_sigmas(state["data"], z, state["regressors"])
+        state["vector"] = problem.data_vector(data)
         prev = state["sol"]
         # an intermediate fit stops once an iteration changes χ² by at most MOTION_NOISE_SETTLE per
         # degree of freedom: the estimate from its residuals is then off by about that share
         settle = None if tight else MOTION_NOISE_SETTLE * max(prev.dof, 1)
-        sol = state["sol"] = solver.solve(prev.x, data=problem.data_vector(data), lam_g0=prev.lam_g, covariance=False,
+        sol = state["sol"] = solver.solve(prev.x, data=state["vector"], lam_g0=prev.lam_g, covariance=False,
                                           settle=settle, warm=True)
         state["regressors"] = None
         log(f"  weighted refit: {sol.message} in {sol.iterations} iterations, {sol.wall_s:.2f} s, "
@@ -768,9 +785,6 @@ def fit_motion_noise(spec: ProblemSpec, problem, solver: Solver, sol: Solution, 
     if not outer.converged:
         raise NotConvergedError(f"{spec.path}: noise.motion_dependent: the outer iteration {outer.status}; "
                                 f"fix the components (numbers) or set noise.motion_dependent: none")
-    if sol.covariance is None and solver.options.covariance:  # the refits' (and the white fit's) were skipped
-        cov = solver.covariance(sol.x, data=problem.data_vector(data))
-        sol = replace(sol, covariance=cov, std=std_by_group(solver, cov))
     units = {k: u for k, (_, u) in COMPONENTS.items()}
     out = {"rounds": outer.rounds, "converged": outer.converged, "status": outer.status}
     for sensor, c in params.items():

@@ -46,7 +46,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from .uncertainty import covariance, factor, information
+from .uncertainty import covariance, eliminate_rest, factor, information, memo_key
 
 ANDREWS_BARTLETT = 1.1447  # Andrews 1991, eq. 6.2: S_T = 1.1447 (α(1) T)^(1/3) for the Bartlett kernel
 RHO_LIMIT = 0.97  # |ρ| at which the AR(1) plug-in is clipped (its α diverges as ρ -> 1)
@@ -135,8 +135,8 @@ def _elimination(solver, x, pf, d):
     Fisher information, their constraints included."""
     theta, n = solver.theta, solver.n_x
     P = solver.projection
-    G = solver.constraint_jacobian(x, pf).tocsc()
     if P is None:
+        G = solver.constraint_jacobian(x, pf).tocsc()
         nu = np.setdiff1d(np.arange(n), theta)
         F = information(solver, x, pf, d).tocsc()
         on_t = np.asarray(abs(G[:, theta]).sum(axis=1)).ravel() > 0
@@ -148,24 +148,15 @@ def _elimination(solver, x, pf, d):
         rhs[: len(nu)] = F[nu][:, theta].toarray()
         D = factor(K).solve(rhs)[: len(nu)]
         return lambda J: J[:, theta].toarray() - J[:, nu] @ D
-    # the families by the projection's own elimination, then the other nuisance calibration variables
+    # the families by the projection's own elimination, then the other nuisance calibration variables;
+    # the marginal information on the way is the Fisher covariance's: kept for it (Solver.marginal_memo)
     S, Ds = P.nuisance_map(x, pf, d)
     fam_cols = [f.X.ravel() for f in P.fams]
     Dm = [Dk.reshape(-1, P.c) for Dk in Ds]
     t = P.tpos[theta]
     nc = np.setdiff1d(np.arange(P.c), t)
-    D2 = None
-    if len(nc):
-        Gc = G[:, P.cal]
-        on_t = np.asarray(abs(Gc[:, t]).sum(axis=1)).ravel() > 0
-        on_n = np.asarray(abs(Gc[:, nc]).sum(axis=1)).ravel() > 0
-        G_n = Gc[on_n & ~on_t][:, nc].toarray()
-        k = G_n.shape[0]
-        K = np.zeros((len(nc) + k, len(nc) + k))
-        K[: len(nc), : len(nc)], K[len(nc):, : len(nc)], K[: len(nc), len(nc):] = S[np.ix_(nc, nc)], G_n, G_n.T
-        B = np.zeros((len(nc) + k, len(t)))
-        B[: len(nc)] = S[np.ix_(nc, t)]
-        D2 = np.linalg.solve(K, B)[: len(nc)]
+    S_tt, G_t, _, _, D2 = eliminate_rest(solver, x, pf, S)
+    solver.marginal_memo = (memo_key(x, pf, d), S_tt, G_t)
 
     def eliminate(J):
         J1 = J[:, P.cal].toarray()
@@ -218,10 +209,10 @@ def serial_covariance(solver, x, p_fixed=None, data=None, lags: int | None = Non
         return None
     pf, d = solver.fixed_and_data(p_fixed, data)
     x = np.asarray(x, float)
+    reduce = _elimination(solver, x, pf, d)  # first: the Fisher covariance takes its marginal information
     C_phys = covariance(solver, x, pf, d) if fisher is None else np.asarray(fisher, float)
     s = solver.problem.layout.x_scale[solver.theta]
     C = C_phys / np.outer(s, s)
-    reduce = _elimination(solver, x, pf, d)
     nt = len(solver.theta)
     T = 1 + max(int(np.max(b.block.series)) for b in solver.blocks
                 if getattr(b.block, "series", None) is not None and len(b.block.series))

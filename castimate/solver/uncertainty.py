@@ -87,18 +87,28 @@ def eliminate(solver, x, p_fixed=None, data=None, g: np.ndarray | None = None):
 def _eliminate_projected(solver, x, p_fixed, data, g):
     """:func:`eliminate` with the nuisance families eliminated by the projection
     (:meth:`castimate.solver.elimination.Projection.marginal`), then the remaining nuisance
-    calibration variables (if any) by a dense Schur complement with their constraints."""
-    P = solver.projection
+    calibration variables (if any) by :func:`eliminate_rest`."""
     pf, d = solver.fixed_and_data(p_fixed, data)
     x = np.asarray(x, float)
-    S, gr, g_nn = P.marginal(x, pf, d, g)
+    S, gr, g_nn = solver.projection.marginal(x, pf, d, g)
+    S_tt, G_t, g_t, rest_nn, _ = eliminate_rest(solver, x, pf, S, gr)
+    return S_tt, G_t, g_t, g_nn + rest_nn
+
+
+def eliminate_rest(solver, x, pf, S, gr=None):
+    """The nuisance calibration variables outside the projection's families (e.g. a joint problem's
+    pose directions) eliminated from the families' marginal information S (c, c) by a dense Schur
+    complement with their constraints: (S_tt, G_t, for a gradient ``gr`` (c,) the reduced gradient
+    and g_n^T K^-1 g_n, and D = K^-1 B, their change per unit change of the reported parameters to
+    first order, or None where there are none)."""
+    P = solver.projection
     G = solver.constraint_jacobian(x, pf)[:, P.cal]
     t = P.tpos[solver.theta]
     nc = np.setdiff1d(np.arange(P.c), t)
     on_t = np.asarray(abs(G[:, t]).sum(axis=1)).ravel() > 0
     on_n = np.asarray(abs(G[:, nc]).sum(axis=1)).ravel() > 0
     G_t, G_n = G[on_t][:, t].toarray(), G[on_n & ~on_t][:, nc].toarray()
-    S_tt, g_t = S[np.ix_(t, t)], None if gr is None else gr[t]
+    S_tt, g_t, g_nn, D = S[np.ix_(t, t)], None if gr is None else gr[t], 0.0, None
     if len(nc):
         k = G_n.shape[0]
         K = np.zeros((len(nc) + k, len(nc) + k))
@@ -110,20 +120,26 @@ def _eliminate_projected(solver, x, p_fixed, data, g):
             Y = np.linalg.solve(K, rhs)
         except np.linalg.LinAlgError:
             raise np.linalg.LinAlgError("the nuisance variables are not determined by the data") from None
-        S_tt = S_tt - B.T @ Y[:, : len(t)]
+        S_tt, D = S_tt - B.T @ Y[:, : len(t)], Y[: len(nc), : len(t)]
         if gr is not None:
             g_t = g_t - B.T @ Y[:, -1]
-            g_nn += float(gr[nc] @ Y[: len(nc), -1])
-    return S_tt, G_t, g_t, g_nn
+            g_nn = float(gr[nc] @ Y[: len(nc), -1])
+    return S_tt, G_t, g_t, g_nn, D
+
+
+def memo_key(x, pf, d) -> tuple:
+    """The point of a marginal information in ``Solver.marginal_memo``: (x, fixed values, data)."""
+    return np.asarray(x, float).tobytes(), pf.tobytes(), None if d is None else hash(d.tobytes())
 
 
 def marginal_information(solver, x, p_fixed=None, data=None) -> tuple[np.ndarray, np.ndarray]:
     """Fisher information of the reported parameters with the nuisance variables marginalised:
     (S, G_theta), see :func:`eliminate`. The last point's is kept (``solver.marginal_memo``): the
-    covariance and the identifiability check of a solution ask for the same one."""
+    covariance and the identifiability check of a solution ask for the same one, and the HAC
+    covariance's elimination (:mod:`castimate.solver.serial`) leaves its own there."""
     pf, d = solver.fixed_and_data(p_fixed, data)
     x = np.asarray(x, float)
-    key = (x.tobytes(), pf.tobytes(), None if d is None else hash(d.tobytes()))
+    key = memo_key(x, pf, d)
     memo = solver.marginal_memo
     if memo is None or memo[0] != key:
         S, G_t, _, _ = eliminate(solver, x, pf, d)
@@ -213,7 +229,7 @@ def newton_decrement(solver, x, lam_g, p_fixed=None, data=None) -> float:
     # the same marginal information as marginal_information's at x: kept for the identifiability
     # check or covariance that follows (the score test asks for both at one point)
     x = np.asarray(x, float)
-    solver.marginal_memo = ((x.tobytes(), pf.tobytes(), None if d is None else hash(d.tobytes())), S.copy(), G_t.copy())
+    solver.marginal_memo = (memo_key(x, pf, d), S.copy(), G_t.copy())
     nt, c = S.shape[0], G_t.shape[0]
     K = np.zeros((nt + c, nt + c))
     K[:nt, :nt], K[nt:, :nt], K[:nt, nt:] = S, G_t, G_t.T
