@@ -217,20 +217,21 @@ def _windowed_std(x: np.ndarray, w: int) -> np.ndarray:
     """
     x = np.asarray(x, dtype=float)
     bad = ~np.isfinite(x)
-    xc = np.where(bad, 0.0, x)
+    flagged = bad.any()  # else the columns' medians at once and no count of bad samples
     med = np.array([np.median(col[np.isfinite(col)]) if np.isfinite(col).any() else 0.0
-                    for col in x.T])
-    xc = np.where(bad, 0.0, xc - med)
-    z = np.zeros((1, x.shape[1]))
-    c1 = np.concatenate([z, np.cumsum(xc, axis=0)])
-    c2 = np.concatenate([z, np.cumsum(xc * xc, axis=0)])
-    cb = np.concatenate([z, np.cumsum(bad, axis=0)])
+                    for col in x.T]) if flagged else np.median(x, axis=0)
+    xc = x - med
+    if flagged:
+        xc[bad] = 0.0
+    c1, c2 = np.zeros((2, len(x) + 1, x.shape[1]))
+    np.cumsum(xc, axis=0, out=c1[1:])
+    np.cumsum(np.square(xc, out=xc), axis=0, out=c2[1:])
     s1 = c1[w:] - c1[:-w]
-    s2 = c2[w:] - c2[:-w]
-    nb = cb[w:] - cb[:-w]
-    var = (s2 - s1 * s1 / w) / (w - 1)
-    std = np.sqrt(np.maximum(var, 0.0))
-    std[nb > 0] = np.inf
+    var = (c2[w:] - c2[:-w] - s1 * s1 / w) / (w - 1)
+    std = np.sqrt(np.maximum(var, 0.0, out=var), out=var)
+    if flagged:
+        cb = np.concatenate([np.zeros((1, x.shape[1]), int), np.cumsum(bad, axis=0)])
+        std[(cb[w:] - cb[:-w]) > 0] = np.inf
     return std
 
 
@@ -259,17 +260,15 @@ def _combine(std: np.ndarray, q: float) -> tuple[np.ndarray, float]:
     return scale * np.sqrt(np.mean(ratio ** 2, axis=1)), scale
 
 
-def _direction_angle_deg(m1: dict[str, np.ndarray], m2: dict[str, np.ndarray]) -> float:
-    """Median over triads of the angle between two mean specific-force vectors, degrees."""
-    angles = []
-    for k in m1:
-        a, b = m1[k], m2[k]
-        na, nb = np.linalg.norm(a), np.linalg.norm(b)
-        if na == 0 or nb == 0 or not (np.isfinite(na) and np.isfinite(nb)):
-            continue
-        c = np.clip(np.dot(a, b) / (na * nb), -1.0, 1.0)
-        angles.append(math.degrees(math.acos(c)))
-    return float(np.median(angles)) if angles else float("nan")
+def _direction_angle_deg(m1: np.ndarray, m2: np.ndarray) -> float:
+    """Median over triads of the angle between two mean specific-force vectors (the rows of m1 and
+    m2, one per triad), degrees."""
+    na, nb = np.linalg.norm(m1, axis=1), np.linalg.norm(m2, axis=1)
+    ok = (na > 0) & (nb > 0) & np.isfinite(na) & np.isfinite(nb)
+    if not ok.any():
+        return float("nan")
+    c = np.clip(np.einsum("ij,ij->i", m1[ok], m2[ok]) / (na[ok] * nb[ok]), -1.0, 1.0)
+    return float(np.median(np.degrees(np.arccos(c))))
 
 
 #: The edges of a candidate are refined over at least 2 x this span, s, whatever the window: a short
@@ -447,10 +446,9 @@ def detect_static(rec: Recording, options: DetectionOptions = DetectionOptions()
     def tt(a: int, b: int) -> tuple[float, float]:
         return float(t[a]), float(t[b - 1]) + dt
 
-    def means(a: int, b: int, src: dict) -> dict[str, np.ndarray]:
-        return {k: np.nanmean(np.asarray(src[k][a:b], dtype=float), axis=0) for k in src}
+    def means(a: int, b: int) -> np.ndarray:  # (triads, 3): the mean specific force of each triad
+        return np.nanmean(acc[a:b], axis=0).reshape(len(names), 3)
 
-    acc_sel = {k: rec.acc[k] for k in names}
     channels = acc if not gyro_names else np.concatenate([acc, gyro], axis=1)
 
     rejected: list[tuple[int, int, str]] = []
@@ -459,7 +457,7 @@ def detect_static(rec: Recording, options: DetectionOptions = DetectionOptions()
     groups: list[list[int]] = []   # [start, stop] (untrimmed)
     last_dir = None
     for a, b in candidates:
-        d = means(a, b, acc_sel)
+        d = means(a, b)
         if groups:
             ga, gb = groups[-1]
             gap = float(t[a] - t[gb - 1]) - dt
@@ -468,7 +466,7 @@ def detect_static(rec: Recording, options: DetectionOptions = DetectionOptions()
                 groups[-1][1] = b
                 rejected.append((a, b, f"merged with previous (same orientation, {ang:.2f}° apart, "
                                        f"gap {max(gap, 0.0):.2f} s)"))
-                last_dir = means(ga, b, acc_sel)
+                last_dir = means(ga, b)
                 continue
         groups.append([a, b])
         last_dir = d
@@ -495,8 +493,7 @@ def detect_static(rec: Recording, options: DetectionOptions = DetectionOptions()
             continue
         if options.max_drift is not None:
             h = (a + b) // 2
-            m1, m2 = means(a, h, acc_sel), means(h, b, acc_sel)
-            change = float(np.median([np.linalg.norm(m2[k] - m1[k]) for k in names]))
+            change = float(np.median(np.linalg.norm(means(h, b) - means(a, h), axis=1)))
             n1, n2 = h - a, b - h
             sigma_change = sigma_triad * math.sqrt(1.0 / n1 + 1.0 / n2) * math.sqrt(3.0)
             limit = max(options.max_drift, options.drift_sigmas * sigma_change)
@@ -524,7 +521,7 @@ def detect_static(rec: Recording, options: DetectionOptions = DetectionOptions()
     # 4. notes: repeated orientations
     segments = [(a, b) for a, b, _, _ in kept]
     notes: list[tuple[int, str]] = []
-    dirs = [means(a, b, acc_sel) for a, b in segments]
+    dirs = [means(a, b) for a, b in segments]
     for j in range(len(segments)):
         best = None
         for i2 in range(j):
