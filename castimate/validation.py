@@ -209,10 +209,14 @@ def _line(mark) -> str:
 
 
 def _check_nodes(node: yaml.Node, path: object, where: str, sizes: dict[int, int]) -> int:
-    """Refuse duplicate mapping keys and integers too long to be a quantity (naming the key path); return
-    the node count with aliases expanded."""
+    """Refuse duplicate mapping keys, integers too long to be a quantity and aliases inside the value
+    they name (a cycle), naming the key path; return the node count with aliases expanded."""
     if id(node) in sizes:
+        if sizes[id(node)] < 0:  # still being counted: an alias inside the value it names
+            raise InputError(path, where, f"expected values without cycles, found an alias to a value that contains "
+                                          f"it ({_line(node.start_mark)})")
         return sizes[id(node)]
+    sizes[id(node)] = -1
     n = 1
     if isinstance(node, yaml.MappingNode):
         seen: dict[Any, yaml.Node] = {}

@@ -1849,6 +1849,17 @@ def apply_data_in_other_units(base, tmp):
 
 
 @case("apply_gyro")
+def apply_data_in_mg(base, tmp):
+    """The same session in mg (no unit fix to suggest, a factor): the error named the results' units key
+    but not the data file whose readings were off; now both."""
+    rec = load_rec(base)
+    from castimate.io.readers import write_csv
+    write_csv(tmp / "mg.csv", edited(rec, acc={n: a * 1000 / G for n, a in rec.acc.items()}))
+    return Spec(["apply", str(base / "static_solved" / "results.json"), str(tmp / "mg.csv"), "-o", str(tmp / "o.csv")],
+                2, ("static_solved", "units.data.accelerometer", "mg.csv", "factor"))
+
+
+@case("apply_gyro")
 def apply_results_of_other_triads(base, tmp):
     return Spec(["apply", str(base / "ferraris_solved" / "results.json"), str(base / "static" / "data.csv"),
                  "-o", str(tmp / "o.csv")], 2, ("data.csv", "imu"))

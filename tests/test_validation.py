@@ -138,6 +138,17 @@ def test_problem_file_not_yaml(tmp_path):
     assert "\n" not in str(e.value)
 
 
+@pytest.mark.parametrize("text, where", [("kind: static_array\ndata: &a [*a]\n", "data[0]"),
+                                         ("kind: static_array\ndata: &a {path: x, more: *a}\n", "data.more"),
+                                         ("kind: static_array\narray: &b [1, [2, *b]]\n", "array[1][1]")])
+def test_problem_file_with_a_cyclic_alias(tmp_path, text, where):
+    """An alias inside the value it names: 'the input is too large to process (RecursionError)' without
+    the file, before; now the file, the key path and the line."""
+    p = tmp_path / "p.yaml"
+    p.write_text(text)
+    expect_error(lambda: load_problem(p), p, where, "found an alias to a value that contains it (line 2")
+
+
 def test_problem_file_not_a_mapping(tmp_path):
     p = tmp_path / "p.yaml"
     p.write_text("- kind\n- data\n")

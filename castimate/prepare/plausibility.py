@@ -24,6 +24,7 @@ refuse, with the numbers and the fix, where the evidence is conclusive; they war
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -114,7 +115,8 @@ def check_accelerometer_units(rec: Recording, names: list[str], declared: Declar
         return
     name = min(q, key=lambda n: abs(np.log(max(q[n], 1e-300) / gravity)))  # the most plausible triad
     r = q[name] / gravity
-    what = (f"the {100 * NORM_QUANTILE:g} % quantile of the raw accelerometer norm is {q[name]:.4g} m/s^2 "
+    what = (f"the {100 * NORM_QUANTILE:g} % quantile of {Path(declared.data).name}'s raw accelerometer norm is "
+            f"{q[name]:.4g} m/s^2 "
             f"({name}, after the declared conversion {declared.acc_units}), where an array at rest or twisted "
             f"by hand reads about g = {gravity:g} m/s^2")
     if not NORM_REFUSE[0] <= r <= NORM_REFUSE[1]:
