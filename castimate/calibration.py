@@ -43,6 +43,7 @@ from .io.units import parse_units
 from .jit import compile_functions
 from .prepare.plausibility import (
     G0,
+    MAX_RATE,
     Declared,
     check_accelerometer_units,
     check_gyroscope_units,
@@ -118,10 +119,13 @@ class Calibration:
         else:  # results written before the reader's conversion was recorded: the format's
             conv = input_units(units.get("data_format") or "csv", units.get("data_accelerometer"),
                                units.get("data_gyroscope"))
+        # a board effect that is not undone sample by sample (the chip-frame offsets: where the elements
+        # sit needs the motion) is one group of the whole array (array.parameters), not a triad's
+        per_triad = tuple(k for k in keys if not (BY_KEY[k].board and not BY_KEY[k].sample_wise))
         layouts, params = {}, {}
         for name, t in doc["triads"].items():
-            layout = TriadLayout(tuple(included(keys, "accelerometer")),
-                                 tuple(included(keys, "gyroscope")) if "gyroscope" in t else None)
+            layout = TriadLayout(tuple(included(per_triad, "accelerometer")),
+                                 tuple(included(per_triad, "gyroscope")) if "gyroscope" in t else None)
             layouts[name] = layout
             params[name] = layout.pack(_values(path, name, t, layout))
         return Calibration(str(path), hashlib.sha256(path.read_bytes()).hexdigest(), tuple(doc["triads"]), layouts,
@@ -184,7 +188,7 @@ class Calibration:
                 series(T, w("temp"), n, w("acc"), TEMPERATURE_RANGE, "K") - self.regressors.temp_mean.get(name, 0.0)
             g = None if gyro is None else gyro.get(name)
             has_gyro = g is not None and self.layouts[name].gyroscope
-            g = np.zeros((n, 3)) if not has_gyro else readings(g, w("gyro"), n, w("acc"))
+            g = np.zeros((n, 3)) if not has_gyro else readings(g, w("gyro"), n, w("acc"), MAX_RATE)
             fi, wi = _evaluate(self.layouts[name], y, g, tau, dT, self.params[name])
             f[name] = fi
             if has_gyro:
@@ -199,6 +203,9 @@ TEMPERATURE_RANGE = (173.0, 423.0)
 
 
 def _numeric(x, where: str) -> np.ndarray:
+    if np.ma.isMaskedArray(x) and np.ma.getmaskarray(x).any():  # np.asarray would use the values under the mask
+        raise InputError("Calibration.apply", where, f"expected readings, found a masked array with "
+                                                     f"{int(np.ma.getmaskarray(x).sum())} masked values: drop or fill them")
     a = np.asarray(x) if not isinstance(x, np.ndarray) else x
     if a.dtype == object:
         text = next((v for v in a.ravel() if isinstance(v, (str, bytes))), None)
@@ -222,8 +229,9 @@ def _finite(a: np.ndarray, where: str) -> np.ndarray:
     return a
 
 
-def readings(x, where: str, n: int | None = None, like: str = "") -> np.ndarray:
-    """A triad's readings as an (N, 3) float array (one (3,) sample allowed), finite; N = ``n`` if given."""
+def readings(x, where: str, n: int | None = None, like: str = "", limit: float | None = None) -> np.ndarray:
+    """A triad's readings as an (N, 3) float array (one (3,) sample allowed), finite; N = ``n`` if given;
+    ``limit``: the largest rate a gyroscope can read (rad/s), above which deg/s are suspected."""
     try:
         a = _numeric(x, where)
     except ValueError as e:
@@ -237,7 +245,13 @@ def readings(x, where: str, n: int | None = None, like: str = "") -> np.ndarray:
         raise InputError("Calibration.apply", where, f"expected an (N, 3) array with N >= 1, found shape {a.shape}{hint}")
     if n is not None and len(a) != n:
         raise InputError("Calibration.apply", where, f"expected {n} samples like {like}, found {len(a)}")
-    return _finite(a, where)
+    a = _finite(a, where)
+    if limit is not None and np.abs(a).max() > limit:
+        i = np.unravel_index(np.abs(a).argmax(), a.shape)
+        raise InputError("Calibration.apply", where, f"expected rad/s, at most {limit:g} (no MEMS gyroscope reads more), "
+                                                     f"found {a[i]:g} at index {tuple(int(k) for k in i)}"
+                                                     + (" (in deg/s? pass np.radians of it)" if np.abs(a).max() <= np.degrees(limit) else ""))
+    return a
 
 
 def series(x, where: str, n: int, like: str, bounds: tuple[float, float] | None = None, unit: str = "") -> np.ndarray:

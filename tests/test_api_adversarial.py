@@ -77,6 +77,13 @@ BAD_APPLY = [
     ("gyro (N, 2)", lambda p, f: p.apply(ACC, _with(GYRO, value=np.zeros((N, 2)))), ("gyro['imu1']", "(10, 2)")),
     ("gyro NaN", lambda p, f: p.apply(ACC, _with(GYRO, value=np.full((N, 3), np.nan))), ("gyro['imu1']", "finite")),
     ("gyro an array", lambda p, f: p.apply(ACC, np.zeros((N, 3))), ("gyro", "dict")),
+    # rates in deg/s (a calibration of rad/s data would be applied to them silently)
+    ("gyro in deg/s", lambda p, f: p.apply(ACC, _with(GYRO, value=np.full((N, 3), 500.0))),
+     ("gyro['imu1']", "rad/s", "500", "deg/s")),
+    ("gyro absurd", lambda p, f: p.apply(ACC, _with(GYRO, value=np.full((N, 3), -1e6))), ("gyro['imu1']", "-1e+06")),
+    # a masked array: numpy would use the values under the mask
+    ("acc masked", lambda p, f: p.apply(_with(ACC, value=np.ma.masked_array(np.zeros((N, 3)), np.eye(N, 3, dtype=bool)))),
+     ("acc['imu1']", "3 masked values")),
     ("gyro unknown triad", lambda p, f: p.apply(ACC, {"imu9": np.zeros((N, 3))}), ("gyro['imu9']", "unknown")),
     ("t longer", lambda p, f: p.apply(ACC, GYRO, t=np.arange(N + 5)), ("t", "10 values", "(15,)")),
     ("t NaN", lambda p, f: p.apply(ACC, GYRO, t=np.full(N, np.nan)), ("t", "finite")),

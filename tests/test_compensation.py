@@ -208,3 +208,28 @@ def test_c_with_every_effect_matches_apply(tmp_path):
     si = (raw[:, :3] - COUNTS["accelerometer"]["offset"]) * COUNTS["accelerometer"]["scale"]
     plain = np.linalg.solve(np.asarray(tr["T"]), (si - tr["b"]).T).T
     assert np.abs(plain - expected[:, :3]).max() > 1e-3
+
+
+def test_a_calibration_with_the_boards_chip_frame_offsets_applies(tmp_path):
+    """castimate diagnose of a dynamic session adds accelerometer.chip_axis_offsets, a board group kept in
+    array.parameters: Calibration.read looked for it per triad and refused the diagnosed results
+    ("triads.imu1.parameters.chip_axis_offsets: missing"), so `castimate apply` and `codegen` could not use
+    them. Not undone sample by sample, it leaves the compensation as it is without it."""
+    src = Path(__file__).resolve().parents[1] / "reports" / "mimu4444_exp1_dynamic_diagnose" / "results.json"
+    doc = json.loads(src.read_text())
+    assert "accelerometer.chip_axis_offsets" in doc["effects"]["included"]
+    assert "chip_axis_offsets" in doc["array"]["parameters"]
+    cal = Calibration.read(src)
+    assert "accelerometer.chip_axis_offsets" in cal.effects
+    doc["effects"]["included"].remove("accelerometer.chip_axis_offsets")
+    (tmp_path / "results.json").write_text(json.dumps(doc))
+    without = Calibration.read(tmp_path / "results.json")
+    rng = np.random.default_rng(0)
+    acc = {n: rng.normal(0, 5, (20, 3)) + [0, 0, 9.8] for n in cal.names}
+    gyro = {n: rng.normal(0, 2, (20, 3)) for n in cal.names}
+    t = np.linspace(500, 560, 20)
+    f, w = cal.apply(acc, gyro, t)
+    f0, w0 = without.apply(acc, gyro, t)
+    for n in cal.names:
+        np.testing.assert_array_equal(f[n], f0[n])
+        np.testing.assert_array_equal(w[n], w0[n])
