@@ -1749,6 +1749,24 @@ def report_of_noise_output(base, tmp):
 
 
 @case("report_o")
+def report_details_of_another_solve(base, tmp):
+    """results.json of one solve beside the details.npz of another (20 poses against 12): the report mixed
+    them; now refused naming details.npz and the counts."""
+    d = solved_copy(base, tmp)
+    (d / "results.json").unlink()
+    copy(base / "static_solved" / "results.json", d)
+    return Spec(["report", str(d)], 2, ("details.npz", "t_start", "12 poses", "found 20"))
+
+
+@case("report_o")
+def report_details_of_another_solve_same_poses(base, tmp):
+    """The same number of poses, other residuals: refused by the residual RMS that results.json records."""
+    def edit(doc):
+        doc["residuals"]["rms"]["imu2"] = [2 * v for v in doc["residuals"]["rms"]["imu2"]]
+    return Spec(["report", str(solved_copy(base, tmp, results=edit))], 2, ("details.npz", "residual_acc", "imu2"))
+
+
+@case("report_o")
 def report_missing_directory(base, tmp):
     return Spec(["report", str(tmp / "nowhere")], 2, ("nowhere",))
 

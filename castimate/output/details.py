@@ -109,3 +109,31 @@ def check_details(arrays: dict[str, np.ndarray], kind: str, triads: list[str], p
         raise InputError(path, "triads", f"expected the triads of results.json ({', '.join(triads)}), found "
                                          f"{', '.join(map(str, arrays['triads']))}")
     return arrays
+
+
+def check_pairing(arrays: dict[str, np.ndarray], results: dict, path: Path) -> None:
+    """Refuse a details.npz that does not belong to the results.json beside it (one copied from another
+    solve's directory): the number of poses or samples and each triad's residual RMS per axis, which
+    results.json records from the same residuals, must agree."""
+    count = (results.get("poses") or {}).get("count") if results.get("kind") != "dynamic_array" \
+        else results.get("samples")
+    key = "t" if results.get("kind") == "dynamic_array" else "t_start"
+    if isinstance(count, int) and key in arrays and len(arrays[key]) != count:
+        raise InputError(path, key, f"expected {count} {'samples' if key == 't' else 'poses'} as in results.json, "
+                                    f"found {len(arrays[key])}: details.npz of another solve (re-run `castimate solve`)")
+    rms = (results.get("residuals") or {}).get("rms")
+    if not isinstance(rms, dict) or "residual_acc" not in arrays or "triads" not in arrays:
+        return
+    with np.errstate(invalid="ignore"):
+        found = np.sqrt(np.nanmean(arrays["residual_acc"] ** 2, axis=1))
+    for name, row in zip(arrays["triads"], found):
+        want = rms.get(str(name))
+        try:
+            want = np.asarray(want, float)
+        except (TypeError, ValueError):
+            continue
+        if want.shape == row.shape and not np.allclose(row, want, rtol=1e-6, atol=1e-12, equal_nan=True):
+            raise InputError(path, "residual_acc", f"the residual RMS of {name} is {np.round(row, 9).tolist()}, where "
+                                                   f"results.json has {np.round(want, 9).tolist()}: details.npz of "
+                                                   "another solve (re-run `castimate solve`)")
+

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..io.results import check_results, load_results_json
-from ..output.details import DETAILS_SHAPES, check_details
+from ..output.details import DETAILS_SHAPES, check_details, check_pairing
 from ..validation import input_file, shown
 
 DEG = 180 / np.pi  # degrees per radian: every angle on a page is shown in degrees
@@ -79,7 +79,7 @@ def load_results(directory: Path) -> dict:
 
 def load_details(directory: Path, required: tuple[str, ...], results: dict) -> dict[str, np.ndarray]:
     """details.npz of a solved directory, as a dict of arrays checked against results.json
-    (:func:`castimate.output.details.check_details`)."""
+    (:func:`castimate.output.details.check_details`) and paired with it (:func:`~castimate.output.details.check_pairing`)."""
     path = directory / "details.npz"
     input_file(path, "details file")
     try:
@@ -87,7 +87,9 @@ def load_details(directory: Path, required: tuple[str, ...], results: dict) -> d
             arrays = {k: z[k] for k in z.files}
     except (OSError, ValueError, zipfile.BadZipFile) as e:
         raise InputError(path, "", f"not a readable .npz file ({e})") from None
-    return check_details(arrays, results["kind"], list(results["triads"]), path, required)
+    arrays = check_details(arrays, results["kind"], list(results["triads"]), path, required)
+    check_pairing(arrays, results, path)
+    return arrays
 
 
 # ---------------------------------------------------------------------------------------------
