@@ -44,9 +44,11 @@ from .jit import compile_functions
 from .prepare.plausibility import (
     G0,
     MAX_RATE,
+    TEMPERATURE_RANGE,
     Declared,
     check_accelerometer_units,
     check_gyroscope_units,
+    check_temperatures,
 )
 from .problem.compensation import TriadLayout, triad_compensation
 from .problem.effects import BY_KEY, RETIRED, TEMPERATURE, TIME, included
@@ -198,8 +200,6 @@ class Calibration:
         return f, (omega if gyro is not None else None)
 
 
-#: Temperatures Calibration.apply accepts, K (-100 to 150 °C: a value in °C is refused).
-TEMPERATURE_RANGE = (173.0, 423.0)
 
 
 def _numeric(x, where: str) -> np.ndarray:
@@ -368,6 +368,7 @@ def apply_calibration(results_path, data_path, out_path, fmt: str | None = None,
     used = [n for n in cal.names if n in rec.acc]
     check_accelerometer_units(rec, used, declared, G0, "dynamic", log)
     check_gyroscope_units(rec, [n for n in used if n in rec.gyro], declared)
+    check_temperatures(rec, used, declared)
     for name in cal.names:
         if name not in rec.acc:
             raise InputError(data_path, f"{name}.ax", f"the calibration has triad {name!r}; the data has {', '.join(rec.acc)}")

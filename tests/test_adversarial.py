@@ -1877,6 +1877,30 @@ def apply_data_in_mg(base, tmp):
                 2, ("static_solved", "units.data.accelerometer", "mg.csv", "factor"))
 
 
+def _celsius(base, tmp) -> Path:
+    """The static session with imu1's temperature logged in °C (25) in a column that must hold kelvin."""
+    from castimate.io.readers import write_csv
+    rec = load_rec(base)
+    return write_csv(tmp / "celsius.csv", edited(rec, temp={"imu1": np.full(len(rec.t), 25.0)})) or tmp / "celsius.csv"
+
+
+@case("apply_gyro")
+def solve_temperature_in_celsius(base, tmp):
+    """Temperature effects are fitted relative to the session's mean: a °C column solved as well as kelvin
+    and wrote 25 K as the mean, so the calibration later shifted kelvin data by 270 K. Now refused."""
+    data = _celsius(base, tmp)
+    p = write_yaml(tmp / "problem.yaml", static_problem(data.name, "csv", load_rec(base).triads))
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("celsius.csv", "imu1.temp", "kelvin", "°C"))
+
+
+@case("apply_gyro")
+def apply_temperature_in_celsius(base, tmp):
+    """apply refused it inside Calibration.apply, naming 'Calibration.apply: temp['imu1']' instead of the
+    file and its column."""
+    return Spec(["apply", str(base / "static_solved" / "results.json"), str(_celsius(base, tmp)), "-o",
+                 str(tmp / "o.csv")], 2, ("celsius.csv", "imu1.temp", "kelvin", "°C"))
+
+
 @case("apply_gyro")
 def apply_results_of_other_triads(base, tmp):
     return Spec(["apply", str(base / "ferraris_solved" / "results.json"), str(base / "static" / "data.csv"),

@@ -30,7 +30,7 @@ from ..prepare.poses import PoseAverages, average_poses, pose_averages_from_mean
 from ..problem.graph import Solution
 from ..solver.ipopt import Solver
 from ..prepare.plausibility import (Declared, check_accelerometer_units, check_channels, check_gyroscope_noise,
-                                    check_gyroscope_units)
+                                    check_gyroscope_units, check_temperatures)
 
 
 
@@ -412,6 +412,7 @@ def check_plausible(spec: ProblemSpec, rec: Recording, kind: str, log: Log) -> N
     check_channels(used, names, declared(spec), clipping=kind == "static" and spec.data.segments != "rows")
     check_accelerometer_units(used, names, declared(spec), spec.model.gravity, kind, log)
     check_gyroscope_units(used, gyro_names, declared(spec))
+    check_temperatures(rec, names, declared(spec))
 
 
 def load_static(spec: ProblemSpec, log: Log = quiet) -> StaticData:

@@ -44,6 +44,8 @@ NORM_WARN = {"static": (0.8, 1.25), "dynamic": (0.7, 2.5)}
 MAX_RATE = 70.0
 #: Largest white noise at rest of any MEMS gyroscope, rad/s per sample.
 MAX_GYRO_NOISE_AT_REST = 0.05
+#: Temperatures a logged .temp column may hold, K (-100 to 150 °C: a value in °C is refused).
+TEMPERATURE_RANGE = (173.0, 423.0)
 #: An accelerometer axis at its extreme in more than this fraction of the samples is clipped.
 CLIPPED_FRACTION = 0.02
 #: ... and in at least this many samples (one sample of a tiny recording is its own maximum).
@@ -305,3 +307,20 @@ def check_ferraris_sections(rec: Recording, name: str, sections: dict[str, tuple
         if ang > FACE_ANGLE_MAX_DEG:
             raise InputError(source, label, f"{found}, {ang:.0f} deg from the turn's axis {list(axis)}: a wrong or "
                                             "swapped label")
+
+
+def check_temperatures(rec: Recording, names: list[str], declared: Declared) -> None:
+    """Refuse a logged temperature outside :data:`TEMPERATURE_RANGE`, naming the column: temperature
+    effects are fitted relative to the session's mean, so a column in °C solved as well as in kelvin
+    and recorded its mean as 25 K, and the calibration then compensated kelvin data by 270 K."""
+    lo, hi = TEMPERATURE_RANGE
+    for name in names:
+        T = rec.temp.get(name)
+        if T is None or not len(T):
+            continue
+        k = int(np.argmin(T)) if T.min() < lo else int(np.argmax(T))
+        if not lo <= T[k] <= hi:
+            raise InputError(declared.data, declared.columns.get(f"{name}.temp", f"{name}.temp"),
+                             f"expected kelvin, {lo:g} to {hi:g} K, found {T[k]:g} (sample {k})"
+                             + ("; in °C? the column must hold kelvin (add 273.15)" if -100 <= T[k] <= 150 else ""))
+
