@@ -30,9 +30,12 @@ def test_residuals_in_one_array_equal_the_blocks(monkeypatch, process_model):
     sb, W, nc = u.st[1], u.b.w_idx, u.b.f.n_cal
     w = np.concatenate([x * P.xscale, pf])
     args = (np.take(w, W[: sb.K, :nc]), np.take(w, W[0: 2 * sb.K: sb.K, nc:]), u.b.data[: 2 * sb.K].reshape(2, -1))
-    _, T = sf("vec", *args)
-    with pytest.raises(ValueError, match="C-contiguous"):
-        sf("vec", *args, out=np.empty((2, T.shape[1] + 1)))
+    _, (T,) = sf("vec", *args)
+    with pytest.raises(ValueError, match="output 0 must be a C-contiguous"):
+        sf("vec", *args, into={0: np.empty((2, T.shape[1] + 1))})
+    with pytest.raises(ValueError, match="output 0 must be a C-contiguous"):
+        sf("vec", *args, into={0: np.empty((T.shape[1], 2)).T})
     out = np.empty_like(T)
-    sf("vec", *args, out=out)
+    _, (written,) = sf("vec", *args, into={0: out})
+    assert written is out
     np.testing.assert_array_equal(out, T)

@@ -371,11 +371,17 @@ class _StageFunctions:
     coupling Hsc entries, each at the targets of one map). Mapped over a chunk of stage groups,
     the calibration inputs shared (``reduce_in``). Numpy then only adds contiguous slabs: the
     K-fold sums and the gathers of the local entries (two thirds of an assembly at 32 × 20 000)
-    run in the compiled code."""
+    run in the compiled code. A target that gets every entry of its slab (dense) is an output of
+    its own, which the call writes straight into the assembled array where the block is the
+    first to write that array, and all of it (:meth:`Projection.assemble`; ``direct``): the
+    coupling Hsc, the largest array, is then neither zeroed nor added."""
 
     # scattered targets added by flat indices into their slab (False: numpy's (rows, columns) fancy
     # indexing, as a reference; one addition per entry either way, so the same bits)
     flat_add = True
+    # dense targets written in place by the call where they may be (False: every target added onto
+    # the zeroed arrays, as a reference; 0 + v = v, so the same bits)
+    direct = True
 
     @staticmethod
     def applies(sb) -> bool:
@@ -441,7 +447,7 @@ class _StageFunctions:
         if pre is not None:
             functions.append(pre)
             names_.append("vec_shared")
-        layouts["vec"] = (True, [], [], 1, K * f.m)
+        layouts["vec"] = (True, [], [], 1, [K * f.m])
         compiled = (compile_functions(functions) if jit else None) or functions
         return dict(zip(names_, compiled)), layouts
 
@@ -495,35 +501,50 @@ class _StageFunctions:
         for src_name, kind, M in red:
             red_x.append(loc[src_name][M.src.tolist()])
             red_layout.append((kind, M))
-        rows: dict = {nm: ([], [], []) for nm in loc}
-        segs, L = [], 0
+        # per stage group outputs: each dense target one of its own, the scattered ones together in
+        # one; per output {source name: (rows, columns, values)} and its width
+        outs: list = []
+        scattered = None
+        segs = []
         for src_name, M, per_k, (label, key) in tgt:
             t, dest = _groups(M), M.dest
             if 4 * len(dest) >= widths[label]:  # dense output: numpy adds a contiguous slab, no scatter
                 t, dest = dest[t], np.arange(widths[label])
+            dense = len(dest) == widths[label]
+            if dense or scattered is None:
+                outs.append([{}, 0])
+            o = len(outs) - 1 if dense or scattered is None else scattered
+            if not dense:
+                scattered = o
+            rows, L = outs[o]
             cols = M.src if not per_k else (np.arange(K)[:, None] * width[src_name] + M.src[None, :]).ravel()
-            r_, c_, v_ = rows[src_name]
+            r_, c_, v_ = rows.setdefault(src_name, ([], [], []))
             r_.append(L + (np.tile(t, K) if per_k else t)), c_.append(cols)
             v_.append(np.tile(M.val, K) if per_k else M.val)
-            segs.append((label, key, L, L + len(dest), None if len(dest) == widths[label] else dest))
-            L += len(dest)
-        T = ca.MX(L, 1)
-        for nm, (r_, c_, v_) in rows.items():
-            if not r_:
-                continue
-            A = sp.coo_matrix((np.concatenate(v_), (np.concatenate(r_), np.concatenate(c_))),
-                              shape=(L, K * width[nm])).tocsc()
-            A.sum_duplicates()
-            A = ca.DM(ca.Sparsity(L, K * width[nm], A.indptr.tolist(), A.indices.tolist()), A.data)
-            T += ca.mtimes(A, loc[nm])
+            segs.append((label, key, o, L, L + len(dest), None if dense else dest))
+            outs[o][1] = L + len(dest)
+        res = []
+        for rows, L in outs:
+            T = ca.MX(L, 1)
+            for nm, y in loc.items():
+                if nm not in rows:
+                    continue
+                r_, c_, v_ = rows[nm]
+                A = sp.coo_matrix((np.concatenate(v_), (np.concatenate(r_), np.concatenate(c_))),
+                                  shape=(L, K * width[nm])).tocsc()
+                A.sum_duplicates()
+                A = ca.DM(ca.Sparsity(L, K * width[nm], A.indptr.tolist(), A.indices.tolist()), A.data)
+                T += ca.mtimes(A, y)
+            res.append(ca.densify(T))  # dense: the buffers hold every entry
         red_v = ca.densify(ca.vertcat(*red_x)) if red_x else ca.MX(0, 1)
-        F = ca.Function(name, ins, [red_v, ca.densify(T)])  # dense: the buffers hold every entry
-        return F, pre, ("r" in loc, red_layout, segs, red_v.size1(), L)
+        F = ca.Function(name, ins, [red_v, *res])
+        return F, pre, ("r" in loc, red_layout, segs, red_v.size1(), [L for _, L in outs])
 
-    def __call__(self, mode, zc, zs, D, out: np.ndarray | None = None, shared: np.ndarray | None = None):
-        """(reduced (Lr,), per stage group (nJ, L)) of stage groups with stage inputs zs (nJ, ns);
-        ``out``: the (nJ, L) C-contiguous array to write the latter into; ``shared``: the shared
-        values of :meth:`shared_values` (None: the functions without a shared part)."""
+    def __call__(self, mode, zc, zs, D, into: dict | None = None, shared: np.ndarray | None = None):
+        """(reduced (Lr,), [per stage group (nJ, L) of each output]) of stage groups with stage inputs
+        zs (nJ, ns); ``into``: {output: the (nJ, L) C-contiguous array to write it into} (the others
+        are new arrays); ``shared``: the shared values of :meth:`shared_values` (None: the
+        functions without a shared part)."""
         nJ = zs.shape[0]
         fn = self.fns[mode]
         if shared is None and fn.n_in() == 4:  # data without the shared columns shared (shared_values)
@@ -534,23 +555,49 @@ class _StageFunctions:
         if key not in self._buffers:
             self._buffers[key] = fn.map(f"stages_{nJ}", "serial", nJ, [0, 3] if fn.n_in() == 4 else [0], [0]).buffer()
         buf, run = self._buffers[key]
-        _, _, _, Lr, L = self.layout[mode]
+        _, _, _, Lr, widths = self.layout[mode]
         red = np.empty(Lr)
-        T = np.empty((nJ, L)) if out is None else out
-        if T.shape != (nJ, L) or T.dtype != np.float64 or not T.flags.c_contiguous:
-            raise ValueError(f"{mode}: the output must be a C-contiguous {nJ} x {L} array of doubles")
+        outs = []
+        for o, L in enumerate(widths):
+            T = (into or {}).get(o)
+            if T is None:
+                T = np.empty((nJ, L))
+            elif T.shape != (nJ, L) or T.dtype != np.float64 or not T.flags.c_contiguous:
+                raise ValueError(f"{mode}: output {o} must be a C-contiguous {nJ} x {L} array of doubles")
+            outs.append(T)
         args = [np.ascontiguousarray(a, float) for a in (zc, zs, D)]
         if fn.n_in() == 4:
             args.append(np.ascontiguousarray(shared, float))
         for i, a in enumerate(args):
             buf.set_arg(i, memoryview(a))
         buf.set_res(0, memoryview(red))
-        buf.set_res(1, memoryview(T))
+        for o, T in enumerate(outs):
+            buf.set_res(o + 1, memoryview(T))
         run()
-        return red, T
+        return red, outs
 
-    def add(self, parts, mode, red, T, j0, j1, base, fi):
-        """Add one call's results to the assembled parts."""
+    @staticmethod
+    def target(parts, label, key, fi, j0, j1, base):
+        """The slab (j1 - j0, width) of the assembled array that segment (label, key) of stage groups
+        j0 ... j1 lands on (None: the parts have no such array)."""
+        if label == "G":
+            return parts.G[fi][base + key + j0: base + key + j1]
+        if label == "Hsc":
+            return None if parts.Hsc is None else parts.Hsc[fi][base + key + j0: base + key + j1].reshape(j1 - j0, -1)
+        d, o = key
+        return (parts.B if label == "B" else parts.Bgn)[fi][o][base + d + j0: base + d + j1].reshape(j1 - j0, -1)
+
+    def slabs(self, parts, mode, direct, fi, base):
+        """(j0, j1) -> {output: its slab of the assembled array} for the segments ``direct``, which
+        the calls write in place (``into`` of :meth:`__call__`); None if there are none."""
+        if not direct:
+            return None
+        segs = [self.layout[mode][2][si] for si in sorted(direct)]
+        return lambda j0, j1: {o: self.target(parts, label, key, fi, j0, j1, base) for label, key, o, *_ in segs}
+
+    def add(self, parts, mode, red, outs, j0, j1, base, fi, direct=frozenset()):
+        """Add one call's results to the assembled parts, but for the segments ``direct``, which
+        the call wrote in place."""
         has_r, red_layout, segs, _, _ = self.layout[mode]
         pos = 0
         if has_r:
@@ -563,16 +610,11 @@ class _StageFunctions:
                 target[M.dest] += _reduce(M, red[pos: pos + n])
             pos += n
         nJ = j1 - j0
-        for si, (label, key, a, b, dest) in enumerate(segs):
-            if label == "G":
-                tgt = parts.G[fi][base + key + j0: base + key + j1]
-            elif label == "Hsc":
-                if parts.Hsc is None:
-                    continue
-                tgt = parts.Hsc[fi][base + key + j0: base + key + j1].reshape(nJ, -1)
-            else:
-                d, o = key
-                tgt = (parts.B if label == "B" else parts.Bgn)[fi][o][base + d + j0: base + d + j1].reshape(nJ, -1)
+        for si, (label, key, o, a, b, dest) in enumerate(segs):
+            tgt = None if si in direct else self.target(parts, label, key, fi, j0, j1, base)
+            if tgt is None:
+                continue
+            T = outs[o]
             if dest is None:  # every target entry, in order
                 tgt += T[:, a:b]
             elif self.flat_add and tgt.flags.c_contiguous:
@@ -596,6 +638,7 @@ class _Unit:
     def __init__(self, b, parent, rows, order, st, plan):
         self.b, self.parent, self.rows, self.order, self.st, self.plan = b, parent, rows, order, st, plan
         self.stage_fns, self.inner = None, None
+        self.direct: dict = {}  # mode -> the stage functions' segments written in place (Projection._direct)
 
 
 class _Parts:
@@ -612,11 +655,25 @@ class _Parts:
         self.Hsc = [np.zeros((f.R, f.m, c)) for f in fams] if cal else None
         self.Bgn = [[np.zeros((f.R - o, f.m, f.m)) for o in range(f.width)] for f in fams] if gn else None
 
-    def zero(self) -> "_Parts":
-        """Reset to zero in place: reusing the arrays saves the page faults of fresh ones (at
-        32 x 20 000 the coupling alone is 134 MB, a quarter of an assembly when touched fresh)."""
+    def arrays(self) -> dict:
+        """{(label, family, offset): array} of the stage arrays (offset: of a Hessian block B[o], else None)."""
+        out = {}
+        for fi in range(len(self.G)):
+            out["G", fi, None] = self.G[fi]
+            if self.Hsc is not None:
+                out["Hsc", fi, None] = self.Hsc[fi]
+            for label, blocks in (("B", self.B), ("Bgn", self.Bgn)):
+                for o, a in enumerate(blocks[fi] if blocks is not None else []):
+                    out[label, fi, o] = a
+        return out
+
+    def zero(self, skip=frozenset()) -> "_Parts":
+        """Reset to zero in place, but for the arrays ``skip`` ((label, family, offset) of
+        :meth:`arrays`) that the next assembly writes whole: reusing the arrays saves the page
+        faults of fresh ones (at 32 x 20 000 the coupling alone is 134 MB, a quarter of an assembly
+        when touched fresh)."""
         self.f = 0.0
-        for a in [self.gc, self.hcc, *self.G, *sum(self.B, []), *(self.Hsc or []), *sum(self.Bgn or [], [])]:
+        for a in [self.gc, self.hcc, *(a for k, a in self.arrays().items() if k not in skip)]:
             if a is not None:
                 a.fill(0.0)
         return self
@@ -845,10 +902,38 @@ class Projection:
                     u.inner = (((compile_functions([fn]) if jit and many else None) or [fn])[0], inner_plan)
                 self.units.append(u)
         self.stage_fns = [u.stage_fns for u in self.units if u.stage_fns is not None]
+        self._written = {mode: self._direct(mode) for mode in ("res", "grad", "full", "info", "inner")}
         self.prior = layout.priors()
         self.data = None
         self._cache, self._anchor, self._factors, self._pending, self._lazy = None, None, None, None, None
         self._reused: dict = {}  # _Parts reused by reduced() and marginal()
+
+    def _direct(self, mode: str) -> frozenset:
+        """Set each staged unit's ``direct[mode]``: its dense segments that the stage functions
+        write in place (:attr:`_StageFunctions.direct`), those whose array (label, family, offset) no
+        earlier unit and no other segment of the unit writes and whose stage groups cover all its
+        rows; returns those arrays (:meth:`_Parts.zero` leaves them)."""
+        written, whole = set(), set()
+        for u in self.units:
+            if u.st is None:  # the calibration entries alone
+                continue
+            fi, sb = u.st
+            fam = self.fams[fi]
+            if u.stage_fns is None:  # numpy's additions (_scatter): any array of the family
+                written |= {(label, fi, o) for label in ("G", "Hsc", "B", "Bgn")
+                            for o in ([None] if label in ("G", "Hsc") else range(fam.width))}
+                continue
+            segs = u.stage_fns.layout[mode][2]
+            arrays = [(label, fi, key[1] if label in ("B", "Bgn") else None) for label, key, *_ in segs]
+            u.direct[mode] = frozenset(
+                si for si, (label, key, _, _, _, dest) in enumerate(segs)
+                if dest is None and arrays[si] not in written
+                and arrays.count(arrays[si]) == 1
+                and sb.base + (key[0] if label in ("B", "Bgn") else key) == 0
+                and sb.J == fam.R - (arrays[si][2] or 0))
+            whole |= {arrays[si] for si in u.direct[mode]}
+            written |= set(arrays)
+        return frozenset(whole)
 
     # -- evaluation --------------------------------------------------------------------------------
     def x_full(self, theta, Xs) -> np.ndarray:
@@ -882,7 +967,10 @@ class Projection:
             off += b.block.n * size
             if which == "res" and i in whole:  # a stage group at a time: the calibration inputs gathered once
                 sb = whole[i].st[1]
-                for _ in self.stage_calls(whole[i].stage_fns, "vec", w, b.w_idx, D, sb.K, sb.J, nc, out=R):
+                def rows(j0, j1, R=R, K=sb.K):
+                    return {0: R[j0 * K: j1 * K].reshape(j1 - j0, -1)}
+
+                for _ in self.stage_calls(whole[i].stage_fns, "vec", w, b.w_idx, D, sb.K, sb.J, nc, rows):
                     pass  # written in place
                 out.append(R)
                 continue
@@ -892,11 +980,12 @@ class Projection:
             out.append(R)
         return out
 
-    def stage_calls(self, sf, mode, w, W, D, K, J, nc, out=None):
+    def stage_calls(self, sf, mode, w, W, D, K, J, nc, into=None):
         """The stage functions ``sf`` of a staged block over its J stage groups (K instances each;
         index matrix W, data D, w the layout's values), a chunk of STAGE_CHUNK instances per call:
-        yields (j0, j1, (reduced, per stage group)) in chunk order. ``out``: the (J K, ...) array
-        the per-instance results are written into (mode "vec").
+        yields (j0, j1, (reduced, per stage group)) in chunk order. ``into``: (j0, j1) -> the
+        arrays that outputs are written into (:meth:`_StageFunctions.__call__`), e.g. the
+        per-instance residuals of mode "vec".
 
         With ``threads`` > 1 the calls run on that many worker threads (the compiled code runs
         without the GIL), at most two chunks per thread ahead of the consumer; every chunk is the
@@ -908,9 +997,8 @@ class Projection:
         spans = [(j0, min(J, j0 + step)) for j0 in range(0, J, step)]
 
         def call(j0, j1):
-            o = None if out is None else out[j0 * K: j1 * K].reshape(j1 - j0, -1)
-            return sf(mode, Zc, np.take(w, W[j0 * K: j1 * K: K, nc:]), D[j0 * K: j1 * K].reshape(j1 - j0, -1), out=o,
-                      shared=pk)
+            return sf(mode, Zc, np.take(w, W[j0 * K: j1 * K: K, nc:]), D[j0 * K: j1 * K].reshape(j1 - j0, -1),
+                      into=None if into is None else into(j0, j1), shared=pk)
 
         if self.threads <= 1 or len(spans) < 2:
             for j0, j1 in spans:
@@ -946,7 +1034,7 @@ class Projection:
         c = self.c
         slot = "coupled" if mode in ("full", "info") else mode  # the same arrays
         if reuse and self._reused.get(slot) is not None:
-            parts = self._reused[slot].zero()
+            parts = self._reused[slot].zero(self._written[mode] if _StageFunctions.direct else ())
         else:
             parts = _Parts(c, self.fams, mode in ("full", "info"), mode == "inner", mode == "grad")
             if reuse:
@@ -969,8 +1057,11 @@ class Projection:
                     W, D = W[u.order], D[u.order]
                 K, J, base = sb.K, sb.J, sb.base
                 if u.stage_fns is not None:  # a stage group at a time, summed in compiled code
-                    for j0, j1, (red, T) in self.stage_calls(u.stage_fns, mode, w, W, D, K, J, f.n_cal):
-                        u.stage_fns.add(parts, mode, red, T, j0, j1, base, fi)
+                    sf = u.stage_fns
+                    direct = u.direct[mode] if sf.direct else frozenset()
+                    into = sf.slabs(parts, mode, direct, fi, base)
+                    for j0, j1, (red, outs) in self.stage_calls(sf, mode, w, W, D, K, J, f.n_cal, into):
+                        sf.add(parts, mode, red, outs, j0, j1, base, fi, direct)
                     continue
                 if mode == "inner":
                     fn, plan = u.inner
@@ -1398,7 +1489,8 @@ class Projection:
         parts = self.assemble(th, Xs, pf, data, "info", reuse=True)
         if g is not None:
             parts.gc = np.asarray(g, float)[self.cal].copy()
-            parts.G = [np.asarray(g, float)[f.X] for f in self.fams]
+            for G, f in zip(parts.G, self.fams):  # into the reused arrays, which assemblies may write in place
+                G[...] = np.asarray(g, float)[f.X]
         else:
             parts.gc = np.zeros(self.c)
         try:
