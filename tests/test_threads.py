@@ -111,19 +111,6 @@ def test_default_threads_are_the_cores_but_one_per_task(monkeypatch):
     assert not failed.ok and graph.TASK_THREADS.get() is None
 
 
-def test_lower_in_place_on_threads():
-    """_Factor.lower in place, slabs of 1024 stages on worker threads: L^-1 v of every stage (against
-    numpy's solve), the same as in one thread."""
-    rng = np.random.default_rng(7)
-    A = rng.standard_normal((2600, 5, 5))
-    B = A @ A.transpose(0, 2, 1) + 0.1 * np.eye(5)
-    F = elimination._Factor([B])
-    v = rng.standard_normal((2600, 5, 4))
-    one, two = F.lower(v.copy(), inplace=True), F.lower(v.copy(), inplace=True, threads=2)
-    np.testing.assert_array_equal(one, two)
-    np.testing.assert_allclose(two, np.linalg.solve(np.linalg.cholesky(B), v), rtol=1e-10, atol=1e-12)
-
-
 def test_a_forked_child_gets_its_own_pool():
     """The pool is per process: a child forked after the parent's threads started (a Dask worker)
     would otherwise queue work on threads that do not exist in it and wait forever."""
@@ -141,17 +128,36 @@ def _work_in_child():
     return sum(pool.map(int, range(10)))
 
 
-@pytest.mark.parametrize("rows", [1, 2, 7, 1001])
-def test_gram_of_halves(rows):
-    """Projection._gram: the upper triangle of YᵀY from the two halves' rank updates, the same on
-    worker threads as in the caller."""
-    P = Solver(dynamic_case(20, False).lsq, SolverOptions()).projection
-    Y = np.random.default_rng(rows).standard_normal((rows, 6))
-    P.threads = 1
-    one = P._gram(Y)
-    P.threads = 2
-    np.testing.assert_array_equal(P._gram(Y), one)
-    np.testing.assert_allclose(np.triu(one), np.triu(Y.T @ Y), rtol=1e-13, atol=1e-13)
+@pytest.mark.parametrize("banded", [False, True])
+@pytest.mark.parametrize("stages", [1, 2, 7, 300])
+def test_lower_gram_on_threads(monkeypatch, stages, banded):
+    """_Factor.lower_gram: Y = L^-1 v (against numpy's solve with the Cholesky factor of the whole
+    stage Hessian) and the upper triangle of YᵀY, by slabs of GRAM_ROWS rows in the two halves of
+    the stages, bit for bit the same on worker threads as in the caller; block diagonal (in v's
+    storage) and block banded (a process model's coupling of consecutive stages)."""
+    monkeypatch.setattr(elimination, "GRAM_ROWS", 64)  # several slabs per half
+    rng = np.random.default_rng(stages)
+    m, k = 5, 4
+    A = rng.standard_normal((stages, m, m))
+    B = [A @ A.transpose(0, 2, 1) + 3 * m * np.eye(m)]
+    if banded:
+        B.append(0.5 * rng.standard_normal((stages - 1, m, m)))  # B[1][s] = H[stage s, stage s + 1]
+    H = np.zeros((stages * m, stages * m))
+    for o, Bo in enumerate(B):
+        for r in range(len(Bo)):
+            H[r * m:(r + 1) * m, (r + o) * m:(r + o + 1) * m] = Bo[r]
+    H = np.triu(H) + np.triu(H, 1).T
+    F = elimination._Factor(B)
+    v = rng.standard_normal((stages, m, k))
+    v1, v2 = v.copy(), v.copy()
+    Y1, S1 = F.lower_gram(v1)
+    Y2, S2 = F.lower_gram(v2, threads=2)
+    np.testing.assert_array_equal(Y1, Y2)
+    np.testing.assert_array_equal(S1, S2)
+    assert np.shares_memory(Y1, v1) != banded  # in place where block diagonal
+    Y = np.linalg.solve(np.linalg.cholesky(H), v.reshape(-1, k))
+    np.testing.assert_allclose(Y1, Y, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(S1, np.triu(Y.T @ Y), rtol=1e-12, atol=1e-12)  # zeros below the diagonal
 
 
 @pytest.mark.parametrize("value, expected", [("auto", None), (2, 2), (1, 1)])

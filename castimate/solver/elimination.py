@@ -183,6 +183,7 @@ def find_families(lay: Layout, blocks: list[Block]):
     return fams, out, refused
 
 
+GRAM_ROWS = 512  # rows of L^-1 H_mθ per rank-k update of the Schur complement (:meth:`_Factor.lower_gram`)
 MANY_STAGES = 16  # stage groups of a block (segment) from which its functions are compiled to C
 MAX_SEGMENTS = 8  # runs of differently staged instances a block may be cut into
 
@@ -726,25 +727,36 @@ class _Factor:
         else:
             self.L = sla.cholesky_banded(_banded(B, self.m), lower=True, check_finite=False)
 
-    def lower(self, v, inplace: bool = False, threads: int = 1):
-        """``threads``: the slabs of an in-place product on that many worker threads (numpy's
-        matmul runs without the GIL); the same products, so the same result."""
+    def lower(self, v):
         if self.L is None:
-            if not inplace:
-                return np.matmul(self.Linv, v)
-
-            def slab(s0):  # in place, a slab of stages at a time
-                v[s0: s0 + 1024] = np.matmul(self.Linv[s0: s0 + 1024], v[s0: s0 + 1024])
-
-            starts = range(0, self.R, 1024)
-            if threads > 1 and len(starts) > 1:
-                list(_pool(threads).map(slab, starts))
-            else:
-                for s0 in starts:
-                    slab(s0)
-            return v
+            return np.matmul(self.Linv, v)
         k = v.shape[2]
         return _tbtrs(self.L, np.asfortranarray(v.reshape(-1, k))).reshape(self.R, self.m, k)
+
+    def lower_gram(self, v, threads: int = 1):
+        """(Y, the upper triangle of YᵀY (k, k)) for Y = L^-1 v (R m, k) of v (R, m, k), C-contiguous:
+        block diagonal, in v's storage. The Gram matrix of the stages' two halves, each on a worker
+        thread with ``threads`` > 1 (numpy's matmul and BLAS run without the GIL), summed; within a
+        half, slab after slab of GRAM_ROWS rows, each L^-1 v of the slab followed by BLAS's rank-k
+        update with it while it is in cache (block banded: after the band solve of the whole). The
+        same operations in the same order on any number of threads, so the same result."""
+        k = v.shape[2]
+        Y = v if self.L is None else self.lower(v)
+        step = max(1, GRAM_ROWS // self.m)
+
+        def half(s0, s1):
+            acc = np.zeros((k, k), order="F")
+            for a in range(s0, s1, step):
+                b = min(s1, a + step)
+                if self.L is None:
+                    Y[a:b] = np.matmul(self.Linv[a:b], Y[a:b])
+                acc = blas.dsyrk(1.0, Y[a:b].reshape(-1, k).T, beta=1.0, c=acc, trans=0, overwrite_c=1)
+            return acc
+
+        h = self.R // 2
+        a, b = (_pool(threads).map(half, (0, h), (h, self.R)) if threads > 1 and h
+                else (half(0, h), half(h, self.R)))
+        return Y.reshape(-1, k), a + b
 
     def upper(self, v):
         if self.L is None:
@@ -1207,21 +1219,18 @@ class Projection:
         self._recheck = ys
         return dec, steps
 
-    def couple(self, gc=None):
-        """(S, g) of the elimination that :meth:`eliminate` left at its limit (its factors kept);
-        with ``gc``, the reduced gradient from it and the stage gradients of :meth:`recheck`."""
+    def couple(self) -> np.ndarray:
+        """The Schur complement S of the elimination that :meth:`eliminate` left at its limit (its
+        factors kept); its reduced gradient is :meth:`reduced_gradient`'s."""
         parts, prepared = self._pending
         self._pending = None
-        if gc is not None:
-            prepared = [(F, y, Z) for (F, _, Z), y in zip(prepared, self._recheck)]
         c = self.c
-        return self._couple(parts, prepared, parts.hcc.reshape(c, c).copy(),
-                            (parts.gc if gc is None else gc).copy(), True)
+        return self._couple(parts, prepared, parts.hcc.reshape(c, c).copy(), None, True)[0]
 
     def _lazy_hessian(self) -> np.ndarray:
         """The Schur complement of the evaluation that :meth:`reduced` left pending (its factors
         and coupling still in place); the predictor's anchor then keeps L^-1 Hsc."""
-        S, _ = self.couple()
+        S = self.couple()
         self._lazy = None
         if self._anchor is not None:
             self._anchor = (*self._anchor[:2], self._factors, True)
@@ -1246,6 +1255,8 @@ class Projection:
         return g
 
     def _couple(self, parts, prepared, S, g, coupling):
+        """(S - Hcs H^-1 Hsc, g - Hcs H^-1 G) from the factors ``prepared`` (without ``coupling``: (S, g)
+        as given; g None: no reduced gradient); keeps the factors for the predictor."""
         c = self.c
         factors = []
         for fi, (F, y, Z) in enumerate(prepared):
@@ -1254,31 +1265,15 @@ class Projection:
                 Hsc = parts.Hsc[fi]
                 if Z is not None:
                     Hsc = np.einsum("rmk,rmc->rkc", Z, Hsc)
-                Y = F.lower(Hsc, inplace=True, threads=self.threads).reshape(-1, c)  # (R m', c), in Hsc's storage
-                S -= self._gram(Y)
-                g -= Y.T @ y.reshape(-1)
+                Y, gram = F.lower_gram(Hsc, self.threads)  # (R m', c), in Hsc's storage where block diagonal
+                S -= gram
+                if g is not None:
+                    g -= Y.T @ y.reshape(-1)
             factors.append((F, Y, Z))
         if coupling:
             S = np.triu(S) + np.triu(S, 1).T  # dsyrk fills the upper triangle
         self._factors = factors
         return S, g
-
-    def _gram(self, Y):
-        """Yᵀ Y (the upper triangle from BLAS's rank-k update) as the sum of its two halves' (the
-        stages' rows split in the middle), each on a worker thread with ``threads`` > 1: the same
-        two products and their sum either way, so the same matrix."""
-        if not Y.flags.c_contiguous:
-            return Y.T @ Y
-
-        def half(A):
-            return blas.dsyrk(1.0, A.T, trans=0)
-
-        h = len(Y) // 2
-        if not h:
-            return half(Y)
-        a, b = (_pool(self.threads).map(half, (Y[:h], Y[h:])) if self.threads > 1
-                else (half(Y[:h]), half(Y[h:])))
-        return a + b
 
     def _move(self, Xs, steps, alpha, pf):
         out = []
