@@ -394,3 +394,26 @@ def test_fixed_tau_and_none_parse(tmp_path):
     assert load_problem(tmp_path / "p.yaml").noise.motion_dependent == {
         "accelerometer": {"floor": "none", "jitter": "none", "rate": "none"},
         "gyroscope": {"floor": "auto", "jitter": 2e-4, "rate": "free"}}
+
+
+def test_reading_rates_compiled_are_the_virtual_machines_bit_for_bit(tmp_path):
+    """The accelerometers' rates u̇ = T ḟ that the jitter regressors take, compiled to C (``jit``, the
+    default) and on CasADi's virtual machine: the same numbers bit for bit, at the gyro-aided start
+    of a simulated board (not zero: the board turns), and the compiled function is the C library's."""
+    from castimate.jit import compiler
+    from castimate.kinds.dynamic import KIND
+    from castimate.problem.dynamic import _rate_function
+
+    spec, _ = _board(tmp_path, 1e-4)
+    loaded = KIND.load(spec)
+    problem = KIND.build(KIND.configure(spec, loaded), loaded)
+    lay = problem.lsq.layout
+    values = lay.unpack(lay.x0(), lay.p0())
+    vm, _ = problem.reading_rates(values, loaded.data, jit=False)
+    compiled, _ = problem.reading_rates(values, loaded.data, jit=True)
+    assert vm.keys() == compiled.keys() == set(spec.array.names)
+    for n in vm:
+        assert vm[n].shape == (loaded.data.n, 3) and np.abs(vm[n]).max() > 1.0
+        np.testing.assert_array_equal(compiled[n], vm[n])
+    if compiler() is not None:
+        assert _rate_function(True).class_name() != _rate_function(False).class_name()

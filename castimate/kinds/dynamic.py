@@ -671,10 +671,11 @@ MOTION_NOISE_SETTLE = 1e-3
 SENSORS = (("accelerometer", "acc"), ("gyroscope", "gyro"))
 
 
-def noise_regressors(problem, values: dict, data: DynamicData) -> tuple[dict, dict]:
+def noise_regressors(problem, values: dict, data: DynamicData, jit: bool = False) -> tuple[dict, dict]:
     """The regressors g (N, 3) of the motion-dependent noise components (``solve.motion_noise.COMPONENTS``)
-    at the fitted ``values``, per sensor type and triad: 1, the reading's rate u̇² and |ω|²."""
-    rates = problem.reading_rates(values, data)
+    at the fitted ``values``, per sensor type and triad: 1, the reading's rate u̇² and |ω|² (the rates
+    compiled with ``jit``: ``DynamicProblem.reading_rates``)."""
+    rates = problem.reading_rates(values, data, jit)
     w2 = np.repeat(np.sum(values[OMEGA] ** 2, axis=1)[:, None], 3, axis=1)
     return tuple({n: {"floor": np.ones_like(u), "jitter": u ** 2, "rate": w2} for n, u in r.items()} for r in rates)
 
@@ -726,7 +727,7 @@ def fit_motion_noise(spec: ProblemSpec, problem, solver: Solver, sol: Solution, 
     def propose(reused=False):
         data, sol = state["data"], state["sol"]
         if state["regressors"] is None:  # at a refit's solution (the white fit's are computed below)
-            state["regressors"] = noise_regressors(problem, sol.values, data)
+            state["regressors"] = noise_regressors(problem, sol.values, data, spec.solver.jit)
         regressors = state["regressors"]
         proposal = {s: dict(c) for s, c in state["params"].items()}
         if estimated:
@@ -776,7 +777,7 @@ def fit_motion_noise(spec: ProblemSpec, problem, solver: Solver, sol: Solution, 
                                     f"{sol.message} (χ²/dof before {prev.chi2_per_dof:.4g})")
         return sol.success
 
-    state["regressors"] = noise_regressors(problem, sol.values, data)
+    state["regressors"] = noise_regressors(problem, sol.values, data, spec.solver.jit)
     z0 = np.log(np.concatenate([data.sigma(kind, n).ravel() for (_, kind), reg in zip(SENSORS, state["regressors"])
                                 for n in reg]))  # the σ's of the white fit
     outer = accelerated_fixed_point(propose, refit, z0, MOTION_NOISE_TOL, MOTION_NOISE_ROUNDS, log)
