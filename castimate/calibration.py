@@ -200,8 +200,6 @@ class Calibration:
         return f, (omega if gyro is not None else None)
 
 
-
-
 def _numeric(x, where: str) -> np.ndarray:
     if np.ma.isMaskedArray(x) and np.ma.getmaskarray(x).any():  # np.asarray would use the values under the mask
         raise InputError("Calibration.apply", where, f"expected readings, found a masked array with "
@@ -248,9 +246,9 @@ def readings(x, where: str, n: int | None = None, like: str = "", limit: float |
     a = _finite(a, where)
     if limit is not None and np.abs(a).max() > limit:
         i = np.unravel_index(np.abs(a).argmax(), a.shape)
-        raise InputError("Calibration.apply", where, f"expected rad/s, at most {limit:g} (no MEMS gyroscope reads more), "
-                                                     f"found {a[i]:g} at index {tuple(int(k) for k in i)}"
-                                                     + (" (in deg/s? pass np.radians of it)" if np.abs(a).max() <= np.degrees(limit) else ""))
+        hint = " (in deg/s? pass np.radians of it)" if abs(a[i]) <= np.degrees(limit) else ""
+        raise InputError("Calibration.apply", where, f"expected rad/s, at most {limit:g} (no MEMS gyroscope reads "
+                                                     f"more), found {a[i]:g} at index {tuple(int(k) for k in i)}{hint}")
     return a
 
 
