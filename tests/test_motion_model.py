@@ -285,6 +285,61 @@ def test_hat_diagonal_structure_kept_across_calls(coupled_stages):
     assert cache["plan"] is not plan and np.abs(got - _dense_hat(J3, G2)[some]).max() < 1e-10
 
 
+def _three_stage_rows(c: int = 3, seed: int = 13):
+    """J of rows reading stages n-1, n and n+1 (a sample age's central differences: super-stages of
+    two samples, one padded) beside rows reading one stage, all with the c θ columns; no constraints."""
+    rng = np.random.default_rng(seed)
+    N, m = 13, 2
+    stages = np.arange(N * m).reshape(N, m)
+    rows = []
+    for n in range(N):
+        reads = [n] if n in (0, N - 1) else [n - 1, n, n + 1]
+        for _ in range(4):
+            r = np.zeros(N * m + c)
+            r[stages[reads].ravel()] = rng.normal(size=m * len(reads))
+            r[N * m:] = rng.normal(size=c)
+            rows.append(r)
+    return np.array(rows), np.zeros((0, N * m + c)), stages
+
+
+@pytest.mark.parametrize("case", ["independent", "coupled", "three_stages", "no_border"])
+def test_hat_diagonal_in_chunks_on_threads_is_identical(monkeypatch, case):
+    """The leverages computed chunk of stages by chunk (CHUNK stages each: 2 and 3 do not divide the
+    23 stages, a coupled row's second stage and a pattern's rows fall in the next chunk, the static
+    rows in none) on worker threads equal those of the same chunks in the calling thread bit for bit,
+    with the structure kept across calls and for a subset of rows (unordered, repeated); and the
+    dense hat matrix's diagonal in any chunking; also without a border (no θ: only the motion estimated)."""
+    import threading
+
+    import castimate.solver.variance as var
+    J, G, stages = (_three_stage_rows() if case == "three_stages" else _three_stage_rows(c=0) if case == "no_border"
+                    else joint_jacobian(case == "coupled"))
+    J2 = J * (1 + 0.1 * np.random.default_rng(3).standard_normal(J.shape))  # same sparsity, other values
+    dense = [_dense_hat(J, G), _dense_hat(J2, G)]
+    some = np.array([len(J) - 1, 7, 0, 7, len(J) // 2])
+    seen = set()
+    halves = var._halves
+
+    def spy(*a):
+        seen.add(threading.current_thread().name)
+        return halves(*a)
+
+    monkeypatch.setattr(var, "_halves", spy)
+    for chunk in (2, 3, 1000):
+        monkeypatch.setattr(var, "CHUNK", chunk)
+        got = {}
+        for threads in (1, 3):
+            cache = {}
+            got[threads] = [hat_diagonal(sp.csr_matrix(Ji), sp.csr_matrix(G), stages, rows, cache, threads)
+                            for Ji, rows in ((J, None), (J2, None), (J2, some))]
+        for a, b in zip(got[1], got[3], strict=True):
+            np.testing.assert_array_equal(a, b)
+        for a, h in zip(got[3], dense + [dense[1][some]], strict=True):
+            assert np.abs(a - h).max() < 1e-10
+    # the chunks' θ terms did run on the worker threads (without a border there are none)
+    assert any(n.startswith("castimate-stages") for n in seen) == (case != "no_border")
+
+
 def test_known_process_noise_recovered():
     """A motion that is a sample of the wiener3 model (ω̈ a Wiener process of density q_ω, s a
     random walk of density q_s), read by four triads with gyroscopes: the estimated levels

@@ -34,7 +34,7 @@ from ..problem.triads import TriadConfig, fixed_config
 from ..problem.static import recover_nominal_rotation
 from ..prepare.poses import average_poses
 from ..prepare.detect import detect_static
-from ..problem.graph import Solution
+from ..problem.graph import Solution, solver_threads
 from ..solver.ipopt import Solver
 from ..solver.variance import block_rows, estimate_levels, hat_diagonal
 from ..problem.graph import SolverOptions
@@ -735,11 +735,13 @@ def fit_motion_noise(spec: ProblemSpec, problem, solver: Solver, sol: Solution, 
                 h = state["leverages"]
                 log("  leverages of the previous fit")
             else:
-                t0 = time.process_time()
+                t0, w0 = time.process_time(), time.perf_counter()
                 J, G = solver.jacobians(sol.x, data=state["vector"])
                 h = state["leverages"] = problem.per_triad(
-                    hat_diagonal(J, G, stages, np.arange(solver.n_data_residuals), structure))
-                log(f"  leverages of {solver.n_data_residuals} residuals: {time.process_time() - t0:.2f} s CPU")
+                    hat_diagonal(J, G, stages, np.arange(solver.n_data_residuals), structure,
+                                 solver_threads(solver.options.threads)))
+                log(f"  leverages of {solver.n_data_residuals} residuals: {time.process_time() - t0:.2f} s CPU, "
+                    f"{time.perf_counter() - w0:.2f} s")
             res = measurement_residuals(problem, data, sol)
             for i, (sensor, kind) in enumerate(SENSORS):
                 names = list(res[i])

@@ -37,6 +37,7 @@ import scipy.sparse as sp
 from scipy.special import chdtrc  # chi2.sf without scipy.stats's import (1 s of the CLI's start)
 
 from ..errors import NotConvergedError
+from ..problem.graph import solver_threads
 
 
 def block_rows(solver, name: str) -> np.ndarray:
@@ -109,8 +110,9 @@ def _factor(Hmm: sp.spmatrix, u: int):
         return (Hmm + ridge * sp.eye(Hmm.shape[0])).tocsc(), sla.cholesky_banded(ab)
 
 
-#: Rows per chunk of :func:`hat_diagonal` (bounds its memory: chunk × (2 m)² and chunk × n_θ floats).
-CHUNK = 4096
+#: Stages per chunk of :func:`hat_diagonal` (bounds its memory: chunk × m × n_θ floats of X and the
+#: rows that read these stages; a chunk of X stays in the processor's cache while its rows use it).
+CHUNK = 512
 
 
 def _stage_inverse(A: np.ndarray) -> np.ndarray:
@@ -212,20 +214,21 @@ def _structure(J: sp.csr_matrix, stages: np.ndarray, rows, cache: dict | None, s
     order = Jp.data.astype(np.int64) - 1
     Jm, Jt = _split_columns(Jp, mx.size)
     left = Jp.indices < mx.size
-    H = (Jm.T @ Jm).tocoo()
-    w = int(np.abs(H.row // m - H.col // m).max(initial=1))
+    # each row's smallest and largest stage column (canonical: its first and last entry), if it reads one
+    reads = np.diff(Jm.indptr) > 0
+    lo, hi = Jm.indices[Jm.indptr[:-1][reads]], Jm.indices[Jm.indptr[1:][reads] - 1]
+    w = max(int(np.max(hi // m - lo // m, initial=0)), 1)  # the farthest stages a row reads apart
     pad = None
     if w > 1:
         pad = (-N) % w * m
         Jm = sp.csr_matrix((Jm.data, Jm.indices, Jm.indptr), shape=(Jm.shape[0], Jm.shape[1] + pad))
         N, m = (N * m + pad) // (w * m), w * m
     if span is None:  # stages coupled when a row reads two of them
-        span = 2 if N > 1 and np.any((H.row // m) != (H.col // m)) else 1
+        span = 2 if N > 1 and np.any(hi // m != lo // m) else 1
     n_all = Jm.shape[0]
     Jk = Jm.tocoo()
-    reads = np.diff(Jm.indptr) > 0
     first = np.zeros(n_all, int)
-    first[reads] = Jm.indices[Jm.indptr[:-1][reads]] // m
+    first[reads] = lo // m
     first = np.minimum(first, N - span)
     rel = Jk.col // m - first[Jk.row]
     if np.any((rel < 0) | (rel >= span)):
@@ -241,18 +244,24 @@ def _structure(J: sp.csr_matrix, stages: np.ndarray, rows, cache: dict | None, s
     c = coupled.size
     cmap = np.full(Jt.shape[1], -1)
     cmap[coupled] = np.arange(c)
-    groups = [(idx, cols, at, cmap[cols], np.flatnonzero(np.any(on_v[idx], axis=0)))
-              for idx, cols, at in _row_patterns(Jt)]
-    on = cmap[Jt.indices] >= 0
     want = np.arange(n_all) if rows is None else np.asarray(rows, int).ravel()
     if want.size > 1 and not np.all(want[1:] > want[:-1]):  # unordered or repeated rows
         want = np.unique(want)
     wanted = np.zeros(n_all, bool)
     wanted[want] = True
+    # per pattern also its wanted rows (positions in the pattern's rows) in the order of their first
+    # stage and those stages: the chunks of stages of hat_diagonal take runs of them
+    groups = []
+    for idx, cols, at in _row_patterns(Jt):
+        sel = np.flatnonzero(wanted[idx])
+        sel = sel[np.argsort(first[idx[sel]], kind="stable")]
+        groups.append((idx, cols, at, cmap[cols], np.flatnonzero(np.any(on_v[idx], axis=0)), sel, first[idx[sel]]))
+    want = want[np.argsort(first[want], kind="stable")]
+    on = cmap[Jt.indices] >= 0
     plan = {"order": order, "left": left, "Jm": (Jm.indices, Jm.indptr, Jm.shape), "N": N, "m": m, "pad": pad,
             "span": span, "first": first, "V": vpos, "c": c, "coupled": coupled, "groups": groups,
             "Jc": (np.flatnonzero(on), cmap[Jt.indices[on]], np.r_[0, np.cumsum(on)][Jt.indptr]),
-            "want": want, "wanted": wanted}
+            "want": want, "want_first": first[want]}
     if cache is not None:
         cache["key"], cache["plan"] = key, plan
     return plan
@@ -271,8 +280,17 @@ def _buffer(plan: dict, name: str, shape: tuple) -> np.ndarray:
     return buffers[name]
 
 
-def hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None, cache: dict | None = None
-                 ) -> np.ndarray:
+def _map(f: Callable, items, threads: int) -> list:
+    """[f(i) for i in items], on ``threads`` worker threads (numpy's BLAS calls and most array
+    operations release the GIL) when threads > 1 and there are several items."""
+    if threads > 1 and len(items) > 1:
+        from .elimination import _pool
+        return list(_pool(threads).map(f, items))
+    return [f(i) for i in items]
+
+
+def hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None, cache: dict | None = None,
+                 threads: int = 1) -> np.ndarray:
     """Leverages h_j = (J P Jᵀ)_jj of residual rows at one Jacobian (the module docstring's sweep).
 
     J (rows, n_x) and G (constraints, n_x) are the Jacobians of the whitened residuals and of the
@@ -287,10 +305,13 @@ def hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None, 
     X = B P_θ (−X their covariance with θ). B, X and H_mθ only have the columns of the θ's that rows
     reading a stage also read (not a joint problem's static pose directions); H_mθ is one sparse
     product, H_θθ and the θ terms are summed per pattern of θ columns (one per sensor axis and
-    reading kind), on the entries a row has: no (rows × n_θ) array is formed. What depends on J's
-    sparsity only (:func:`_structure`: the permutation and split of its columns, the patterns) is
-    kept in ``cache`` (a dict the caller keeps) for the next call with the same structure, stages
-    and rows: the noise model's rounds.
+    reading kind), on the entries a row has: no (rows × n_θ) array is formed. X, Q and the rows'
+    leverages are formed chunk by chunk of :data:`CHUNK` stages (a row's in the chunk of its first
+    stage), on ``threads`` worker threads when > 1 (``solver.threads``), as are the two halves of
+    H_θm B: the same operations on the same numbers for any number of threads, so the same bits.
+    What depends on J's sparsity only (:func:`_structure`: the permutation and split of its columns,
+    the patterns, the rows by stage) is kept in ``cache`` (a dict the caller keeps) for the next call
+    with the same structure, stages and rows: the noise model's rounds.
 
     Large freed blocks are kept on the heap meanwhile (:func:`castimate.solver.ipopt.heap_allocation`):
     its arrays of a few 10 MB would otherwise come as fresh pages from the kernel, zeroed on first
@@ -298,11 +319,11 @@ def hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None, 
     """
     from .ipopt import heap_allocation
     with heap_allocation():
-        return _hat_diagonal(J, G, stages, rows, cache)
+        return _hat_diagonal(J, G, stages, rows, cache, threads)
 
 
-def _hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None, cache: dict | None = None
-                  ) -> np.ndarray:
+def _hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None, cache: dict | None = None,
+                  threads: int = 1) -> np.ndarray:
     """:func:`hat_diagonal` itself."""
     J, G = sp.csr_matrix(J), sp.csr_matrix(G)
     if not J.has_canonical_format:
@@ -335,10 +356,10 @@ def _hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None,
     # each row's values v on its first stage (its smallest column; any for a row that reads none) and the next
     V = _buffer(plan, "V", (n_all, span * m))
     V.ravel()[plan["V"]] = Jm.data
-    groups = [(idx, cols, Jt_data[at], ci, used) for idx, cols, at, ci, used in plan["groups"]]
+    groups = [(idx, cols, Jt_data[at], ci, used, sel, fs) for idx, cols, at, ci, used, sel, fs in plan["groups"]]
     # H_θθ summed pattern by pattern; H_mθ (coupled columns, flat (N·m, c)) as one sparse product
     S = np.zeros((len(theta), len(theta)))
-    for idx, cols, t, ci, used in groups:
+    for idx, cols, t, *_ in groups:
         S[np.ix_(cols, cols)] += t.T @ t
     Jc = sp.csr_matrix((Jt_data[plan["Jc"][0]], plan["Jc"][1], plan["Jc"][2]), shape=(n_all, c))
     Hmt = (Jm.T.tocsr() @ Jc).toarray(out=_buffer(plan, "Hmt", (N * m, c)))
@@ -350,8 +371,9 @@ def _hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None,
         # factor, then solve: LAPACK's one-call pbsv is orders of magnitude slower for many right-hand sides
         B = sla.cho_solve_banded((chol, False), Hmt) if c else np.zeros((N * m, 0))
         Sd, So = selected_inverse(*_tridiagonal_blocks(Hmm, N, m))
-    if c:
-        S[np.ix_(coupled, coupled)] -= Hmt.T @ B
+    if c:  # H_θm B by halves of its rows (the same products either way), on worker threads with threads > 1
+        half = (c + 1) // 2
+        S[np.ix_(coupled, coupled)] -= np.vstack(_map(lambda k: Hmt[:, k:k + half].T @ B, range(0, c, half), threads))
     Gt = G[:, theta].toarray()
     U = np.linalg.qr(Gt.T, mode="complete")[0][:, Gt.shape[0]:] if Gt.shape[0] else np.eye(len(theta))
     # P_θ = K Kᵀ, the constrained inverse of the Schur complement
@@ -359,34 +381,46 @@ def _hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None,
     pos = ev > ev.max(initial=0.0) * len(ev) * np.finfo(float).eps
     K = U @ (vec[:, pos] / np.sqrt(ev[pos]))
     P = K @ K.T
-    X = np.matmul(B, P[np.ix_(coupled, coupled)], out=_buffer(plan, "X", (N * m, c)))
-    B3, X3 = B.reshape(N, m, c), X.reshape(N, m, c)
-    if span == 1:
-        Q = Sd + np.matmul(X3, B3.transpose(0, 2, 1))
-    else:
-        Q = np.empty((N - 1, 2 * m, 2 * m))
-        Bt = B3.transpose(0, 2, 1)
-        Q[:, :m, :m] = Sd[:-1] + np.matmul(X3[:-1], Bt[:-1])
-        Q[:, m:, m:] = Sd[1:] + np.matmul(X3[1:], Bt[1:])
-        Q[:, :m, m:] = So + np.matmul(X3[:-1], Bt[1:])
-        Q[:, m:, :m] = Q[:, :m, m:].transpose(0, 2, 1)
-    want, wanted = plan["want"], plan["wanted"]
+    Pc, want, want_first = P[np.ix_(coupled, coupled)], plan["want"], plan["want_first"]
     h = np.zeros(n_all)
-    for c0 in range(0, want.size, CHUNK):
-        r = want[c0:c0 + CHUNK]
-        h[r] = np.einsum("ri,ri->r", V[r], np.matmul(Q[first[r]], V[r][:, :, None])[:, :, 0])
-    for idx, cols, t, ci, used in groups:
-        keep = wanted[idx]
-        if not keep.all():
-            idx, t = idx[keep], t[keep]
-        if not idx.size:
-            continue
+
+    def theta_terms(idx, cols, t, ci, used, X3, n0):
+        """t P_θ tᵀ − 2 v X_s tᵀ of a pattern's rows (their stages' X from X3, which starts at stage n0)."""
         ht = np.einsum("ri,ri->r", t @ P[np.ix_(cols, cols)], t)
         if used.size:  # −2 v X_s tᵀ, X_s the rows' stages' X on their θ columns
-            Xs = np.concatenate([X3[:, u[:, None], ci[None, :]][first[idx] + k] for k, _, u in _halves(used, m, span)],
-                                axis=1)
+            s = first[idx] - n0
+            Xs = np.concatenate([X3[:, u[:, None], ci[None, :]][s + k] for k, _, u in _halves(used, m, span)], axis=1)
             ht -= 2.0 * np.einsum("rk,rk->r", np.matmul(V[idx][:, None, used], Xs)[:, 0], t)
         h[idx] += ht
+
+    def chunk(n0):
+        """The leverages of the wanted rows whose first stage is n0 ... n0 + CHUNK − 1 (X = B P_θ and Q of
+        these stages and the next, formed here: rows of other chunks do not read them)."""
+        n1 = min(n0 + CHUNK, N - span + 1)
+        n = n1 + span - 1 - n0  # the stages the chunk's rows read
+        B2 = B[n0 * m:(n0 + n) * m]
+        B3, X3 = B2.reshape(n, m, c), np.matmul(B2, Pc).reshape(n, m, c)
+        Bt = B3.transpose(0, 2, 1)
+        if span == 1:
+            Q = Sd[n0:n1] + np.matmul(X3, Bt)
+        else:
+            Q = np.empty((n1 - n0, 2 * m, 2 * m))
+            Q[:, :m, :m] = Sd[n0:n1] + np.matmul(X3[:-1], Bt[:-1])
+            Q[:, m:, m:] = Sd[n0 + 1:n1 + 1] + np.matmul(X3[1:], Bt[1:])
+            Q[:, :m, m:] = So[n0:n1] + np.matmul(X3[:-1], Bt[1:])
+            Q[:, m:, :m] = Q[:, :m, m:].transpose(0, 2, 1)
+        r = want[np.searchsorted(want_first, n0):np.searchsorted(want_first, n1)]
+        h[r] = np.einsum("ri,ri->r", V[r], np.matmul(Q[first[r] - n0], V[r][:, :, None])[:, :, 0])
+        for idx, cols, t, ci, used, sel, fs in groups:
+            if used.size:
+                part = sel[np.searchsorted(fs, n0):np.searchsorted(fs, n1)]
+                if part.size:
+                    theta_terms(idx[part], cols, t[part], ci, used, X3, n0)
+
+    _map(chunk, range(0, N - span + 1, CHUNK), threads)  # each chunk writes the leverages of its own rows
+    for idx, cols, t, ci, used, sel, fs in groups:  # the rows that read no stage (a joint problem's static rows)
+        if not used.size and sel.size:
+            theta_terms(idx[sel], cols, t[sel], ci, used, None, 0)
     return h if rows is None else h[np.asarray(rows, int).ravel()]
 
 
@@ -592,7 +626,8 @@ def estimate_levels(solve: Callable[[dict[str, float], object], tuple[object, ob
         solver, sol, data = cur
         idx = rows(solver)
         J, G = solver.jacobians(sol.x, data=data)
-        h = hat_diagonal(J, G, stages, np.concatenate([i.ravel() for i in idx.values()]), structure)
+        h = hat_diagonal(J, G, stages, np.concatenate([i.ravel() for i in idx.values()]), structure,
+                         solver_threads(solver.options.threads))
         ends = np.cumsum([0] + [i.size for i in idx.values()])
         redund = {k: 1.0 - h[a:b] for k, a, b in zip(idx, ends[:-1], ends[1:])}
         red = {k: float(v.sum()) for k, v in redund.items()}
