@@ -337,7 +337,7 @@ def test_hat_diagonal_in_chunks_on_threads_is_identical(monkeypatch, case):
         for a, h in zip(got[3], dense + [dense[1][some]], strict=True):
             assert np.abs(a - h).max() < 1e-10
     # the chunks' θ terms did run on the worker threads (without a border there are none)
-    assert any(n.startswith("castimate-stages") for n in seen) == (case != "no_border")
+    assert any(n.startswith("castimate-threads") for n in seen) == (case != "no_border")
 
 
 def test_known_process_noise_recovered():

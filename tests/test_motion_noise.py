@@ -328,6 +328,33 @@ def test_intermediate_refits_stopped_early_reach_the_same_fixed_point(tmp_path, 
         assert np.all(np.abs(a - b) <= 1e-3 * sa + 1e-12)
 
 
+def test_noise_model_on_threads_is_identical(tmp_path, monkeypatch):
+    """solver.threads 2 against 1 on the jittering board: the leverages in chunks of 64 stages (8
+    chunks on worker threads) and the two sensor types' component fits on worker threads give the
+    same components, tests, positions and solution bit for bit; the fits did run on the threads."""
+    import threading
+
+    import castimate.kinds.dynamic as dyn
+    import castimate.solver.variance as var
+    monkeypatch.setattr(var, "CHUNK", 64)
+    spec, _ = _board(tmp_path, 1e-4)
+    seen, fit_noise = set(), dyn.fit_noise
+
+    def spy(*a, **k):
+        seen.add(threading.current_thread().name)
+        return fit_noise(*a, **k)
+
+    monkeypatch.setattr(dyn, "fit_noise", spy)
+    one, two = (calibrate_dynamic(replace(spec, solver=replace(spec.solver, threads=t))) for t in (1, 2))
+    assert one.motion_noise["converged"] and one.motion_noise["rounds"] > 0
+    assert repr(one.motion_noise) == repr(two.motion_noise)  # exact floats (and the NaN of untested ones)
+    np.testing.assert_array_equal(one.solution.x, two.solution.x)
+    for n in spec.array.names:
+        for a, b in zip(one.positions[n], two.positions[n], strict=True):
+            np.testing.assert_array_equal(a, b)
+    assert any(n.startswith("castimate-threads") for n in seen)
+
+
 def test_no_jitter_nothing_added(tmp_path):
     spec, _ = _board(tmp_path, 0.0)
     out = calibrate_dynamic(spec)

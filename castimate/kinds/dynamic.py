@@ -36,7 +36,7 @@ from ..prepare.poses import average_poses
 from ..prepare.detect import detect_static
 from ..problem.graph import Solution, solver_threads
 from ..solver.ipopt import Solver
-from ..solver.variance import block_rows, estimate_levels, hat_diagonal
+from ..solver.variance import block_rows, estimate_levels, hat_diagonal, map_threads
 from ..problem.graph import SolverOptions
 from ..prepare.masks import saturation_mask
 from ..prepare.plausibility import check_dynamic_information, check_uniform_sampling
@@ -718,7 +718,8 @@ def fit_motion_noise(spec: ProblemSpec, problem, solver: Solver, sol: Solution, 
     estimated = any(v in ("auto", "free") for c in setting.values() for v in c.values())
     stages = motion_stages(problem.lsq.layout, data.n)
     fits: dict = {}
-    warm: dict = {}  # per sensor, the variance components' fits of the previous round (fit_noise)
+    warm: dict = {s: {} for s, _ in SENSORS}  # per sensor, the components' fits of the previous round (fit_noise)
+    threads = solver_threads(solver.options.threads)
     structure: dict = {}  # the leverages' (hat_diagonal): the Jacobian's sparsity is the same every round
     # the data vector of the current σ's (problem.data_vector) made once per refit
     state = {"data": data, "vector": problem.data_vector(data), "sol": sol, "regressors": None, "params": params,
@@ -738,23 +739,27 @@ def fit_motion_noise(spec: ProblemSpec, problem, solver: Solver, sol: Solution, 
                 t0, w0 = time.process_time(), time.perf_counter()
                 J, G = solver.jacobians(sol.x, data=state["vector"])
                 h = state["leverages"] = problem.per_triad(
-                    hat_diagonal(J, G, stages, np.arange(solver.n_data_residuals), structure,
-                                 solver_threads(solver.options.threads)))
+                    hat_diagonal(J, G, stages, np.arange(solver.n_data_residuals), structure, threads))
                 log(f"  leverages of {solver.n_data_residuals} residuals: {time.process_time() - t0:.2f} s CPU, "
                     f"{time.perf_counter() - w0:.2f} s")
             res = measurement_residuals(problem, data, sol)
-            for i, (sensor, kind) in enumerate(SENSORS):
+            todo = [(i, sensor, kind) for i, (sensor, kind) in enumerate(SENSORS)
+                    if res[i] and not all(v == "none" for v in setting[sensor].values())]
+
+            def fit_sensor(item):
+                i, sensor, kind = item
                 names = list(res[i])
-                if not names or all(v == "none" for v in setting[sensor].values()):
-                    continue
                 base = data.acc_sigma if kind == "acc" else data.gyro_sigma
                 comps = {k: v for k, v in setting[sensor].items() if v != "none"}
                 try:
-                    fit = fit_noise([res[i][n] for n in names], [h[i][n] for n in names], [base[n] for n in names],
-                                    {k: [regressors[i][n][k] for n in names] for k in comps}, comps,
-                                    state["params"][sensor], MOTION_NOISE_ALPHA, warm.setdefault(sensor, {}))
+                    return fit_noise([res[i][n] for n in names], [h[i][n] for n in names], [base[n] for n in names],
+                                     {k: [regressors[i][n][k] for n in names] for k in comps}, comps,
+                                     state["params"][sensor], MOTION_NOISE_ALPHA, warm[sensor])
                 except NotConvergedError as err:
                     raise NotConvergedError(f"{spec.path}: noise.motion_dependent.{sensor}: {err}") from None
+
+            # the sensor types' fits are independent: on worker threads with solver.threads > 1
+            for (_, sensor, _), fit in zip(todo, map_threads(fit_sensor, todo, threads), strict=True):
                 fits[sensor] = fit
                 proposal[sensor].update({k: f.value for k, f in fit.items()})
         previous = _log_sigmas(data, state["estimate"], regressors) if state["estimate"] else None

@@ -29,6 +29,7 @@ smoother's covariance), so the leverages of all rows cost time linear in the num
 from __future__ import annotations
 
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -280,12 +281,12 @@ def _buffer(plan: dict, name: str, shape: tuple) -> np.ndarray:
     return buffers[name]
 
 
-def _map(f: Callable, items, threads: int) -> list:
+def map_threads(f: Callable, items, threads: int) -> list:
     """[f(i) for i in items], on ``threads`` worker threads (numpy's BLAS calls and most array
     operations release the GIL) when threads > 1 and there are several items."""
     if threads > 1 and len(items) > 1:
-        from .elimination import _pool
-        return list(_pool(threads).map(f, items))
+        with ThreadPoolExecutor(max_workers=min(threads, len(items)), thread_name_prefix="castimate-threads") as pool:
+            return list(pool.map(f, items))
     return [f(i) for i in items]
 
 
@@ -373,7 +374,7 @@ def _hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None,
         Sd, So = selected_inverse(*_tridiagonal_blocks(Hmm, N, m))
     if c:  # H_θm B by halves of its rows (the same products either way), on worker threads with threads > 1
         half = (c + 1) // 2
-        S[np.ix_(coupled, coupled)] -= np.vstack(_map(lambda k: Hmt[:, k:k + half].T @ B, range(0, c, half), threads))
+        S[np.ix_(coupled, coupled)] -= np.vstack(map_threads(lambda k: Hmt[:, k:k + half].T @ B, range(0, c, half), threads))
     Gt = G[:, theta].toarray()
     U = np.linalg.qr(Gt.T, mode="complete")[0][:, Gt.shape[0]:] if Gt.shape[0] else np.eye(len(theta))
     # P_θ = K Kᵀ, the constrained inverse of the Schur complement
@@ -417,7 +418,7 @@ def _hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None,
                 if part.size:
                     theta_terms(idx[part], cols, t[part], ci, used, X3, n0)
 
-    _map(chunk, range(0, N - span + 1, CHUNK), threads)  # each chunk writes the leverages of its own rows
+    map_threads(chunk, range(0, N - span + 1, CHUNK), threads)  # each chunk writes the leverages of its own rows
     for idx, cols, t, ci, used, sel, fs in groups:  # the rows that read no stage (a joint problem's static rows)
         if not used.size and sel.size:
             theta_terms(idx[sel], cols, t[sel], ci, used, None, 0)
