@@ -22,18 +22,26 @@ def test_flat_adds_equal_the_fancy_indexed_ones(monkeypatch, process_model):
     x, pf = _point(prob)
     P = Solver(prob.lsq, SolverOptions(threads=2)).projection
     assert any(dest is not None for sf in P.stage_fns for lay in sf.layout.values() for *_, dest in lay[2])
+    _same_with_and_without(monkeypatch, "flat_add", P, x, pf)
+
+
+def _same_with_and_without(monkeypatch, switch, P, x, pf):
+    """Every mode's assembly at x with _StageFunctions' ``switch`` on (into reused arrays filled
+    with NaN first) equals the one with it off (fresh arrays), bit for bit, on 2 and 1 threads."""
     th, Xs = P.split(x)
     for mode in ("full", "grad", "info", "inner", "res"):
         for threads in (2, 1):
             P.threads = threads
-            monkeypatch.setattr(elimination._StageFunctions, "flat_add", True)  # noqa: SLF001
+            monkeypatch.setattr(elimination._StageFunctions, switch, True)  # noqa: SLF001
+            P.assemble(th, Xs, pf, None, mode, reuse=True)
+            for a in _arrays(P._reused["coupled" if mode in ("full", "info") else mode]):  # noqa: SLF001
+                a.fill(np.nan)
             a = P.assemble(th, Xs, pf, None, mode, reuse=True)
-            monkeypatch.setattr(elimination._StageFunctions, "flat_add", False)  # noqa: SLF001
+            monkeypatch.setattr(elimination._StageFunctions, switch, False)  # noqa: SLF001
             b = P.assemble(th, Xs, pf, None, mode)
             assert a.f == b.f
             for ea, eb in zip(_arrays(a), _arrays(b), strict=True):
                 np.testing.assert_array_equal(ea, eb)
-
 
 
 @pytest.mark.parametrize("process_model, reverse", [(True, False), (False, False), (True, True)])
@@ -58,20 +66,7 @@ def test_direct_writes_equal_the_added_ones(monkeypatch, process_model, reverse)
     else:  # the accelerometers come first and write G, B[0] and the coupling whole
         assert P._written["full"] == {("G", 0, None), ("B", 0, 0), ("Hsc", 0, None)}  # noqa: SLF001
         assert P._written["info"] == {("B", 0, 0), ("Hsc", 0, None)}  # noqa: SLF001
-    th, Xs = P.split(x)
-    for mode in ("full", "grad", "info", "inner", "res"):
-        for threads in (2, 1):
-            P.threads = threads
-            monkeypatch.setattr(elimination._StageFunctions, "direct", True)  # noqa: SLF001
-            P.assemble(th, Xs, pf, None, mode, reuse=True)
-            for a in _arrays(P._reused["coupled" if mode in ("full", "info") else mode]):  # noqa: SLF001
-                a.fill(np.nan)
-            a = P.assemble(th, Xs, pf, None, mode, reuse=True)
-            monkeypatch.setattr(elimination._StageFunctions, "direct", False)  # noqa: SLF001
-            b = P.assemble(th, Xs, pf, None, mode)
-            assert a.f == b.f
-            for ea, eb in zip(_arrays(a), _arrays(b), strict=True):
-                np.testing.assert_array_equal(ea, eb)
+    _same_with_and_without(monkeypatch, "direct", P, x, pf)
 
 
 def test_which_dense_targets_are_written_in_place():
