@@ -1767,6 +1767,17 @@ def report_details_of_another_solve_same_poses(base, tmp):
 
 
 @case("report_o")
+def report_of_a_diagnose_directory(base, tmp):
+    """diagnose writes results.json, diagnose.json and its own report.html, no details.npz: the error said
+    only 'details file not found'."""
+    d = tmp / "diag"
+    d.mkdir()
+    copy(base / "rows_solved" / "results.json", d)
+    (d / "diagnose.json").write_text("{}")
+    return Spec(["report", str(d)], 2, ("details.npz", "castimate diagnose", "own report.html"))
+
+
+@case("report_o")
 def report_missing_directory(base, tmp):
     return Spec(["report", str(tmp / "nowhere")], 2, ("nowhere",))
 

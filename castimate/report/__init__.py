@@ -21,6 +21,10 @@ def write_report(directory: Path, path: Path | None = None, log: Callable[[str],
     if not directory.is_dir():
         raise InputError(directory, "", "no such directory; expected the output directory of `castimate solve`")
     results = load_results(directory)
+    if not (directory / "details.npz").exists() and (directory / "diagnose.json").exists():
+        raise InputError(directory / "details.npz", "", "not found: this is the directory of `castimate diagnose`, "
+                                                        "which writes its own report.html; `castimate report` renders "
+                                                        "the directory of `castimate solve`")
     dynamic = results.get("kind") == "dynamic_array"
     details = load_details(directory, REQUIRED_DYNAMIC_DETAILS if dynamic else REQUIRED_DETAILS, results)
     log(f"rendering the {results.get('kind')} report of {directory} (figures)")
