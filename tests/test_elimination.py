@@ -411,3 +411,25 @@ def test_singular_stage_factor_is_the_pseudo_inverse_and_indefinite_stages_are_r
     assert np.allclose(F.upper(F.lower(v))[1, :, 0], np.linalg.pinv(sing) @ v[1, :, 0])
     with pytest.raises(np.linalg.LinAlgError):
         _Factor([np.stack([pd, np.diag([1.0, 1.0, -1e-3])])])
+
+
+@pytest.mark.parametrize("kind", ["static", "static_quaternion", "dynamic"])
+def test_no_gradient_assembly_where_no_shortcut_can_use_it(monkeypatch, kind):
+    """The gradient alone (at a Newton point, or with the previous point's factors) is assembled only
+    where a shortcut can use it: not with unit-norm nuisance rows (pose directions as tilt
+    quaternions), whose tangent basis moves with the step; the dynamic case uses it."""
+    prob = CASES[kind]()
+    solver = Solver(prob.lsq)
+    P = solver.projection
+    modes = []
+    assemble = type(P).assemble
+
+    def spy(self, theta, Xs, pf, data, mode, *a, **k):
+        modes.append(mode)
+        return assemble(self, theta, Xs, pf, data, mode, *a, **k)
+
+    monkeypatch.setattr(type(P), "assemble", spy)
+    assert solver.solve().success
+    unit = any(f.unit for f in P.fams)
+    assert unit == (kind != "dynamic")
+    assert ("grad" in modes) != unit and modes.count("full") >= 2

@@ -1205,11 +1205,9 @@ class Projection:
         """At the Newton point Xs of the elimination that :meth:`eliminate` left at its limit, with
         the gradient ``grad`` assembled there: (decrement, Newton steps) by the factors of that
         elimination (its Hessian, one step earlier: the error is of the order of the step times
-        this gradient, which is at the tolerance). Families with unit-norm rows (a tangent basis
-        that moved with the step) return None."""
+        this gradient, which is at the tolerance). Not for families with unit-norm rows (a tangent
+        basis that moved with the step): :meth:`_evaluate` then assembles no gradient for it."""
         _, prepared = self._pending
-        if any(f.unit for f in self.fams):
-            return None
         dec, steps, ys = 0.0, [], []
         for (F, _, _), G in zip(prepared, grad.G):
             y = F.lower(G[:, :, None].copy())
@@ -1385,8 +1383,11 @@ class Projection:
         Xs = self.predict(theta, pf) if self._anchor is not None else self._X0
         anchor = self._anchor
         self._anchor = self._factors = self._lazy = None  # as large as the coupling: freed before the next ones
-        if grad_first and not hessian and self.shortcut and self._last_dec <= self.grad_first_dec \
-                and anchor is not None and anchor[2] is not None and not any(f.unit for f in self.fams):
+        # the gradient alone with an earlier point's factors: not for unit-norm rows (their tangent
+        # basis moves with the step)
+        shortcut = self.shortcut and not any(f.unit for f in self.fams)
+        if grad_first and not hessian and shortcut and self._last_dec <= self.grad_first_dec \
+                and anchor is not None and anchor[2] is not None:
             out = self._grad_first(theta, Xs, pf, data, [(*f, anchor[3]) for f in anchor[2]], key)
             if out is not None:
                 self._anchor = (theta.copy(), self._cache["X"], anchor[2], anchor[3])
@@ -1418,7 +1419,7 @@ class Projection:
             # (with the factors of the step), and the Hessian from the previous point (the
             # Schur complement one Newton step of the nuisance earlier: IPOPT's model, not its
             # stopping test, sees the difference)
-            near = self.shortcut and dec <= self.shortcut_dec * (1.0 + abs(parts.f))
+            near = shortcut and dec <= self.shortcut_dec * (1.0 + abs(parts.f))
             pg = self.assemble(theta, Xs, pf, data, "grad") if near else None
             chk = self.recheck(pg, Xs) if near else None
             if chk is not None and pg.f <= prev[1] and chk[0] <= self.inner_tol * (1.0 + abs(pg.f)):
