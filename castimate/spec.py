@@ -590,7 +590,7 @@ def parse_motion(c: Check, m) -> MotionSpec:
         kw["process_model"] = m["process_model"]
         unused = [k for k in m if k != "process_model"]
         if not m["process_model"] and unused:  # every sample's motion is free: nothing ties the samples
-            c.fail(f"motion.{unused[0]}", f"is a setting of the process model, found with motion.process_model: false "
+            c.fail(f"motion.{unused[0]}", "is a setting of the process model, found with motion.process_model: false "
                                           "(the motion of every sample free), where it would be unused; leave it out "
                                           "or set process_model: true")
     return MotionSpec(**kw)

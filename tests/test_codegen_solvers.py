@@ -15,7 +15,6 @@ from castimate.codegen import CodegenOptions, generate_c
 from castimate.codegen.gn_structure import arithmetic_runs, expand_runs
 from castimate.codegen.solvers import FILES, TOLERANCE
 from castimate.errors import InputError
-from castimate.errors import InputError
 from castimate.simulate.scenarios import simulate_scenario
 
 from test_codegen import make_check

@@ -52,7 +52,7 @@ def test_report_content(solved, report):
     # angles are shown in degrees: the first free misalignment component of a non-reference triad
     name = next(n for n in doc["triads"] if n != doc["reference"])
     g = doc["triads"][name]["parameters"]["misalignment"]
-    from castimate.report.page import DEG, format_pm
+    from castimate.report.page import format_pm
 
     assert format_pm(np.degrees(g["value"][0]), np.degrees(g["std"][0])) in report
     # the reference triad has no misalignment group: its cells say so instead of a value
@@ -92,7 +92,7 @@ def test_report_missing_directory(tmp_path, capsys):
 
 
 def test_format_pm():
-    from castimate.report.page import DEG, format_pm
+    from castimate.report.page import format_pm
 
     assert format_pm(1.0045540261, 4.6467e-05) == "1.004554 ± 0.000046"
     assert format_pm(-0.2767280, 0.00027663) == "-0.27673 ± 0.00028"

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from castimate.problem.graph import SolverOptions
-from castimate.solver import elimination
+from castimate.solver import elimination, threads
 from castimate.solver.ipopt import Solver
 from test_assembly import dynamic_case
 
@@ -52,7 +52,7 @@ def test_assembly_on_threads_is_identical(monkeypatch, process_model):
     r3 = P.residuals(x, pf, None)
     P.threads = 1
     np.testing.assert_array_equal(r3, P.residuals(x, pf, None))
-    assert any(n.startswith("castimate-stages") for n in seen)  # the threads did run the calls
+    assert any(n.startswith("castimate-threads") for n in seen)  # the threads did run the calls
 
 
 def test_solve_on_threads_is_identical(monkeypatch):
@@ -116,7 +116,7 @@ def test_a_forked_child_gets_its_own_pool():
     would otherwise queue work on threads that do not exist in it and wait forever."""
     import multiprocessing
 
-    parent = elimination._pool(2)
+    parent = threads.pool(2)
     assert parent.submit(lambda: 1).result() == 1
     ctx = multiprocessing.get_context("fork")
     with ctx.Pool(1) as p:
@@ -124,7 +124,7 @@ def test_a_forked_child_gets_its_own_pool():
 
 
 def _work_in_child():
-    pool = elimination._pool(2)
+    pool = threads.pool(2)
     return sum(pool.map(int, range(10)))
 
 

@@ -14,7 +14,6 @@ import os
 import re
 import zipfile
 from collections.abc import Callable
-from pathlib import Path
 from typing import IO
 
 import numpy as np

@@ -27,7 +27,7 @@ from ..problem.triads import Regressors
 from ..problem.clocks import Beat, estimate_beats, implied_age
 from ..models.motion import affine_dimension
 from ..models.rotation import rotation_to_quaternion
-from ..problem.dynamic import (OMEGA, OMEGA_DOT, S, DynamicConfig, DynamicData, MotionSigmas, build_dynamic,
+from ..problem.dynamic import (OMEGA, OMEGA_DOT, DynamicConfig, DynamicData, MotionSigmas, build_dynamic,
                                build_dynamic_sigma_masked, build_joint, geometry_fixed)
 from ..spec import ProblemSpec, motion_noise_setting
 from ..problem.triads import TriadConfig, fixed_config

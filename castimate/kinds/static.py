@@ -439,7 +439,7 @@ def calibrate_static(spec: ProblemSpec, log: Log = quiet, data: StaticData | Non
     the single-triad calibrations of Nilsson's before/after figure.
     """
     data = data or load_static(spec, log)
-    rec, avg, det = data.recording, data.averages, data.detection
+    avg = data.averages
     config, notes = session_config(spec, data)
     for n, note in notes.items():
         log(f"  {n}: {note}")

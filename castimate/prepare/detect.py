@@ -78,11 +78,8 @@ from .options import (AUTO_MIN_WINDOWS, AUTO_SLOW_TURN, AUTO_TRIM_FRACTION, AUTO
 __all__ = [
     "DetectionOptions",
     "Detection",
-    "PoseAverages",
     "detect_static",
     "explicit_segments",
-    "average_poses",
-    "pose_averages_from_means",
 ]
 
 #: Fewest samples an explicitly given segment may hold.

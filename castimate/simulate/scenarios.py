@@ -8,7 +8,6 @@ from typing import Any
 import numpy as np
 import yaml
 
-from ..errors import InputError
 from ..io.readers import SI_COMMENT, write_csv
 from ..io.recording import Recording
 from ..io.atomic import write_atomic

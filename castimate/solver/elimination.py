@@ -42,11 +42,8 @@ from __future__ import annotations
 
 import collections
 import contextlib
-import functools
-import os
 import threading
 import weakref
-from concurrent.futures import ThreadPoolExecutor
 
 import casadi as ca
 import numpy as np
@@ -57,21 +54,10 @@ from scipy.linalg import blas, lapack
 from ..jit import compile_functions
 from ..problem.parameters import Layout
 from .assembly import CHUNK, LOCAL, Block, EvaluationError, NotStaged, StagedBlock, exact_hessian
+from .threads import map_threads, pool
 
 
 STAGE_CHUNK = 4096  # instances per call of a stage function (whole stage groups)
-
-
-def _pool(threads: int) -> ThreadPoolExecutor:
-    """The worker threads of :meth:`Projection.stage_calls` and of :meth:`_Factor.lower` (one pool
-    per thread count, for the process's lifetime; a forked child, e.g. a Dask worker, makes its own:
-    the parent's threads do not exist there)."""
-    return _pool_of(threads, os.getpid())
-
-
-@functools.lru_cache(maxsize=None)
-def _pool_of(threads: int, pid: int) -> ThreadPoolExecutor:
-    return ThreadPoolExecutor(max_workers=threads, thread_name_prefix="castimate-stages")
 
 
 class Family:
@@ -754,8 +740,7 @@ class _Factor:
             return acc
 
         h = self.R // 2
-        a, b = (_pool(threads).map(half, (0, h), (h, self.R)) if threads > 1 and h
-                else (half(0, h), half(h, self.R)))
+        a, b = map_threads(lambda s: half(*s), ((0, h), (h, self.R)), threads if h else 1)
         return Y.reshape(-1, k), a + b
 
     def upper(self, v):
@@ -1016,10 +1001,10 @@ class Projection:
             for j0, j1 in spans:
                 yield j0, j1, call(j0, j1)
             return
-        pool, pending = _pool(self.threads), collections.deque()
+        workers, pending = pool(self.threads), collections.deque()
         try:
             for j0, j1 in spans:
-                pending.append((j0, j1, pool.submit(call, j0, j1)))
+                pending.append((j0, j1, workers.submit(call, j0, j1)))
                 if len(pending) > 2 * self.threads:
                     a, b, fut = pending.popleft()
                     yield a, b, fut.result()
@@ -1255,7 +1240,6 @@ class Projection:
     def _couple(self, parts, prepared, S, g, coupling):
         """(S - Hcs H^-1 Hsc, g - Hcs H^-1 G) from the factors ``prepared`` (without ``coupling``: (S, g)
         as given; g None: no reduced gradient); keeps the factors for the predictor."""
-        c = self.c
         factors = []
         for fi, (F, y, Z) in enumerate(prepared):
             Y = None

@@ -29,7 +29,6 @@ smoother's covariance), so the leverages of all rows cost time linear in the num
 from __future__ import annotations
 
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -39,6 +38,7 @@ from scipy.special import chdtrc  # chi2.sf without scipy.stats's import (1 s of
 
 from ..errors import NotConvergedError
 from ..problem.graph import solver_threads
+from .threads import map_threads
 
 
 def block_rows(solver, name: str) -> np.ndarray:
@@ -279,15 +279,6 @@ def _buffer(plan: dict, name: str, shape: tuple) -> np.ndarray:
     else:
         buffers[name].fill(0.0)
     return buffers[name]
-
-
-def map_threads(f: Callable, items, threads: int) -> list:
-    """[f(i) for i in items], on ``threads`` worker threads (numpy's BLAS calls and most array
-    operations release the GIL) when threads > 1 and there are several items."""
-    if threads > 1 and len(items) > 1:
-        with ThreadPoolExecutor(max_workers=min(threads, len(items)), thread_name_prefix="castimate-threads") as pool:
-            return list(pool.map(f, items))
-    return [f(i) for i in items]
 
 
 def hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None, cache: dict | None = None,
