@@ -469,3 +469,48 @@ def test_row_patterns_group_rows_by_their_columns(monkeypatch, collide):
         assert np.all(dense[idx][:, ~mask] == 0) and np.all(dense[idx][:, mask] != 0)
         seen += list(idx)
     assert sorted(seen) == [0, 1, 2, 4, 5] and len(groups) == 3
+
+
+@pytest.mark.parametrize("given", [False, True])
+def test_split_columns_match_scipy_column_slices(given):
+    """The hat diagonal's split of a canonical CSR into its columns < k and ≥ k (with ``left`` given
+    or not): the same matrices as scipy's slices, canonical, rows without entries on either side kept."""
+    from castimate.solver.variance import _split_columns
+
+    rng = np.random.default_rng(5)
+    D = sp.random(40, 13, density=0.3, random_state=rng).toarray()
+    D[7, :] = 0.0  # an empty row
+    D[8, 5:] = 0.0  # a row with columns < k only
+    D[9, :5] = 0.0  # and one with columns ≥ k only
+    A = sp.csr_matrix(D)
+    assert A.has_canonical_format and np.diff(A.indptr)[7] == 0
+    left, right = _split_columns(A, 5, A.indices < 5 if given else None)
+    for got, want in ((left, A[:, :5]), (right, A[:, 5:])):
+        want.sort_indices()
+        assert got.shape == want.shape and got.has_canonical_format
+        assert np.array_equal(got.indptr, want.indptr) and np.array_equal(got.indices, want.indices)
+        assert np.array_equal(got.data, want.data)
+
+
+def test_hat_diagonal_plan_refuses_rows_beyond_its_span():
+    """A plan made for independent stages (span 1: the stages' coupling cancels exactly) cannot take a
+    row that reads two stages: it says so rather than writing it out of its row of V."""
+    from castimate.solver.variance import _structure
+
+    N, m = 4, 2
+    stages = np.arange(N * m).reshape(N, m)
+    J = np.zeros((N + 1, N * m + 1))
+    for n in range(N):
+        J[n, stages[n]] = 1.0
+    J[:, -1] = 1.0
+    plan = _structure(sp.csr_matrix(J[:N]), stages, None, None, 1)
+    # each row's stage entries at its first stage's place in its row of V (hand-computed: row n, stage n)
+    assert plan["span"] == 1 and np.array_equal(plan["first"], np.arange(N))
+    assert np.array_equal(plan["V"], np.arange(N * m))
+    J[N, stages[1, 1]] = J[N, stages[2, 0]] = 1.0  # reads the stages 1 and 2
+    plan = _structure(sp.csr_matrix(J), stages, None, None, 2)
+    # the last row: first stage 1, its entries at positions 1 (stage 1, variable 1) and 2 (stage 2, variable 0)
+    assert plan["span"] == 2 and plan["first"][N] == 1
+    assert np.array_equal(plan["V"][-2:], N * 2 * m + np.array([1, 2]))
+    with pytest.raises(ValueError, match="more than two neighbouring stages"):
+        _structure(sp.csr_matrix(J), stages, None, None, 1)

@@ -140,19 +140,27 @@ def _row_patterns(Jt: sp.csr_matrix) -> list[tuple[np.ndarray, np.ndarray, np.nd
     nnz = np.diff(Jt.indptr)
     if not Jt.nnz:
         return []
-    row = np.repeat(np.arange(n), nnz)
-    pos = np.arange(Jt.nnz) - Jt.indptr[row]
+    # each entry's position in its row (in the index arrays' integer type: no (nnz,) int64 arrays)
+    start = Jt.indptr[:-1]
+    pos = np.arange(Jt.nnz, dtype=Jt.indptr.dtype)
+    pos -= np.repeat(start, nnz)
     mult = _hash_multipliers(int(nnz.max()))
     with np.errstate(over="ignore"):
-        terms = (Jt.indices.astype(np.uint64) + np.uint64(1)) * mult[pos]
+        terms = Jt.indices.astype(np.uint64)
+        terms += np.uint64(1)
+        terms *= mult[pos]
         key = np.zeros(n, np.uint64)
         has = nnz > 0
-        key[has] = np.add.reduceat(terms, Jt.indptr[:-1][has], dtype=np.uint64)
+        key[has] = np.add.reduceat(terms, start[has], dtype=np.uint64)
+    del terms
     key = np.where(has, key ^ (nnz.astype(np.uint64) << np.uint64(56)), key)
     _, rep, group = np.unique(key, return_index=True, return_inverse=True)
     group = group.ravel()
     r = rep[group]  # each row's representative
-    ok = np.array_equal(nnz, nnz[r]) and np.array_equal(Jt.indices, Jt.indices[Jt.indptr[r][row] + pos])
+    ok = np.array_equal(nnz, nnz[r])
+    if ok:  # each entry against its representative's at the same position
+        pos += np.repeat(Jt.indptr[r], nnz)
+        ok = np.array_equal(Jt.indices, Jt.indices[pos])
     if not ok:  # a collision: one group per distinct pattern, exactly
         keys = {}
         group = np.array([keys.setdefault(tuple(Jt.indices[Jt.indptr[i]:Jt.indptr[i + 1]]), len(keys))
@@ -178,13 +186,18 @@ def _halves(used: np.ndarray, m: int, span: int):
             yield k, sel, used[sel] % m
 
 
-def _split_columns(A: sp.csr_matrix, k: int) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+def _split_columns(A: sp.csr_matrix, k: int, left: np.ndarray | None = None) -> tuple[sp.csr_matrix, sp.csr_matrix]:
     """A canonical CSR's columns < k and ≥ k (shifted by k), both canonical: a row's first entries are
-    its columns < k (the same as ``A[:, :k], A[:, k:]``, without scipy's general column slicing)."""
-    left = A.indices < k
-    ptr = np.r_[0, np.cumsum(left)][A.indptr]  # the entries < k up to each row
-    return (sp.csr_matrix((A.data[left], A.indices[left], ptr), shape=(A.shape[0], k)),
-            sp.csr_matrix((A.data[~left], A.indices[~left] - k, A.indptr - ptr), shape=(A.shape[0], A.shape[1] - k)))
+    its columns < k (the same as ``A[:, :k], A[:, k:]``, without scipy's general column slicing).
+    ``left``: ``A.indices < k`` if the caller has it."""
+    if left is None:
+        left = A.indices < k
+    at, rest = np.flatnonzero(left), np.flatnonzero(~left)
+    ptr = np.searchsorted(at, A.indptr).astype(A.indptr.dtype)  # the entries < k up to each row
+    right = A.indices[rest]
+    right -= k
+    return (sp.csr_matrix((A.data[at], A.indices[at], ptr), shape=(A.shape[0], k)),
+            sp.csr_matrix((A.data[rest], right, A.indptr - ptr), shape=(A.shape[0], A.shape[1] - k)))
 
 
 def _structure(J: sp.csr_matrix, stages: np.ndarray, rows, cache: dict | None, span: int | None = None) -> dict:
@@ -208,13 +221,15 @@ def _structure(J: sp.csr_matrix, stages: np.ndarray, rows, cache: dict | None, s
     on_stage = np.zeros(J.shape[1], bool)
     on_stage[mx] = True
     theta = np.flatnonzero(~on_stage)
-    perm = np.empty(J.shape[1], np.int64)
+    # the permutation of J's entries: J's entry numbers as the data of J with its columns permuted, sorted
+    # row by row (in J's index type: scipy keeps it, no copies)
+    perm = np.empty(J.shape[1], J.indices.dtype)
     perm[mx], perm[theta] = np.arange(mx.size), mx.size + np.arange(theta.size)
-    Jp = sp.csr_matrix((np.arange(1.0, J.nnz + 1), perm[J.indices], J.indptr.copy()), shape=J.shape)
+    Jp = sp.csr_matrix((np.arange(J.nnz), perm[J.indices], J.indptr.copy()), shape=J.shape)
     Jp.sort_indices()
-    order = Jp.data.astype(np.int64) - 1
-    Jm, Jt = _split_columns(Jp, mx.size)
+    order = Jp.data
     left = Jp.indices < mx.size
+    Jm, Jt = _split_columns(Jp, mx.size, left)
     # each row's smallest and largest stage column (canonical: its first and last entry), if it reads one
     reads = np.diff(Jm.indptr) > 0
     lo, hi = Jm.indices[Jm.indptr[:-1][reads]], Jm.indices[Jm.indptr[1:][reads] - 1]
@@ -227,14 +242,15 @@ def _structure(J: sp.csr_matrix, stages: np.ndarray, rows, cache: dict | None, s
     if span is None:  # stages coupled when a row reads two of them
         span = 2 if N > 1 and np.any(hi // m != lo // m) else 1
     n_all = Jm.shape[0]
-    Jk = Jm.tocoo()
     first = np.zeros(n_all, int)
     first[reads] = lo // m
     first = np.minimum(first, N - span)
-    rel = Jk.col // m - first[Jk.row]
-    if np.any((rel < 0) | (rel >= span)):
+    # each stage entry's position in its row of V: its column less its row's first stage's first column
+    counts = np.diff(Jm.indptr)
+    vpos = Jm.indices - np.repeat(first * m, counts)
+    if np.any((vpos < 0) | (vpos >= span * m)):
         raise ValueError("a residual row spans more than two neighbouring stages")
-    vpos = Jk.row * (span * m) + rel * m + Jk.col % m  # unique (canonical CSR)
+    vpos += np.repeat(np.arange(n_all) * (span * m), counts)  # unique (canonical CSR)
     on_v = np.zeros(n_all * span * m, bool)
     on_v[vpos] = True
     on_v = on_v.reshape(n_all, span * m)
@@ -258,10 +274,10 @@ def _structure(J: sp.csr_matrix, stages: np.ndarray, rows, cache: dict | None, s
         sel = sel[np.argsort(first[idx[sel]], kind="stable")]
         groups.append((idx, cols, at, cmap[cols], np.flatnonzero(np.any(on_v[idx], axis=0)), sel, first[idx[sel]]))
     want = want[np.argsort(first[want], kind="stable")]
-    on = cmap[Jt.indices] >= 0
+    on = np.flatnonzero((cmap >= 0)[Jt.indices])  # the entries on coupled columns
     plan = {"order": order, "left": left, "Jm": (Jm.indices, Jm.indptr, Jm.shape), "N": N, "m": m, "pad": pad,
             "span": span, "first": first, "V": vpos, "c": c, "coupled": coupled, "groups": groups,
-            "Jc": (np.flatnonzero(on), cmap[Jt.indices[on]], np.r_[0, np.cumsum(on)][Jt.indptr]),
+            "Jc": (on, cmap[Jt.indices[on]], np.searchsorted(on, Jt.indptr)),
             "want": want, "want_first": first[want]}
     if cache is not None:
         cache["key"], cache["plan"] = key, plan
