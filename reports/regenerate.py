@@ -373,17 +373,19 @@ def sessions() -> None:
 
 
 if __name__ == "__main__":
-    if sys.argv[1:] == ["timing"]:
-        timing_all()
-    elif sys.argv[1:] == ["joint"]:
-        joint_all()
-    elif sys.argv[1:] == ["joint-table"]:
-        joint_table()
-    elif sys.argv[1:] == ["sessions"]:
-        sessions()
-    elif sys.argv[1:2] == ["diagnose-dynamic"]:
-        diagnose_dynamic([int(i) for i in sys.argv[2:]] or range(1, 6))
-    else:
-        if sys.argv[1:] != ["diagnose"]:
-            main_()
+    args = sys.argv[1:]
+    parts = {"diagnose": diagnose_all, "timing": timing_all, "joint": joint_all, "joint-table": joint_table,
+             "sessions": sessions}
+    usage = ("usage: python reports/regenerate.py [diagnose | timing | joint | joint-table | sessions | "
+             "diagnose-dynamic [1-5 ...]] (no argument: every report, then diagnose)")
+    if args[:1] in (["-h"], ["--help"]):
+        print(__doc__ + "\n" + usage)
+    elif not args:
+        main_()
         diagnose_all()
+    elif len(args) == 1 and args[0] in parts:
+        parts[args[0]]()
+    elif args[0] == "diagnose-dynamic" and all(a in "12345" and len(a) == 1 for a in args[1:]):
+        diagnose_dynamic([int(i) for i in args[1:]] or range(1, 6))
+    else:
+        sys.exit(f"regenerate.py: unknown arguments {' '.join(args)!r}; {usage}")

@@ -345,3 +345,20 @@ def test_in_plane_ratio_from_the_sensing_elements_hand_computed():
     # the x element of b (sensing along body y) at (0.018, 0), its y element (sensing along body x) at (0.020, 0.001)
     assert in_plane_ratio(res) == pytest.approx(0.9, rel=1e-12)
     assert in_plane_ratio(res, sensing_axes=True) == pytest.approx(1.0, rel=1e-12)
+
+
+@pytest.mark.parametrize("args", [["--help"], ["bogus"], ["joint", "x"], ["diagnose-dynamic", "7"]])
+def test_regenerate_script_runs_nothing_on_unknown_arguments(tmp_path, args):
+    """reports/regenerate.py with an argument it does not know (or --help) exits at once with its usage,
+    instead of regenerating every report (it once took --help for 'everything')."""
+    import os
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    p = subprocess.run([sys.executable, str(root / "reports" / "regenerate.py"), *args], cwd=tmp_path, env=env,
+                       capture_output=True, text=True, timeout=60)
+    assert "usage: python reports/regenerate.py" in p.stdout + p.stderr
+    assert (p.returncode == 0) == (args == ["--help"])
+    assert "wrote" not in p.stdout + p.stderr
