@@ -136,4 +136,3 @@ def check_pairing(arrays: dict[str, np.ndarray], results: dict, path: Path) -> N
             raise InputError(path, "residual_acc", f"the residual RMS of {name} is {np.round(row, 9).tolist()}, where "
                                                    f"results.json has {np.round(want, 9).tolist()}: details.npz of "
                                                    "another solve (re-run `castimate solve`)")
-

@@ -323,4 +323,3 @@ def check_temperatures(rec: Recording, names: list[str], declared: Declared) -> 
             raise InputError(declared.data, declared.columns.get(f"{name}.temp", f"{name}.temp"),
                              f"expected kelvin, {lo:g} to {hi:g} K, found {T[k]:g} (sample {k})"
                              + ("; in °C? the column must hold kelvin (add 273.15)" if -100 <= T[k] <= 150 else ""))
-
