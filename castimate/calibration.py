@@ -44,11 +44,13 @@ from .jit import compile_functions
 from .prepare.plausibility import (
     G0,
     MAX_RATE,
+    NORM_QUANTILE,
     TEMPERATURE_RANGE,
     Declared,
     check_accelerometer_units,
     check_gyroscope_units,
     check_temperatures,
+    gravity_norm,
 )
 from .problem.compensation import TriadLayout, triad_compensation
 from .problem.effects import BY_KEY, RETIRED, TEMPERATURE, TIME, included
@@ -148,6 +150,8 @@ class Calibration:
         m/s² and rad/s, sensor frame; ``t`` (N,) [s], needed by time-dependent effects (drift);
         ``temp``: {triad: (N,)} or one (N,) array for every triad [K], needed by temperature effects.
         ω is None without gyroscope data; a triad without a calibrated gyroscope is left out of it.
+        Readings whose norm is far from g are refused as not in m/s² (:func:`check_gravity`, the rule
+        of ``castimate apply``), from 50 samples (and 0.8 s when ``t`` is given) on.
         """
         where = "Calibration.apply"
         single = not isinstance(acc, dict)
@@ -172,7 +176,7 @@ class Calibration:
                 raise InputError(where, f"gyro[{missing[0]!r}]", "missing; expected readings of every calibrated "
                                  f"gyroscope in acc ({', '.join(n for n in acc if self.layouts[n].gyroscope)}), "
                                  f"found {', '.join(n for n in gyro if gyro[n] is not None) or 'none'}")
-        f, omega = {}, {}
+        inputs, times = {}, None
         for name, y in acc.items():
             w = (lambda a: a) if single else (lambda a, name=name: f"{a}[{name!r}]")
             y = readings(y, w("acc"))
@@ -180,8 +184,8 @@ class Calibration:
             if self.needs(TIME) and t is None:
                 raise InputError(where, "t", "the calibration has a time-dependent effect (drift): pass t, the "
                                              "sample times in s")
-            tau = np.zeros(n) if t is None else \
-                (series(t, "t", n, w("acc")) - self.regressors.t_mid) / self.regressors.t_half
+            times = None if t is None else series(t, "t", n, w("acc"))
+            tau = np.zeros(n) if t is None else (times - self.regressors.t_mid) / self.regressors.t_half
             T = temp.get(name) if isinstance(temp, dict) else temp
             if self.needs(TEMPERATURE) and T is None:
                 raise InputError(where, w("temp"), f"the calibration has a temperature effect: pass temp for triad "
@@ -191,6 +195,10 @@ class Calibration:
             g = None if gyro is None else gyro.get(name)
             has_gyro = g is not None and self.layouts[name].gyroscope
             g = np.zeros((n, 3)) if not has_gyro else readings(g, w("gyro"), n, w("acc"), MAX_RATE)
+            inputs[name] = (y, g, tau, dT, has_gyro)
+        check_gravity({n: v[0] for n, v in inputs.items()}, single, times if np.ndim(t) == 1 else None)
+        f, omega = {}, {}
+        for name, (y, g, tau, dT, has_gyro) in inputs.items():
             fi, wi = _evaluate(self.layouts[name], y, g, tau, dT, self.params[name])
             f[name] = fi
             if has_gyro:
@@ -198,6 +206,26 @@ class Calibration:
         if single:
             return f[self.names[0]], (omega.get(self.names[0]) if gyro is not None else None)
         return f, (omega if gyro is not None else None)
+
+
+#: What Calibration.apply suggests for the units the readings look like they are in.
+_UNIT_HINTS = {"g": f"in g? pass them times {G0:g}", "mg": f"in mg? pass them times {G0 / 1000:g}",
+               "m/s^2": f"converted from g twice? pass them in m/s^2, not times {G0:g}"}
+
+
+def check_gravity(acc: dict[str, np.ndarray], single: bool = False, t: np.ndarray | None = None) -> None:
+    """Refuse accelerometer readings that are not in m/s^2 (in g, mg or raw counts), by the rule of
+    ``castimate apply`` and the problem's data (:func:`castimate.prepare.plausibility.gravity_norm`):
+    the 5 % quantile of the per-sample norm of the triad nearest g within 0.3-4 g, judged on at least
+    50 samples and 0.8 s (``t``, when known): shorter segments of strong motion leave that band."""
+    norm = gravity_norm(acc, G0, t)
+    if norm is None or not norm.refused:
+        return
+    hint = _UNIT_HINTS.get(norm.looks_like, f"scale them to m/s^2 (off by a factor {1 / norm.ratio:.4g})")
+    raise InputError("Calibration.apply", "acc" if single else f"acc[{norm.name!r}]",
+                     f"expected m/s^2 (an array at rest or twisted by hand reads about g = {G0:g} m/s^2), found a "
+                     f"{100 * NORM_QUANTILE:g} % quantile of the per-sample norm of {norm.quantile:.4g} m/s^2 "
+                     f"({norm.ratio:.3g} g{'' if single or len(acc) == 1 else ', the triad nearest g'}); {hint}")
 
 
 def _numeric(x, where: str) -> np.ndarray:

@@ -7,7 +7,8 @@ refuse, with the numbers and the fix, where the evidence is conclusive; they war
 - Accelerometer units: every triad of an array at rest or twisted by hand reads the gravity norm
   most of the time, so the 5 % quantile of the per-sample norm is near g (0.9-1.1 g on the bundled
   static and dynamic recordings, real and simulated). Near 1/9.81 of it the data are in g declared
-  as m/s^2; near 9.81 times it, the reverse.
+  as m/s^2; near 9.81 times it, the reverse. One rule (:func:`gravity_norm`) for the problem's data,
+  ``castimate apply`` and ``Calibration.apply``, judged from 50 samples and 0.8 s on (MIN_NORM_SAMPLES).
 - Gyroscope units: no MEMS gyroscope measures beyond about +-70 rad/s (4000 deg/s), and none has a
   white noise at rest of 0.05 rad/s (3 deg/s) per sample; data in deg/s declared as rad/s exceed both.
 - Dead channels: an axis that reads one value in every sample (stuck, disconnected, all zeros), or
@@ -38,6 +39,13 @@ G0 = 9.80665
 NORM_QUANTILE = 0.05
 #: Conclusive ratio of that quantile to g: outside, the declared units are wrong.
 NORM_REFUSE = (0.3, 4.0)
+#: Fewest samples on which that ratio is conclusive. Windows of the hand-twisted MIMU4444 sessions
+#: (exp_1, 3, 5; all 32 triads, every 3rd start) were refused on 16-42 of 12 500 pairs of samples,
+#: 0-3 windows of 5 and 10 samples (lowest ratio 0.23), none of 20 (lowest 0.36) or 50 (lowest 0.56).
+#: At their 62.5 Hz, 50 samples last 0.8 s: a faster recording needs as long (the motion, not the
+#: sampling, sets how long the norm can stay away from g).
+MIN_NORM_SAMPLES = 50
+MIN_NORM_DURATION = 0.8
 #: Ratio outside which a warning is given (static, dynamic).
 NORM_WARN = {"static": (0.8, 1.25), "dynamic": (0.7, 2.5)}
 #: Largest angular rate of any MEMS gyroscope, rad/s (+-4000 deg/s).
@@ -109,22 +117,63 @@ def check_channels(rec: Recording, names: list[str], declared: Declared, clippin
                                              "a larger range or leave the triad out")
 
 
+@dataclass(frozen=True)
+class GravityNorm:
+    """The accelerometer norm against g: the triad whose NORM_QUANTILE quantile of the per-sample norm is
+    nearest g (the most plausible one), that quantile (m/s^2) and its ratio to g."""
+
+    name: str
+    quantile: float
+    ratio: float
+    samples: int
+    duration: float | None = None  # s, None when the sample times are not known
+
+    @property
+    def refused(self) -> bool:
+        """Conclusive: outside NORM_REFUSE on at least MIN_NORM_SAMPLES samples and MIN_NORM_DURATION,
+        so the readings are not in m/s^2."""
+        long = self.samples >= MIN_NORM_SAMPLES and (self.duration is None or self.duration >= MIN_NORM_DURATION)
+        return long and not NORM_REFUSE[0] <= self.ratio <= NORM_REFUSE[1]
+
+    @property
+    def looks_like(self) -> str | None:
+        """The units the readings look like they are in, if a refused ratio is explained by one:
+        'g' (ratio near 1/9.81), 'mg' (near 1000/9.81) or 'm/s^2' read as g (near 9.81)."""
+        if abs(np.log(self.ratio * G0)) < 0.35:
+            return "g"
+        if abs(np.log(self.ratio * G0 / 1000)) < 0.35:
+            return "mg"
+        if abs(np.log(self.ratio / G0)) < 0.35:
+            return "m/s^2"
+        return None
+
+
+def gravity_norm(acc: dict[str, np.ndarray], gravity: float, t: np.ndarray | None = None) -> GravityNorm | None:
+    """The rule of the accelerometer units, one place for every caller (the problem's data, castimate
+    apply's, Calibration.apply's arrays; ``t`` their sample times if known): None without readings."""
+    q = {n: float(np.quantile(np.linalg.norm(a, axis=1), NORM_QUANTILE)) for n, a in acc.items()}
+    if not q:
+        return None
+    name = min(q, key=lambda n: abs(np.log(max(q[n], 1e-300) / gravity)))  # the most plausible triad
+    duration = float(np.ptp(t)) if t is not None and len(t) else None
+    return GravityNorm(name, q[name], q[name] / gravity, len(acc[name]), duration)
+
+
 def check_accelerometer_units(rec: Recording, names: list[str], declared: Declared, gravity: float,
                               kind: str, log: Log) -> None:
     """The gravity norm against the declared accelerometer units (see the module docstring)."""
-    q = {n: float(np.quantile(np.linalg.norm(rec.acc[n], axis=1), NORM_QUANTILE)) for n in names if n in rec.acc}
-    if not q:
+    norm = gravity_norm({n: rec.acc[n] for n in names if n in rec.acc}, gravity, rec.t)
+    if norm is None:
         return
-    name = min(q, key=lambda n: abs(np.log(max(q[n], 1e-300) / gravity)))  # the most plausible triad
-    r = q[name] / gravity
+    r = norm.ratio
     what = (f"the {100 * NORM_QUANTILE:g} % quantile of {Path(declared.data).name}'s raw accelerometer norm is "
-            f"{q[name]:.4g} m/s^2 "
-            f"({name}, after the declared conversion {declared.acc_units}), where an array at rest or twisted "
+            f"{norm.quantile:.4g} m/s^2 "
+            f"({norm.name}, after the declared conversion {declared.acc_units}), where an array at rest or twisted "
             f"by hand reads about g = {gravity:g} m/s^2")
-    if not NORM_REFUSE[0] <= r <= NORM_REFUSE[1]:
-        if abs(np.log(r * G0)) < 0.35:
+    if norm.refused:
+        if norm.looks_like == "g":
             fix = f"the data look like they are in g: {declared.fix} {declared.units_key}.accelerometer: g"
-        elif abs(np.log(r / G0)) < 0.35:
+        elif norm.looks_like == "m/s^2":
             fix = f"the data look like they are already in m/s^2: {declared.fix} {declared.units_key}.accelerometer: m/s^2"
         else:
             fix = f"the declared scale is off by a factor {1 / r:.4g}: check {declared.units_key}.accelerometer"
