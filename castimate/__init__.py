@@ -8,7 +8,7 @@ solver is the subpackage :mod:`castimate.solver`.
 
 from .version import __version__
 
-__all__ = ["Calibration", "InputError", "NotConvergedError", "ProblemSpec", "diagnose", "load", "solve", "write"]
+__all__ = ["Calibration", "InputError", "NotConvergedError", "ProblemSpec", "__version__", "diagnose", "load", "solve", "write"]
 
 
 def __getattr__(name: str):
