@@ -6,9 +6,9 @@ The public Python surface is :mod:`castimate.api`, available as ``castimate.load
 solver is the subpackage :mod:`castimate.solver`.
 """
 
-from .version import __version__
+from .version import __version__ as __version__  # re-exported (not in __all__, which is the API of castimate.api)
 
-__all__ = ["Calibration", "InputError", "NotConvergedError", "ProblemSpec", "__version__", "diagnose", "load", "solve", "write"]
+__all__ = ["Calibration", "InputError", "NotConvergedError", "ProblemSpec", "diagnose", "load", "solve", "write"]
 
 
 def __getattr__(name: str):
