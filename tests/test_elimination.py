@@ -46,6 +46,12 @@ CASES = {"dynamic": lambda: dynamic_case(40, True), "dynamic_no_process_model": 
          "static_pitch_roll": lambda: static_directions("pitch_roll")}
 
 
+# both paths converged, what is left is floating point amplified by the conditioning: the static
+# case's information has a condition number of 1e10, and its two optima differ by 1.6e-9 relative
+# (at most 2.2e-7 σ) on one machine's BLAS and by less on another; every other case agrees to 1e-9
+STATIC_RELATIVE = 1e-8
+
+
 def relative(a, b):
     return float(np.abs(a - b).max() / np.abs(b).max())
 
@@ -64,7 +70,7 @@ def test_same_optimum_and_sigmas_as_the_full_nlp(kind, hessian):
     # the reference stops where IPOPT's tolerance allows; from there a Newton step changes x by
     # about its Newton decrement's square root times the σ's: both must be converged much further
     assert ref.newton_decrement(a.x, a.lam_g) < 1e-15 and new.newton_decrement(b.x, b.lam_g) < 1e-15
-    assert relative(b.x, a.x) < 1e-9
+    assert relative(b.x, a.x) < (STATIC_RELATIVE if kind == "static" else 1e-9)
     assert abs(b.cost - a.cost) < 1e-12 * a.cost
     # σ's: the Fisher information with the nuisance eliminated, at the same point for both
     sa, sb = np.sqrt(np.diag(ref.covariance(b.x))), np.sqrt(np.diag(b.covariance))
@@ -147,7 +153,7 @@ def test_single_row_inputs_reach_casadi_in_c_order(elimination):
     assert Block(pull, lsq.layout).w_idx.flags.c_contiguous
     sol = Solver(lsq, SolverOptions(tol=1e-12, elimination=elimination)).solve()
     ref = Solver(lsq, SolverOptions(tol=1e-12, elimination="none")).solve()
-    assert sol.success and relative(sol.x, ref.x) < 1e-9
+    assert sol.success and relative(sol.x, ref.x) < STATIC_RELATIVE
     assert np.isfinite(sol.covariance).all()
 
 
