@@ -94,20 +94,17 @@ def test_cli_on_real_mimu4444_session(shared_data, tmp_path):
     assert "Before and after" in html and "data:image/png;base64" in html
 
 
-def test_dynamic_session_finds_a_chip_sample_age(tmp_path):
+def test_dynamic_session_finds_a_chip_sample_age(age_session, age_diagnosis):
     """A small Carlsson-board session (4 IMUs × 300 samples) with sub-millisecond sample ages between
     the chips: diagnose adds the age, and the held-out error drops. The age's gyroscope part alone is
     a gyroscope delay (its accelerometer part tells them apart): the delay may be added first, then
-    found zero within its σ."""
-    raw = yaml.safe_load((ROOT / "problems" / "sim_dynamic_effect_accelerometer_age.yaml").read_text())
-    raw.update(seed=5, imus=4, samples=300)
-    (tmp_path / "s.yaml").write_text(yaml.safe_dump(raw))
-    spec = load_problem(simulate_scenario(tmp_path / "s.yaml", tmp_path)["problem"])
-    from castimate.kinds.diagnose import diagnose
-    d = diagnose(spec)
+    found zero within its σ. The session and its diagnosis are conftest's, shared with
+    test_diagnose_warm."""
+    spec, directory = age_session
+    d = age_diagnosis
     assert "accelerometer.age" in d.added[:2] and set(d.added[:2]) <= {"accelerometer.age", "gyroscope.delay"}, d.added
     assert d.after.cv.rms < d.before.cv.rms
-    truth = json.loads((tmp_path / "truth.json").read_text())["effects"]
+    truth = json.loads((directory / "truth.json").read_text())["effects"]
     sol = d.after.outcome.solution
     if "gyroscope.delay" in d.added:
         truth.update({f"{n}.gyroscope.delay": [0.0] for n in spec.array.names})

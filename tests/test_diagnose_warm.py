@@ -3,34 +3,25 @@ fit it extends) against the reference path (every fit from the nominal start): t
 and statistics that agree to a small fraction of their own sampling spread. A cross-validation fold
 that does not converge is reported and left out of both models' held-out errors."""
 
-from pathlib import Path
-
 import numpy as np
 import pytest
-import yaml
 
 from castimate.errors import NotConvergedError
 from castimate.kinds import dynamic
 from castimate.kinds.diagnose import Session, confirm, diagnose, score_test
 from castimate.output.diagnosis import diagnosis_document
 from castimate.problem.effects import BY_KEY
-from castimate.simulate.scenarios import simulate_scenario
-from castimate.spec import load_problem
 
-ROOT = Path(__file__).resolve().parents[1]
 EFFECT = "accelerometer.age"
 #: Agreement asked of the two paths, as a fraction of each statistic's own sampling standard deviation.
 SHARE = 1e-3
 
 
 @pytest.fixture(scope="module")
-def spec(tmp_path_factory):
-    """A small Carlsson-board session (4 IMUs x 300 samples) with sub-millisecond chip sample ages."""
-    tmp = tmp_path_factory.mktemp("warm")
-    raw = yaml.safe_load((ROOT / "problems" / f"sim_dynamic_effect_{EFFECT.replace('.', '_')}.yaml").read_text())
-    raw.update(seed=5, imus=4, samples=300)
-    (tmp / "s.yaml").write_text(yaml.safe_dump(raw))
-    return load_problem(simulate_scenario(tmp / "s.yaml", tmp)["problem"])
+def spec(age_session):
+    """A small Carlsson-board session (4 IMUs x 300 samples) with sub-millisecond chip sample ages
+    (conftest's, shared with test_diagnose)."""
+    return age_session[0]
 
 
 def _chi2_tol(dof: int) -> float:
@@ -45,9 +36,10 @@ def _cv_tol(cv) -> float:
     return SHARE * cv.rms / np.sqrt(2.0 * sum(cv.fold_n))  # σ of an RMS of n standard residuals
 
 
-def test_warm_path_gives_the_reference_decisions_and_statistics(spec):
-    fast = diagnose(spec, max_rounds=2)
-    ref = diagnose(spec, max_rounds=2, warm=False)
+def test_warm_path_gives_the_reference_decisions_and_statistics(spec, age_diagnosis):
+    """Every round of the default run (conftest's, which test_diagnose reads too) against the reference."""
+    fast = age_diagnosis
+    ref = diagnose(spec, warm=False)
     assert fast.added == ref.added and EFFECT in fast.added, (fast.added, ref.added)
     assert len(fast.rounds) == len(ref.rounds)
     for rf, rr in zip(fast.rounds, ref.rounds):
