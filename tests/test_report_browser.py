@@ -35,17 +35,17 @@ def chromium() -> str:
 
 
 def render(html: Path, tmp: Path) -> tuple[dict, Path]:
-    """Load the page headless at WIDTH px: the layout probe's findings and a screenshot."""
+    """Load the page headless at WIDTH px: the layout probe's findings and a screenshot, from one
+    Chromium run (the probe only adds an attribute to the body once the page has loaded)."""
     probe = tmp / (html.stem + "_probe.html")
     probe.write_text(html.read_text().replace("</body>", PROBE))
-    base = [chromium(), "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
-            f"--user-data-dir={tmp / 'profile'}", f"--window-size={WIDTH},900"]
-    dom = subprocess.run(base + ["--virtual-time-budget=5000", "--dump-dom", probe.as_uri()],
+    shot = tmp / (html.stem + ".png")
+    dom = subprocess.run([chromium(), "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
+                          f"--user-data-dir={tmp / 'profile'}", f"--window-size={WIDTH},900",
+                          "--virtual-time-budget=5000", "--dump-dom", f"--screenshot={shot}", probe.as_uri()],
                          capture_output=True, text=True, timeout=120).stdout
     m = re.search(r"data-probe=\"([^\"]*)\"", dom)
     assert m, "the page did not finish loading in Chromium"
-    shot = tmp / (html.stem + ".png")
-    subprocess.run(base + [f"--screenshot={shot}", html.as_uri()], capture_output=True, timeout=120)
     return json.loads(m.group(1).replace("&quot;", '"')), shot
 
 
