@@ -31,8 +31,11 @@ def test_every_verb_takes_quiet():
 
 
 def test_report_and_codegen_progress_on_stderr_silenced_by_quiet(tmp_path, capsys):
+    """Also report -o: the report goes to the chosen file, none into the solved directory (merged
+    test_report_to_a_chosen_file, which ran the same command once more)."""
     d = tmp_path / "solved"
     shutil.copytree(ROOT / "reports" / "xsens_imutk", d)
+    (d / "report.html").unlink(missing_ok=True)
     for verb, args in (("report", [str(d), "-o", str(tmp_path / "x.html")]),
                        ("codegen", [str(d / "results.json"), "-o", str(tmp_path / "c")])):
         assert main([verb, *args]) == 0
@@ -42,20 +45,13 @@ def test_report_and_codegen_progress_on_stderr_silenced_by_quiet(tmp_path, capsy
         assert main([verb, *args, "-q"]) == 0
         out = capsys.readouterr()
         assert "wrote" in out.out and out.err == "", (verb, out)
+    assert (tmp_path / "x.html").read_text().startswith("<!DOCTYPE html>") and not (d / "report.html").exists()
 
 
 def test_version(capsys):
     with pytest.raises(SystemExit) as e:
         main(["--version"])
     assert e.value.code == 0 and capsys.readouterr().out.strip() == f"castimate {castimate.__version__}"
-
-
-def test_report_to_a_chosen_file(tmp_path, capsys):
-    d = tmp_path / "solved"
-    shutil.copytree(ROOT / "reports" / "xsens_imutk", d)
-    (d / "report.html").unlink(missing_ok=True)
-    assert main(["report", str(d), "-o", str(tmp_path / "x.html")]) == 0
-    assert (tmp_path / "x.html").read_text().startswith("<!DOCTYPE html>") and not (d / "report.html").exists()
 
 
 def test_apply_reads_the_imutk_gyroscope_file(shared_data, tmp_path, capsys):
