@@ -446,10 +446,13 @@ def _since(clock: Stopwatch, mark: dict) -> dict:
 
 
 def diagnose(spec: ProblemSpec, log: Log = quiet, alpha: float = ALPHA, session: Session | None = None,
-             max_rounds: int = len(EFFECTS), warm: bool = True) -> Diagnosis:
+             max_rounds: int = len(EFFECTS), warm: bool = True, held_out: bool = True) -> Diagnosis:
     """Fit, test, confirm and add effects until nothing significant is left (module docstring).
     ``warm``: refits and cross-validation folds start from the fit they extend (:class:`Session`);
-    ``warm=False`` is the reference path, every fit from the nominal start."""
+    ``warm=False`` is the reference path, every fit from the nominal start. ``held_out=False``: when
+    nothing was added, the declared model's held-out error (reported beside the refined model's; no
+    decision reads it) is not computed, and ``before.cv`` stays None (decision-only callers:
+    :func:`castimate.simulate.diagnose_trials.diagnose_trials`)."""
     w0, c0 = time.perf_counter(), time.process_time()
     session = session or open_session(spec, log, warm)
     clock = session.clock
@@ -491,7 +494,7 @@ def diagnose(spec: ProblemSpec, log: Log = quiet, alpha: float = ALPHA, session:
                 continue
             break
         model = accepted[0].model
-    if model is before:
+    if model is before and held_out:
         before.cv = before.cv or session.cross_validate(before.effects, start=before)
     model = session.with_sigmas(model)  # the refits were fitted for their estimates alone
     analyse = lambda m: analyse_residuals(*session.residuals(m.outcome), m.dof)  # noqa: E731

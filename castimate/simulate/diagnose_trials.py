@@ -51,7 +51,7 @@ def diagnose_trials(scenario: str | Path, effect: str | None, seeds, workdir: st
         (d / "scenario.yaml").write_text(yaml.safe_dump({**raw, "seed": int(seed)}))
         files = simulate_scenario(d / "scenario.yaml", d)
         t0 = time.perf_counter()
-        dg = diagnose(load_problem(files["problem"]))
+        dg = diagnose(load_problem(files["problem"]), held_out=False)  # the decisions only
         out.append(DiagnoseTrial(effect, int(seed), tuple(dg.added), dg.rounds[0].tests[0].effect if dg.rounds else "",
                                  time.perf_counter() - t0))
     return out
