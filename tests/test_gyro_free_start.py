@@ -240,3 +240,89 @@ def test_misfit_warning():
     assert misfit_warning({"accelerometer": {"a": 0.7, "b": 0.7}}) is None  # at the threshold: no
     assert misfit_warning({"accelerometer": {"a": 0.4, "b": 0.72, "c": 0.75}}).startswith(
         "the model does not fit: the residuals' lag-1 autocorrelation is 0.72")
+
+
+def test_line_spread_by_hand():
+    """models.motion.line_spread: the corners of a 100 mm x 2 mm rectangle lie 1 mm each off their
+    best-fit line (along x through the centroid): sqrt(4 x 1 mm²) = 2 mm; tilted out of the plane the
+    same; on a line, and for two triads, 0. kinds.dynamic.line_excitation: |W u| exactly where
+    f_k = s + W r_k."""
+    from castimate.kinds.dynamic import line_excitation
+    from castimate.models.motion import line_spread
+
+    rect = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.002, 0.0], [0.1, 0.002, 0.0]])
+    spread, u = line_spread(rect)
+    assert spread == pytest.approx(0.002, rel=1e-12) and abs(u[0]) == pytest.approx(1.0, rel=1e-12)
+    c, s = np.cos(0.7), np.sin(0.7)
+    tilt = rect @ np.array([[1, 0, 0], [0, c, -s], [0, s, c]]).T + [0.3, -0.1, 0.2]
+    assert line_spread(tilt)[0] == pytest.approx(0.002, rel=1e-12)
+    assert line_spread(rect[[0, 1]])[0] == 0.0 and line_spread(rect[:1])[0] == 0.0
+    assert line_spread(np.outer([0, 1, 2, 5], [0.01, 0.02, -0.03]))[0] == pytest.approx(0.0, abs=1e-15)
+    # one triad δ off a line of 4: the best-fit line tilts toward it, so less than δ·sqrt(3/4)
+    line4 = np.array([[0, 0, 0], [0.1 / 3, 0.001, 0], [0.2 / 3, 0, 0], [0.1, 0, 0.0]])
+    assert line_spread(line4)[0] == pytest.approx(0.837e-3, rel=1e-3)
+    W = np.array([[-13.0, 2.0, 1.0], [-1.0, -10.0, 4.0], [3.0, 5.0, -5.0]])
+    f = np.stack([np.array([0.3, -0.2, 9.81]) + W @ r for r in rect])[None].repeat(3, axis=0)
+    assert line_excitation(f, rect, u) == pytest.approx(np.linalg.norm(W[:, 0]), rel=1e-12)  # W u, u = ±x
+    assert np.isnan(line_excitation(f[:0], rect, u))
+
+
+def _line_of_four(tmp_path, delta, sigma=0.02, seed=4):
+    """A gyro-free problem of 4 triads on a 10 cm line, the second ``delta`` [m] off it, positions fixed at
+    the truth (the session of the measurements in kinds.dynamic.check_gyro_free_span)."""
+    import yaml
+
+    from castimate.io.readers import write_csv
+    from castimate.io.recording import Recording
+    from castimate.simulate.dynamic import dynamic_measurements, euler_consistent, smooth_random_motion
+
+    rng = np.random.default_rng(seed)
+    m = euler_consistent(smooth_random_motion(300, 100.0, np.radians(2000), np.radians(20000), rng))
+    r = np.array([[0, 0, 0], [0.1 / 3, delta, 0], [0.2 / 3, 0, 0], [0.1, 0, 0.0]])
+    names = [f"a{i}" for i in range(4)]
+    acc, _, _ = dynamic_measurements(m, r, np.stack([np.eye(3)] * 4), np.zeros((4, 3)), rng, sigma, names=names)
+    write_csv(tmp_path / "data.csv", Recording(t=m.t, acc=acc, gyro={}, source="simulation"))
+    doc = {"kind": "dynamic_array", "data": {"path": "data.csv", "format": "csv"},
+           "array": {"reference": "a0", "triads": [{"name": n, "position": r[i].tolist()} for i, n in enumerate(names)]},
+           "model": {"position": "fixed"}, "noise": {"accelerometer": sigma}}
+    (tmp_path / "problem.yaml").write_text(yaml.safe_dump(doc))
+    return tmp_path / "problem.yaml", r, np.stack([acc[n] for n in names], axis=1)
+
+
+def test_nearly_collinear_gyro_free_array_refused(tmp_path):
+    """0.2 mm off a 10 cm line (ρ = α·D/σ ≈ 6): measured, the solve reported success at χ²/dof 0.78-1.00
+    with ω wrong by 1.6-21 rad/s RMS (seeds 1-5, one right); refused before the solve, one line naming
+    the file, the key, the spread found and the spread needed."""
+    from castimate.kinds.dynamic import LINE_SNR_REFUSE, dynamic_inputs, line_excitation
+    from castimate.models.motion import line_spread
+    from castimate.spec import load_problem
+
+    path, r, f = _line_of_four(tmp_path, 0.2e-3)
+    spread, u = line_spread(r)
+    needed = LINE_SNR_REFUSE * 0.02 / line_excitation(f, r, u)
+    with pytest.raises(InputError) as e:
+        dynamic_inputs(load_problem(path))
+    msg = str(e.value)
+    assert msg.startswith(f"{path}: array.triads: no triad has a gyroscope and the 4 triads' positions lie "
+                          f"{1e3 * spread:.3g} mm off their best-fit line") and "\n" not in msg, msg
+    assert f"needed: the positions (array.triads[*].position) at least {1e3 * needed:.3g} mm off one line" in msg, msg
+    assert spread < needed
+
+
+def test_nearly_collinear_gyro_free_array_warned_and_board_passes(tmp_path):
+    """5 mm off the line (ρ ≈ 150, measured: 8 of 10 seeds right to 0.08-0.21 rad/s, seed 2 wrong by 6.2
+    rad/s at χ²/dof 1.00, 1 not converged): a warning; at 20 mm (ρ ≈ 600, 5 of 5 right) and with the
+    second triad 10 cm off (a board), none."""
+    from castimate.kinds.dynamic import dynamic_inputs
+    from castimate.spec import load_problem
+
+    path, _, _ = _line_of_four(tmp_path, 5e-3)
+    lines = []
+    dynamic_inputs(load_problem(path), log=lines.append)
+    warned = [ln for ln in lines if ln.startswith("warning: no gyroscope and the 4 triads' positions lie 4.18 mm off")]
+    assert len(warned) == 1 and "would be safe" in warned[0], lines
+    for delta in (20e-3, 0.1):
+        path, _, _ = _line_of_four(tmp_path, delta)
+        lines = []
+        dynamic_inputs(load_problem(path), log=lines.append)
+        assert not any(ln.startswith("warning") for ln in lines), lines

@@ -25,7 +25,7 @@ from ..io.recording import Recording
 from ..problem.compensation import linear_inverse
 from ..problem.triads import Regressors
 from ..problem.clocks import Beat, estimate_beats, implied_age
-from ..models.motion import affine_dimension
+from ..models.motion import affine_dimension, line_spread
 from ..models.rotation import rotation_to_quaternion
 from ..problem.dynamic import (OMEGA, OMEGA_DOT, DynamicConfig, DynamicData, MotionSigmas, build_dynamic,
                                build_dynamic_sigma_masked, build_joint, geometry_fixed)
@@ -312,7 +312,7 @@ def dynamic_inputs(spec: ProblemSpec, log: Log = quiet, loaded: DynamicInput | N
     check_temperature(spec, set(data.temp))
     nominal = {t.name: (t.position - next(x for x in config.triads if x.name == config.reference).position)
                if t.position is not None else np.zeros(3) for t in config.triads}
-    check_information(spec, data, nominal, log)
+    check_information(spec, data, nominal, log, {t.name: t.R_nominal for t in config.triads})
     return DynamicInputs(config, data, sat, nominal, static_problem)
 
 
@@ -326,9 +326,31 @@ GYRO_FREE_START = {
 }
 
 
-def check_gyro_free_span(spec: ProblemSpec, positions: np.ndarray) -> int:
+#: A gyro-free array nearly on one line (:func:`check_gyro_free_span`): ρ = α·D/σ, the spread off the
+#: best-fit line D [m] (:func:`castimate.models.motion.line_spread`) times the motion's specific-force
+#: gradient along the line α [s^-2] (:func:`line_excitation`) over the accelerometer noise σ [m/s²]:
+#: the signal-to-noise ratio per sample of the angular acceleration about the line. Refused below
+#: LINE_SNR_REFUSE, warned below LINE_SNR_WARN.
+LINE_SNR_REFUSE, LINE_SNR_WARN = 40.0, 300.0
+
+
+def line_excitation(f: np.ndarray, r: np.ndarray, u: np.ndarray) -> float:
+    """The RMS over samples of |W u| [s^-2], the specific forces' gradient along the direction u of
+    positions r (K, 3): per sample the least-squares slope of f_k (N, K, 3, body frame) on
+    λ_k = (r_k − r̄)·u, Σ λ_k f_k / Σ λ_k² (f_k = s + W r_k, Carlsson 2017 eq. 1, W = [ω]×² + [ω̇]×:
+    the rotation's part of what the accelerometers read along the line). Biases differing between
+    triads add about their difference over the line's length; NaN without samples or length."""
+    lam = (np.asarray(r, float) - np.mean(r, axis=0)) @ u
+    if len(f) == 0 or not np.sum(lam ** 2) > 0:
+        return float("nan")
+    Wu = np.einsum("k,nki->ni", lam, f) / np.sum(lam ** 2)
+    return float(np.sqrt(np.mean(np.sum(Wu ** 2, axis=1))))
+
+
+def check_gyro_free_span(spec: ProblemSpec, positions: np.ndarray, f: np.ndarray | None = None,
+                         sigma: float | None = None, log: Log = quiet) -> int:
     """The dimension of the positions' affine span of an array without gyroscopes; a line or a point
-    refused.
+    refused, and so is an array too close to a line for its noise and motion (warned near it).
 
     On a line r_k = λ_k u, the specific forces f_k = s + λ_k W u (Carlsson 2017 eq. 1, W = [ω]×² +
     [ω̇]×) give per sample only s and W u: 6 of the 9 motion unknowns. ω̇·u never enters (ω̇ × u ⊥ u),
@@ -337,6 +359,26 @@ def check_gyro_free_span(spec: ProblemSpec, positions: np.ndarray) -> int:
     samples, σ 0.02 m/s², the default process model): positions fixed, χ²/dof 1.006 with ω wrong by 14-19
     rad/s RMS per axis (the truth 11-17) and ω̇ by 118-326 rad/s² (the truth 63-73), a wrong motion the
     fit does not show; positions free, no convergence in 3 attempts. At one point nothing of ω shows.
+
+    Nearly on a line, triad k a distance d_k off it, ω̇·u enters only through ω̇·u (u × d_k): per
+    sample its information is D²/σ² with D² = Σ d_k² (:func:`castimate.models.motion.line_spread`),
+    its σ σ/D, against an angular acceleration of the order of the motion's gradient along the line
+    α (:func:`line_excitation`). So the rule is on ρ = α·D/σ (the forces f and the σ given).
+    Measured (benchmarks/gyro_free_collinear.py: 4 triads on a 10 cm line, one δ off it, positions
+    fixed at the truth, 300 samples at 2000 °/s, α 540-830 s^-2, σ 0.02 m/s², default process model;
+    right = ω within 1 rad/s RMS of the truth, |ω| RMS 26-31 rad/s): δ 0.2 mm (ρ 5-7) 1 of 5 seeds
+    right, 4 reported success at χ²/dof 0.78-1.00 with ω wrong by 1.6-21 rad/s; 0.5 mm (ρ 11-17) 1
+    of 5, 3 wrong at success; 1 mm (ρ 23-35) 4 of 10, 1 wrong at success, 5 not converged; 2 mm (ρ
+    45-69) 9 of 10 (0.22-0.43 rad/s), 1 not converged; 5 mm (ρ 113-174) 8 of 10 (0.08-0.21), seed 2
+    wrong by 6.2 rad/s at χ²/dof 1.00 (from the true motion the same data fit at 0.95 and 0.12 rad/s:
+    a local minimum of the gyro-free start, not a tie), 1 not converged; 10 mm (ρ 225-350), 20 and 50
+    mm: 20 of 20 right. ρ, not δ, decides: δ 10 mm with σ 0.2 m/s² (ρ 29) failed in 3 of 4 seeds
+    like 1 mm with 0.02, 0.5 mm with σ 0.002 (ρ 146) was right in 3 of 3; a strip of 2 × 4 triads δ
+    apart the same (0.2 mm, ρ 10: 1 of 3 right, 1 wrong; 1 mm, ρ 49: 2 of 3). Where right, ω̇'s error follows
+    σ/D (4.9 rad/s² at 5 mm against σ/D 4.8). Hence refused below ρ = 40 (at 1 mm and below, more
+    wrong or not converged than right) and warned below 300 (the highest ρ measured wrong, 154, × 2).
+    castimate reports no σ for the motion, and χ²/dof does not show the wrong minima. α counts ω²
+    as well as ω̇; the bounds hold for this motion family (ω² ≈ 3 |ω̇|).
     """
     dim = affine_dimension(positions)
     if dim <= 1:
@@ -347,11 +389,36 @@ def check_gyro_free_span(spec: ProblemSpec, positions: np.ndarray) -> int:
                          f"no triad has a gyroscope and the {len(positions)} triads' positions {why}; needed: the "
                          "positions (array.triads[*].position) of at least 3 triads not on one line, or gyroscope "
                          "readings")
+    if f is None or sigma is None:
+        return dim
+    spread, u = line_spread(positions)
+    alpha = line_excitation(f, positions, u)
+    if not alpha > 0 or not sigma > 0:
+        return dim
+    rho = alpha * spread / sigma
+    what = (f"the {len(positions)} triads' positions lie {1e3 * spread:.3g} mm off their best-fit line (root-sum-square "
+            f"of the distances): the angular acceleration about the line shows only through that spread, to "
+            f"σ/spread = {sigma / spread:.3g} rad/s^2 per sample against the motion's {alpha:.3g} s^-2 (RMS of the "
+            f"specific forces' gradient along the line; σ {sigma:.3g} m/s^2), a ratio of {rho:.3g}")
+    if rho < LINE_SNR_REFUSE:
+        raise InputError(spec.path, "array.triads",
+                         f"no triad has a gyroscope and {what}, below {LINE_SNR_REFUSE:g}: the motion about the line "
+                         f"cannot be determined (a wrong one fits the readings); needed: the positions "
+                         f"(array.triads[*].position) at least {1e3 * LINE_SNR_REFUSE * sigma / alpha:.3g} mm off one "
+                         f"line for this motion and noise ({1e3 * LINE_SNR_WARN * sigma / alpha:.3g} mm to be safe), "
+                         "or gyroscope readings")
+    if rho < LINE_SNR_WARN:
+        log(f"warning: no gyroscope and {what}, below {LINE_SNR_WARN:g}: the motion about the line may be poorly "
+            f"determined or wrong, while the fit looks good; {1e3 * LINE_SNR_WARN * sigma / alpha:.3g} mm off the line "
+            "or gyroscope readings would be safe")
     return dim
 
 
-def check_information(spec: ProblemSpec, data: DynamicData, nominal: dict[str, np.ndarray], log: Log) -> None:
-    """Refuse data that cannot determine the motion or the free positions, before solving."""
+def check_information(spec: ProblemSpec, data: DynamicData, nominal: dict[str, np.ndarray], log: Log,
+                      rotations: dict[str, np.ndarray] | None = None) -> None:
+    """Refuse data that cannot determine the motion or the free positions, before solving.
+    ``rotations``: the nominal body -> triad rotations (identity where not given), to read the
+    accelerometers in the body frame."""
     ref = spec.array.reference
     free = [n for n in spec.array.names if n != ref and any(spec.model.settings[n, "position", "position"].free)]
     gyros = [t.name for t in spec.array.triads if t.gyroscope is not False and t.name in data.gyro]
@@ -361,7 +428,11 @@ def check_information(spec: ProblemSpec, data: DynamicData, nominal: dict[str, n
                          "(the angular rate enters squared) while positions are free; set motion.process_model: true, "
                          "use the gyroscopes, or fix model.position")
     if not gyros:
-        log(GYRO_FREE_START[check_gyro_free_span(spec, np.stack(list(nominal.values())))])
+        names = list(nominal)
+        ok = np.all([data.axis_valid("acc", n).all(axis=1) for n in names], axis=0)
+        f = np.stack([data.acc[n][ok] @ (rotations or {}).get(n, np.eye(3)) for n in names], axis=1)
+        sigma_acc = float(np.mean([np.mean(data.acc_sigma[n]) for n in names]))
+        log(GYRO_FREE_START[check_gyro_free_span(spec, np.stack(list(nominal.values())), f, sigma_acc, log)])
     sigma = float(np.mean(data.acc_sigma[ref]))
     rec = Recording(data.t, {}, {ref: data.gyro[ref]} if ref in data.gyro else {})
     check_dynamic_information(rec, ref, bool(free), np.stack(list(nominal.values())), sigma, declared(spec), log,

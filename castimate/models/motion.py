@@ -183,6 +183,18 @@ def affine_dimension(r: np.ndarray) -> int:
     return int(np.linalg.matrix_rank(np.column_stack([np.ones(len(r)), r]))) - 1
 
 
+def line_spread(r: np.ndarray) -> tuple[float, np.ndarray]:
+    """How far positions r (K, 3) lie off their best-fit line: the root-sum-square of the triads'
+    distances from the least-squares line (through their centroid, along their principal direction
+    u), that is sqrt(s₂² + s₃²) of the centred positions' singular values s₁ ≥ s₂ ≥ s₃ [m]; and u
+    (3,). On the line, 0; for two triads, 0 (two points make a line)."""
+    r = np.atleast_2d(np.asarray(r, float))
+    if len(r) < 2:
+        return 0.0, np.array([1.0, 0.0, 0.0])
+    _, s, vt = np.linalg.svd(r - r.mean(axis=0), full_matrices=False)
+    return float(np.sqrt(np.sum(s[1:] ** 2))), vt[0]
+
+
 def _rate_matrix(omega: np.ndarray, omega_dot: np.ndarray) -> np.ndarray:
     """W = [ω]×² + [ω̇]× = ωωᵀ − |ω|² I + [ω̇]× per row, (M, 3, 3) (Carlsson 2017, eq. 1)."""
     x, y, z = omega_dot.T
