@@ -347,8 +347,8 @@ def line_excitation(f: np.ndarray, r: np.ndarray, u: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum(Wu ** 2, axis=1))))
 
 
-def check_gyro_free_span(spec: ProblemSpec, positions: np.ndarray, f: np.ndarray | None = None,
-                         sigma: float | None = None, log: Log = quiet) -> int:
+def check_gyro_free_span(spec: ProblemSpec, positions: np.ndarray, f: np.ndarray, sigma: float,
+                         log: Log = quiet) -> int:
     """The dimension of the positions' affine span of an array without gyroscopes; a line or a point
     refused, and so is an array too close to a line for its noise and motion (warned near it).
 
@@ -363,7 +363,7 @@ def check_gyro_free_span(spec: ProblemSpec, positions: np.ndarray, f: np.ndarray
     Nearly on a line, triad k a distance d_k off it, ω̇·u enters only through ω̇·u (u × d_k): per
     sample its information is D²/σ² with D² = Σ d_k² (:func:`castimate.models.motion.line_spread`),
     its σ σ/D, against an angular acceleration of the order of the motion's gradient along the line
-    α (:func:`line_excitation`). So the rule is on ρ = α·D/σ (the forces f and the σ given).
+    α (:func:`line_excitation`). So the rule is on ρ = α·D/σ.
     Measured (benchmarks/gyro_free_collinear.py: 4 triads on a 10 cm line, one δ off it, positions
     fixed at the truth, 300 samples at 2000 °/s, α 540-830 s^-2, σ 0.02 m/s², default process model;
     right = ω within 1 rad/s RMS of the truth, |ω| RMS 26-31 rad/s): δ 0.2 mm (ρ 5-7) 1 of 5 seeds
@@ -389,8 +389,6 @@ def check_gyro_free_span(spec: ProblemSpec, positions: np.ndarray, f: np.ndarray
                          f"no triad has a gyroscope and the {len(positions)} triads' positions {why}; needed: the "
                          "positions (array.triads[*].position) of at least 3 triads not on one line, or gyroscope "
                          "readings")
-    if f is None or sigma is None:
-        return dim
     spread, u = line_spread(positions)
     alpha = line_excitation(f, positions, u)
     if not alpha > 0 or not sigma > 0:
@@ -415,10 +413,9 @@ def check_gyro_free_span(spec: ProblemSpec, positions: np.ndarray, f: np.ndarray
 
 
 def check_information(spec: ProblemSpec, data: DynamicData, nominal: dict[str, np.ndarray], log: Log,
-                      rotations: dict[str, np.ndarray] | None = None) -> None:
+                      rotations: dict[str, np.ndarray]) -> None:
     """Refuse data that cannot determine the motion or the free positions, before solving.
-    ``rotations``: the nominal body -> triad rotations (identity where not given), to read the
-    accelerometers in the body frame."""
+    ``rotations``: the nominal body -> triad rotations, to read the accelerometers in the body frame."""
     ref = spec.array.reference
     free = [n for n in spec.array.names if n != ref and any(spec.model.settings[n, "position", "position"].free)]
     gyros = [t.name for t in spec.array.triads if t.gyroscope is not False and t.name in data.gyro]
@@ -427,15 +424,16 @@ def check_information(spec: ProblemSpec, data: DynamicData, nominal: dict[str, n
                          "is false and no triad has a gyroscope: the accelerometers alone cannot determine the motion "
                          "(the angular rate enters squared) while positions are free; set motion.process_model: true, "
                          "use the gyroscopes, or fix model.position")
+    positions = np.stack(list(nominal.values()))
     if not gyros:
         names = list(nominal)
         ok = np.all([data.axis_valid("acc", n).all(axis=1) for n in names], axis=0)
-        f = np.stack([data.acc[n][ok] @ (rotations or {}).get(n, np.eye(3)) for n in names], axis=1)
+        f = np.stack([data.acc[n][ok] @ rotations[n] for n in names], axis=1)
         sigma_acc = float(np.mean([np.mean(data.acc_sigma[n]) for n in names]))
-        log(GYRO_FREE_START[check_gyro_free_span(spec, np.stack(list(nominal.values())), f, sigma_acc, log)])
+        log(GYRO_FREE_START[check_gyro_free_span(spec, positions, f, sigma_acc, log)])
     sigma = float(np.mean(data.acc_sigma[ref]))
     rec = Recording(data.t, {}, {ref: data.gyro[ref]} if ref in data.gyro else {})
-    check_dynamic_information(rec, ref, bool(free), np.stack(list(nominal.values())), sigma, declared(spec), log,
+    check_dynamic_information(rec, ref, bool(free), positions, sigma, declared(spec), log,
                               cut=spec.data.time_range is not None)
 
 
