@@ -385,9 +385,9 @@ def worker_castimate(d: dict, progress: Progress, hessian: str = "exact", cold: 
     if cold:
         os.environ["CASTIMATE_CACHE_DIR"] = tempfile.mkdtemp(prefix="castimate_cold_cache_")
     else:
-        # long enough that the stage functions are compiled too (castimate.solver.elimination.MANY_STAGES)
-        from castimate.solver.elimination import MANY_STAGES
-        h = 2 * MANY_STAGES
+        # long enough that every function the whole record compiles is compiled here too (the code
+        # depends on the instances per sample, not on their number; castimate.jit.worth_compiling)
+        h = min(len(data.t), 1000)
         head = DynamicData(data.t[:h], {k: v[:h] for k, v in data.acc.items()}, data.acc_sigma,
                            {k: v[:h] for k, v in data.gyro.items()}, data.gyro_sigma)
         Solver(build_dynamic(config, head).lsq, SolverOptions(hessian=hessian, elimination=elimination))

@@ -5,8 +5,11 @@ Hessian of one Schopp accelerometer factor has about 4500 instructions, so its 3
 0.1 s per evaluation, and compiled C does the same in 0.01 s with bit-identical results. Compiling
 costs about 1-2 s of gcc per library, so each library is cached under its source's SHA-256 in
 ``$CASTIMATE_CACHE_DIR`` (default ``$XDG_CACHE_HOME/castimate/jit`` or ``~/.cache/castimate/jit``):
-only the first build of a problem structure pays it. Without a C compiler, or if compiling fails,
-the functions stay on the virtual machine (same results, slower).
+only the first build of a problem structure pays it. Functions whose evaluation is cheap on the
+virtual machine anyway (:func:`worth_compiling`: e.g. one triad's few static poses) are not
+compiled: the first solve of MIMU4444 exp_1 static compiles 2 libraries instead of 6 (4.4 → 3.2 s
+CPU; 1.5-1.9 s once they are cached). Without a C compiler, or if compiling fails, the functions stay on the
+virtual machine (same results, slower).
 
 Several processes share the cache (``castimate batch`` and ``castimate montecarlo`` run Dask
 workers that build the same structures at the same moment): a library is compiled under an
@@ -29,6 +32,19 @@ from pathlib import Path
 import casadi as ca
 
 FLAGS = ("-O2", "-shared", "-fPIC")
+#: Work of one evaluation (instances × SX instructions) below which a function stays on CasADi's
+#: virtual machine (:func:`worth_compiling`): at ~7 ns an instruction, 2·10⁴ take 0.14 ms there.
+#: Compiling costs gcc 0.2-2 s once per new library and, once cached, its code generation (to find
+#: it) in every Solver; diagnose and plan evaluate their small problems thousands of times, and a
+#: threshold of 10⁶ made those tests about 20 % slower with a warm cache.
+MIN_WORK = 20_000
+
+
+def worth_compiling(instances: int, fn: ca.Function) -> bool:
+    """Whether ``fn`` evaluated on ``instances`` instances at a time is worth compiling: at least
+    :data:`MIN_WORK` instructions an evaluation (on MIMU4444 exp_1 the static poses' functions per
+    triad do 0.012·10⁶, those of all triads 0.15·10⁶, the dynamic samples' 52·10⁶)."""
+    return instances * fn.n_instructions() >= MIN_WORK
 
 
 def cache_dir() -> Path:

@@ -165,14 +165,44 @@ def test_jacobian_matches_finite_differences_of_residuals(elimination):
         np.testing.assert_allclose(J[:, j], fd, rtol=1e-5, atol=1e-6 * max(1.0, np.abs(fd).max()))
 
 
-def test_compiled_and_virtual_machine_assembly_agree():
+def test_compiled_and_virtual_machine_assembly_agree(monkeypatch):
+    from castimate import jit as jit_module
+
+    monkeypatch.setattr(jit_module, "MIN_WORK", 0)  # this small case compiled all the same
     prob = dynamic_case()
     a, b = (Solver(prob.lsq, SolverOptions(jit=jit, elimination="none")) for jit in (True, False))
+    if jit_module.compiler() is not None:
+        assert {blk.f.rgh.class_name() for blk in a.blocks} == {"External"}
+    assert {blk.f.rgh.class_name() for blk in b.blocks} == {"SXFunction"}
     x = prob.lsq.layout.x0()[a.perm]
     p = a.fixed_and_data(None, None)[0]
     lam_g = np.linspace(-1, 1, a.n_constraints)
     ha, hb = (np.asarray(s.nlp.get_function("nlp_hess_l")(x, p, 1.0, lam_g).nonzeros()) for s in (a, b))
     np.testing.assert_allclose(ha, hb, rtol=1e-13, atol=0)
+
+
+def test_only_functions_with_enough_work_are_compiled(monkeypatch):
+    """With jit a block's local functions are compiled to C when instances × instructions of one
+    evaluation reach castimate.jit.MIN_WORK, else they stay on CasADi's virtual machine."""
+    import casadi as ca
+    from castimate import jit as jit_module
+
+    x = ca.SX.sym("x", 2)
+    f = ca.Function("f", [x], [ca.sin(x[0]) * x[1]])
+    monkeypatch.setattr(jit_module, "MIN_WORK", 10 * f.n_instructions())
+    assert jit_module.worth_compiling(10, f) and not jit_module.worth_compiling(9, f)
+    if jit_module.compiler() is None:
+        pytest.skip("no C compiler")
+    prob = dynamic_case()
+    # the case's works: accelerometers 624 000, process model 34 788, gyroscopes 24 840 instructions
+    expected = {10**6: set(), 10**5: {"accelerometer_sample"}, 3 * 10**4: {"accelerometer_sample", "process_model"}}
+    for threshold, names in expected.items():
+        monkeypatch.setattr(jit_module, "MIN_WORK", threshold)
+        solver = Solver(prob.lsq, SolverOptions(jit=True, elimination="none"))
+        work = {blk.block.residual.name(): blk.block.n * blk.f.symbolic["rgh"].n_instructions() for blk in solver.blocks}
+        compiled = {blk.block.residual.name() for blk in solver.blocks if blk.f.rgh.class_name() == "External"}
+        assert compiled == {name for name, w in work.items() if w >= threshold}
+        assert compiled == names, work
 
 
 def test_chunked_evaluation_equals_one_chunk(monkeypatch):
@@ -211,7 +241,9 @@ def test_projection_compiled_virtual_machine_and_chunks_agree(monkeypatch):
     with each instance's entries scattered in numpy instead of a stage group's summed in the
     stage functions; the information too."""
     import castimate.solver.elimination as elimination
+    from castimate import jit as jit_module
 
+    monkeypatch.setattr(jit_module, "MIN_WORK", 0)  # this small case compiled all the same
     prob = dynamic_case()
     pf = prob.lsq.layout.p0()
     x0 = prob.lsq.layout.x0()
@@ -219,6 +251,9 @@ def test_projection_compiled_virtual_machine_and_chunks_agree(monkeypatch):
     def reduced(jit, stage_functions=True):
         P = Solver(prob.lsq, SolverOptions(jit=jit)).projection
         assert bool(P.stage_fns) == stage_functions
+        if stage_functions and jit_module.compiler() is not None:
+            assert all(f.class_name() == ("External" if jit else "MXFunction")
+                       for s in P.stage_fns for f in s.fns.values())
         out = P.reduced(P.reset(x0, None), pf, None)
         return out + P.marginal(x0, pf, None)[:1]
 

@@ -38,7 +38,8 @@ class SolverOptions:
         ``ipopt`` (default) or ``bcd``: Carlsson 2017's block coordinate descent (Algorithm 1), a
         baseline for dynamic problems with gyroscopes where only positions are free.
     jit
-        Compile the factors' local functions to C (:mod:`castimate.jit`, cached on disk); the
+        Compile the factors' local functions to C (:mod:`castimate.jit`, cached on disk) where one
+        evaluation runs enough instances to repay gcc (:func:`castimate.jit.worth_compiling`); the
         results are the same as on CasADi's virtual machine, about ten times faster.
     elimination
         ``motion`` (default): IPOPT solves for the calibration parameters only, with the per-sample

@@ -10,7 +10,7 @@ import casadi as ca
 import numpy as np
 import scipy.sparse as sp
 
-from ..jit import compile_functions
+from ..jit import compile_functions, worth_compiling
 from ..problem.parameters import Layout
 from ..problem.graph import FactorBlock
 
@@ -47,7 +47,7 @@ class _Compiled:
     """
 
     def __init__(self, fn: ca.Function, order: np.ndarray, n_cal: int, active: np.ndarray, hessian: str, jit: bool,
-                 which: tuple[str, ...] = ("res", "jac", "rgh", "gn")):
+                 which: tuple[str, ...] = ("res", "jac", "rgh", "gn"), instances: int = 0):
         nz, nd = fn.size1_in(0), fn.size1_in(1)
         zc, zs, d = ca.SX.sym("zc", n_cal), ca.SX.sym("zs", nz - n_cal), ca.SX.sym("d", nd)
         z = ca.vertcat(zc, zs)  # the block's inputs in its (reordered) w_idx order
@@ -75,9 +75,11 @@ class _Compiled:
                  ca.Function(f"{name}_rgh", args, [r, ca.densify(ca.mtimes(J.T, r)), entries(H)]),
                  ca.Function(f"{name}_gn", args, [entries(JtJ)])]
         self.symbolic = dict(zip(LOCAL, local))  # for functions built on them
+        # compiled to C when they run over enough instances (``jit``), else on CasADi's virtual machine
+        self.compiled = jit and worth_compiling(instances, self.symbolic["rgh"])
         names = [name for name in LOCAL if name in which]
         chosen = [self.symbolic[name] for name in names]
-        compiled = dict(zip(names, (compile_functions(chosen) if jit and chosen else None) or chosen))
+        compiled = dict(zip(names, (compile_functions(chosen) if self.compiled and chosen else None) or chosen))
         self.res, self.jac, self.rgh, self.gn = (compiled.get(name, self.symbolic[name]) for name in LOCAL)
         self.nz, self.nd, self.m, self.n_cal = nz, nd, fn.size1_out(0), n_cal
         self._buffers: dict = {}
@@ -147,13 +149,16 @@ class Block:
             W[t0: t0 + StagedBlock.SLAB] = np.take(W[t0: t0 + StagedBlock.SLAB], order, axis=1)
         self.order = self.order[order]
 
-    def compile(self, cache: dict, n_cal: int, hessian: str, jit: bool, which: tuple[str, ...] = LOCAL):
-        """The local functions (:class:`_Compiled`); only those in ``which`` compiled to C (gcc's
-        time on a new structure), the others left on CasADi's virtual machine."""
+    def compile(self, cache: dict, n_cal: int, hessian: str, jit: bool, which: tuple[str, ...] = LOCAL,
+                instances: int | None = None):
+        """The local functions (:class:`_Compiled`); with ``jit`` only those in ``which`` compiled to
+        C (gcc's time on a new structure), and only when they run over enough ``instances`` (default
+        the block's; :func:`castimate.jit.worth_compiling`), the others left on CasADi's virtual machine."""
         active = (self.w_idx < self.n_x).any(axis=0)
-        key = (id(self.block.residual), self.order.tobytes(), n_cal, active.tobytes(), which if jit else ())
+        instances = self.block.n if instances is None else instances
+        key = (id(self.block.residual), self.order.tobytes(), n_cal, active.tobytes(), (which, instances) if jit else ())
         if key not in cache:
-            cache[key] = _Compiled(self.block.residual, self.order, n_cal, active, hessian, jit, which)
+            cache[key] = _Compiled(self.block.residual, self.order, n_cal, active, hessian, jit, which, instances)
         self.f = cache[key]
 
 

@@ -51,7 +51,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 from scipy.linalg import blas, lapack
 
-from ..jit import compile_functions
+from ..jit import compile_functions, worth_compiling
 from ..problem.parameters import Layout
 from .assembly import CHUNK, LOCAL, Block, EvaluationError, NotStaged, StagedBlock, exact_hessian
 from .threads import map_threads, pool
@@ -171,7 +171,6 @@ def find_families(lay: Layout, blocks: list[Block]):
 
 
 GRAM_ROWS = 512  # rows of L^-1 H_mθ per rank-k update of the Schur complement (:meth:`_Factor.lower_gram`)
-MANY_STAGES = 16  # stage groups of a block (segment) from which its functions are compiled to C
 MAX_SEGMENTS = 8  # runs of differently staged instances a block may be cut into
 
 
@@ -886,10 +885,11 @@ class Projection:
             fam = fams[fi]
             for rows, sb, blk in segs:
                 applies = _StageFunctions.applies(sb)
-                many = sb.J >= MANY_STAGES  # else CasADi's virtual machine: not worth gcc's time
                 if blk is not b:
-                    blk.compile(cache, sb.n_cal, hessian, jit and many, () if applies else LOCAL)
+                    blk.compile(cache, sb.n_cal, hessian, jit, () if applies else LOCAL, sb.J * sb.K)
                 f = blk.f
+                # compiled where they run over enough instances, else CasADi's virtual machine
+                many = jit and worth_compiling(sb.J * sb.K, f.symbolic["rgh"])
                 u = _Unit(blk, i, rows, order, (fi, sb),
                           _Plan(sb.K, sb.is_st, sb.rel, sb.q, f.act, f.pairs, fam.scale, fam.m, self.tpos, xs, n, c))
                 key = (id(blk.block.residual), blk.order.tobytes(), sb.n_cal)
@@ -898,10 +898,10 @@ class Projection:
                 fn, pairs_s, act_s = inner_cache[key]
                 inner_plan = _Plan(sb.K, sb.is_st, sb.rel, sb.q, act_s, pairs_s, fam.scale, fam.m, self.tpos, xs, n, c)
                 if applies:
-                    u.stage_fns = _StageFunctions(f, fn, u.plan, inner_plan, sb, fam.m, c, jit and many,
+                    u.stage_fns = _StageFunctions(f, fn, u.plan, inner_plan, sb, fam.m, c, many,
                                                   blk.block.shared_data)
                 else:
-                    u.inner = (((compile_functions([fn]) if jit and many else None) or [fn])[0], inner_plan)
+                    u.inner = (((compile_functions([fn]) if many else None) or [fn])[0], inner_plan)
                 self.units.append(u)
         self.stage_fns = [u.stage_fns for u in self.units if u.stage_fns is not None]
         self._written = {mode: self._direct(mode) for mode in ("res", "grad", "full", "info", "inner")}
