@@ -131,17 +131,17 @@ def test_default_gyro_free_scenario_solves(tmp_path):
 def test_gyro_free_board_solves(tmp_path):
     """A gyro-free board (5 coplanar triads, positions free, default process model): from the zero
     start, Gauss-Newton stopped at iteration 0 (Invalid_Number_Detected) in each of 3 attempts, exit 3
-    after 166 s; from the in-plane start it converges, positions within 5 σ of the truth, and the
-    progress log says how ω was started."""
+    after 166 s; from the in-plane start it converges, positions within 4 σ of the truth (12
+    components; exact motion, max 1.7 σ), and the progress log says how ω was started."""
     import yaml
 
     from castimate import api
     from castimate.io.readers import write_csv
     from castimate.io.recording import Recording
-    from castimate.simulate.dynamic import dynamic_measurements, euler_consistent, smooth_random_motion
+    from castimate.simulate.dynamic import dynamic_measurements, smooth_random_motion
 
     rng = np.random.default_rng(3)
-    m = euler_consistent(smooth_random_motion(300, 100.0, np.radians(2000), np.radians(20000), rng))
+    m = smooth_random_motion(300, 100.0, np.radians(2000), np.radians(20000), rng)
     nominal = np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [-0.1, 0, 0], [0, -0.1, 0.0]])
     true = nominal + np.vstack([np.zeros(3), 1e-3 * rng.standard_normal((4, 3))])
     names = [f"a{i}" for i in range(5)]
@@ -157,7 +157,7 @@ def test_gyro_free_board_solves(tmp_path):
     assert sol.success and 0.8 < sol.chi2_per_dof < 1.2
     for i, n in enumerate(names[1:], 1):
         z = (sol.values[f"{n}.position"] - true[i]) / sol.std[f"{n}.position"]
-        assert np.abs(z).max() < 5, (n, z)
+        assert np.abs(z).max() < 4, (n, z)
     # nothing reported free (positions fixed, only the motion): the identifiability check failed on an
     # empty parameter set (internal error, exit 1)
     doc["model"]["position"] = "fixed"

@@ -345,11 +345,13 @@ def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDra
             rng, pos_err, orientation_error_deg=c.number(s.get("orientation_error", 0.0), "orientation_error", lo=0.0, hi=180.0, unit="deg"),
             reference="acc1")
         gyro = _flag(c, s, "gyroscope") if "gyroscope" in s else False
-    # wandering (default): the wandering-axis twist, re-integrated with the Euler step unless
-    # euler_consistent: false; sinusoids: exact smooth motion no process model agrees with
+    # wandering (default): the wandering-axis twist; sinusoids: sums of sinusoids. Both exact smooth
+    # motion (ω̇ the derivative of ω), as a hand gives it and no process model assumes; with
+    # euler_consistent: true the twist's ω is re-integrated by Schopp's Euler step (eq. 7), the
+    # motion that process model describes exactly (for comparisons with its bound)
     trajectory = c.choice(s.get("trajectory", "wandering"), "trajectory", ("wandering", "sinusoids"))
     lin = c.number(s.get("linear_accel", 2.0), "linear_accel", lo=0.0, hi=1e3, unit="m/s^2")
-    euler = _flag(c, s, "euler_consistent") if "euler_consistent" in s else trajectory == "wandering"
+    euler = _flag(c, s, "euler_consistent") if "euler_consistent" in s else False
     if euler and trajectory != "wandering":
         c.fail("euler_consistent", f"re-integrates the wandering trajectory; found trajectory: {trajectory}")
     if trajectory == "sinusoids":
