@@ -351,7 +351,7 @@ def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDra
     # motion that process model describes exactly (for comparisons with its bound)
     trajectory = c.choice(s.get("trajectory", "wandering"), "trajectory", ("wandering", "sinusoids"))
     lin = c.number(s.get("linear_accel", 2.0), "linear_accel", lo=0.0, hi=1e3, unit="m/s^2")
-    euler = _flag(c, s, "euler_consistent") if "euler_consistent" in s else False
+    euler = _flag(c, s, "euler_consistent")
     if euler and trajectory != "wandering":
         c.fail("euler_consistent", f"re-integrates the wandering trajectory; found trajectory: {trajectory}")
     if trajectory == "sinusoids":

@@ -43,11 +43,13 @@ class _Compiled:
     of J^T J (the information). Derivatives are
     taken only with respect to the components that are free in some instance (``active``): fixed
     intrinsics feed the residual but are never differentiated, which cut the exact local Hessian of
-    a Schopp accelerometer factor from about 6500 to about 2400 instructions.
+    a Schopp accelerometer factor from about 6500 to about 2400 instructions. Those in ``which`` are
+    compiled to C with ``jit`` when ``instances`` of them at a time are worth it (``compiled``;
+    :func:`castimate.jit.worth_compiling`).
     """
 
     def __init__(self, fn: ca.Function, order: np.ndarray, n_cal: int, active: np.ndarray, hessian: str, jit: bool,
-                 which: tuple[str, ...] = ("res", "jac", "rgh", "gn"), instances: int = 0):
+                 which: tuple[str, ...], instances: int):
         nz, nd = fn.size1_in(0), fn.size1_in(1)
         zc, zs, d = ca.SX.sym("zc", n_cal), ca.SX.sym("zs", nz - n_cal), ca.SX.sym("d", nd)
         z = ca.vertcat(zc, zs)  # the block's inputs in its (reordered) w_idx order
