@@ -3,10 +3,11 @@
 CasADi evaluates SX functions on a virtual machine at about 7 ns per instruction; the exact local
 Hessian of one Schopp accelerometer factor has about 4500 instructions, so its 3375 instances took
 0.1 s per evaluation, and compiled C does the same in 0.01 s with bit-identical results. Compiling
-costs about 1-2 s of gcc per library, so each library is cached under its source's SHA-256 in
-``$CASTIMATE_CACHE_DIR`` (default ``$XDG_CACHE_HOME/castimate/jit`` or ``~/.cache/castimate/jit``):
-only the first build of a problem structure pays it. Functions whose evaluation is cheap on the
-virtual machine anyway (:func:`worth_compiling`: e.g. one triad's few static poses) are not
+costs about 1-2 s of gcc per library, so each library is cached in ``$CASTIMATE_CACHE_DIR`` (default
+``$XDG_CACHE_HOME/castimate/jit`` or ``~/.cache/castimate/jit``) under the SHA-256 of the functions'
+CasADi serialization (:func:`cache_key`): only the first build of a problem structure pays it, and a
+cached one is loaded without generating its C source again. Functions whose evaluation is cheap on
+the virtual machine anyway (:func:`worth_compiling`: e.g. one triad's few static poses) are not
 compiled: the first solve of MIMU4444 exp_1 static compiles 2 libraries instead of 6 (4.4 → 3.2 s
 CPU; 1.5-1.9 s once they are cached). Without a C compiler, or if compiling fails, the functions stay on the
 virtual machine (same results, slower).
@@ -34,7 +35,7 @@ import casadi as ca
 FLAGS = ("-O2", "-shared", "-fPIC")
 #: Work of one evaluation (instances × SX instructions) below which a function stays on CasADi's
 #: virtual machine (:func:`worth_compiling`): at ~7 ns an instruction, 2·10⁴ take 0.14 ms there.
-#: Compiling costs gcc 0.2-2 s once per new library and, once cached, its code generation (to find
+#: Compiling costs gcc 0.2-2 s once per new library and, once cached, its serialization (to find
 #: it) in every Solver; diagnose and plan evaluate their small problems thousands of times, and a
 #: threshold of 10⁶ made those tests about 20 % slower with a warm cache.
 MIN_WORK = 20_000
@@ -66,12 +67,7 @@ def compile_functions(functions: list[ca.Function]) -> list[ca.Function] | None:
     cc = compiler()
     if cc is None:
         return None
-    gen = ca.CodeGenerator("castimate_local.c", {"with_header": False})
-    for f in functions:
-        gen.add(f)
-    source = gen.dump()
-    key = hashlib.sha256("\n".join([ca.__version__, " ".join(FLAGS), source]).encode()).hexdigest()[:32]
-    lib = cache_dir() / f"{key}.so"
+    lib = cache_dir() / f"{cache_key(functions)}.so"
     if not lib.exists():
         try:
             lib.parent.mkdir(parents=True, exist_ok=True)
@@ -79,12 +75,37 @@ def compile_functions(functions: list[ca.Function]) -> list[ca.Function] | None:
                 if not lib.exists():  # another process may have built it while this one waited
                     with tempfile.TemporaryDirectory(dir=lib.parent) as tmp:
                         src, out = Path(tmp) / "local.c", Path(tmp) / "local.so"
-                        src.write_text(source)
+                        src.write_text(source(functions))
                         subprocess.run([cc, *FLAGS, str(src), "-o", str(out), "-lm"], check=True, capture_output=True)
                         os.replace(out, lib)  # atomic: a reader sees no library or the whole one
         except (OSError, subprocess.CalledProcessError):
             return None
     return [ca.external(f.name(), str(lib)) for f in functions]
+
+
+def source(functions: list[ca.Function]) -> str:
+    """The C source of ``functions`` in one file, as compiled."""
+    gen = ca.CodeGenerator("castimate_local.c", {"with_header": False})
+    for f in functions:
+        gen.add(f)
+    return gen.dump()
+
+
+def cache_key(functions: list[ca.Function]) -> str:
+    """The cache name of the library of ``functions``: the SHA-256 of the CasADi version, the
+    compiler flags, how :func:`source` generates the C file, and each function's serialization.
+    A serialization is CasADi's complete description of a function (deserializing it rebuilds the
+    same function, names, sparsity patterns and constants bit for bit included), so functions with
+    the same key generate the same C source. It costs less than the source: in the chip-age
+    diagnose of tests/test_diagnose_warm.py (231 calls, 95 distinct libraries), 2.0-2.2 s of
+    serialization against 5.5 s of code generation (load 3-5)."""
+    h = hashlib.sha256()
+    for part in [ca.__version__, " ".join(FLAGS), "castimate_local.c with_header=False",
+                 *(f.serialize() for f in functions)]:
+        data = part.encode()
+        h.update(f"{len(data)}:".encode())  # length-prefixed: no two lists of parts give the same bytes
+        h.update(data)
+    return h.hexdigest()[:32]
 
 
 @contextlib.contextmanager
