@@ -368,3 +368,21 @@ def test_jacobian_plan_by_instance_equals_the_coo_pass(case, monkeypatch):
     assert ref[0].size > 100 and (len(solver.prior[0]) > 0 or case == "sample_ages")  # priors: their own rows
     if case.startswith("dynamic"):
         assert not solver.keep.all()  # masked samples' rows are left out
+
+
+def test_entries_at_are_the_element_by_element_entries():
+    """assembly.entries_at (one selection from the dense matrix) gives the same expressions as the
+    entries read one by one, structural zeros included: the functions serialize identically."""
+    from castimate.solver.assembly import entries_at
+
+    x = ca.SX.sym("x", 3)
+    M = ca.SX(3, 3)
+    M[0, 0], M[0, 2], M[1, 1], M[2, 0], M[2, 2] = ca.sin(x[0]), x[0] * x[2], 2.5, x[2] ** 2, x[1]  # (0, 1) zero
+    pairs = np.array([(0, 0), (0, 1), (1, 1), (0, 2), (2, 2), (2, 0)])
+    one_by_one = ca.densify(ca.vertcat(*[M[int(a), int(b)] for a, b in pairs]))
+    at = entries_at(M, pairs)
+    assert at.sparsity() == ca.Sparsity.dense(len(pairs), 1)
+    assert ca.Function("e", [x], [at]).serialize() == ca.Function("e", [x], [one_by_one]).serialize()
+    np.testing.assert_array_equal(np.array(ca.Function("e", [x], [at])([0.3, -1.0, 2.0])).ravel(),
+                                  [np.sin(0.3), 0.0, 2.5, 0.6, -1.0, 4.0])
+    assert entries_at(M, np.zeros((0, 2), int)).shape == (0, 1)

@@ -33,6 +33,16 @@ def exact_hessian(r: ca.SX, z: ca.SX, JtJ: ca.SX) -> ca.SX:
     return JtJ + ca.substitute(second, lam, r)
 
 
+def entries_at(M: ca.SX, pairs: np.ndarray) -> ca.SX:
+    """M's entries at the (row, column) ``pairs``, as a dense column (a structural zero as 0): the
+    same expressions as ``densify(vertcat(M[a, b], ...))``, in one selection from the dense M
+    instead of one element access per pair (in the chip-age diagnose of tests/test_diagnose_warm.py,
+    3.9 s of 38 s one by one, 0.3 s so; load 4-5)."""
+    if not len(pairs):
+        return ca.SX(0, 1)
+    return ca.densify(M).nz[(pairs[:, 0] + pairs[:, 1] * M.size1()).tolist()]
+
+
 class _Compiled:
     """Local functions of one factor, each evaluated over many instances at once.
 
@@ -67,8 +77,7 @@ class _Compiled:
         loc[act] = np.arange(len(act))
 
         def entries(M):  # M's values at the pairs
-            return ca.densify(ca.vertcat(*[M[int(a), int(b)] for a, b in loc[self.pairs]]) if len(self.pairs)
-                              else ca.SX(0, 1))
+            return entries_at(M, loc[self.pairs])
 
         args = [zc, zs, d]
         name = fn.name()

@@ -53,7 +53,7 @@ from scipy.linalg import blas, lapack
 
 from ..jit import compile_functions, worth_compiling
 from ..problem.parameters import Layout
-from .assembly import CHUNK, LOCAL, Block, EvaluationError, NotStaged, StagedBlock, exact_hessian
+from .assembly import CHUNK, LOCAL, Block, EvaluationError, NotStaged, StagedBlock, entries_at, exact_hessian
 from .threads import map_threads, pool
 
 
@@ -236,10 +236,8 @@ def inner_function(fn: ca.Function, order: np.ndarray, n_cal: int, hessian: str,
     ns = nz - n_cal
     pairs = np.array([(a, b) for b in range(ns) for a in range(b + 1) if sp_H.has_nz(a, b)], int).reshape(-1, 2)
 
-    def entries(M):
-        return ca.densify(ca.vertcat(*[M[int(a), int(b)] for a, b in pairs])) if len(pairs) else ca.SX(0, 1)
-
-    f = ca.Function(f"{fn.name()}_rghs", [zc, zs, d], [r, ca.densify(ca.mtimes(J.T, r)), entries(H), entries(JtJ)])
+    f = ca.Function(f"{fn.name()}_rghs", [zc, zs, d],
+                    [r, ca.densify(ca.mtimes(J.T, r)), entries_at(H, pairs), entries_at(JtJ, pairs)])
     return f, n_cal + pairs, n_cal + np.arange(ns)
 
 
