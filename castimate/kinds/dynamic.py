@@ -365,18 +365,19 @@ def check_gyro_free_span(spec: ProblemSpec, positions: np.ndarray, f: np.ndarray
     its σ σ/D, against an angular acceleration of the order of the motion's gradient along the line
     α (:func:`line_excitation`). So the rule is on ρ = α·D/σ.
     Measured (benchmarks/gyro_free_collinear.py: 4 triads on a 10 cm line, one δ off it, positions
-    fixed at the truth, 300 samples at 2000 °/s, α 540-830 s^-2, σ 0.02 m/s², default process model;
-    right = ω within 1 rad/s RMS of the truth, |ω| RMS 26-31 rad/s): δ 0.2 mm (ρ 5-7) 1 of 5 seeds
-    right, 4 reported success at χ²/dof 0.78-1.00 with ω wrong by 1.6-21 rad/s; 0.5 mm (ρ 11-17) 1
-    of 5, 3 wrong at success; 1 mm (ρ 23-35) 4 of 10, 1 wrong at success, 5 not converged; 2 mm (ρ
-    45-69) 9 of 10 (0.22-0.43 rad/s), 1 not converged; 5 mm (ρ 113-174) 8 of 10 (0.08-0.21), seed 2
-    wrong by 6.2 rad/s at χ²/dof 1.00 (from the true motion the same data fit at 0.95 and 0.12 rad/s:
-    a local minimum of the gyro-free start, not a tie), 1 not converged; 10 mm (ρ 225-350), 20 and 50
-    mm: 20 of 20 right. ρ, not δ, decides: δ 10 mm with σ 0.2 m/s² (ρ 29) failed in 3 of 4 seeds
-    like 1 mm with 0.02, 0.5 mm with σ 0.002 (ρ 146) was right in 3 of 3; a strip of 2 × 4 triads δ
-    apart the same (0.2 mm, ρ 10: 1 of 3 right, 1 wrong; 1 mm, ρ 49: 2 of 3). Where right, ω̇'s error follows
-    σ/D (4.9 rad/s² at 5 mm against σ/D 4.8). Hence refused below ρ = 40 (at 1 mm and below, more
-    wrong or not converged than right) and warned below 300 (the highest ρ measured wrong, 154, × 2).
+    fixed at the truth, 300 samples of exact smooth motion at 2000 °/s, α 540-830 s^-2, σ 0.02 m/s²,
+    default process model; right = ω within 1 rad/s RMS of the truth, |ω| RMS 26-31 rad/s; right /
+    wrong at reported success / not converged): δ 0.2 mm (ρ 6-7) 2 / 3 / 0; 0.5 mm (ρ 14-17) 1 / 2 /
+    2; 1 mm (ρ 22-34) 4 / 2 / 4; 2 mm (ρ 45-69) 7 / 1 / 2 (the wrong one 6.0 rad/s off at ρ 62);
+    5 mm (ρ 112-172) 9 / 0 / 1; 10 mm (ρ 224-343), 20 and 50 mm: 20 of 20 right, ω within
+    0.004-0.03 rad/s. By band: below ρ 40 8 of 27 right, 12 wrong at success; 40-300 30 of 34 right,
+    1 wrong; above 300 15 of 15. ρ, not δ, decides: δ 10 mm with σ 0.2 m/s² (ρ 28-34) was wrong in 4
+    of 4 seeds (by 2.7-23 rad/s) like 1 mm with 0.02, 0.5 mm with σ 0.002 (ρ 141-171) right in 3 of
+    3; a strip of 2 × 4 triads δ apart the same (0.2 mm, ρ 10: 1 of 3 right, 1 wrong; 1 mm, ρ 48-52:
+    3 of 3). The motion re-integrated by Euler's step (on which the default process model is biased)
+    gave the same picture (highest ρ wrong 154). Hence refused below ρ = 40 (more wrong or not
+    converged than right below it) and warned below 300 (the highest ρ measured wrong, 62 on exact
+    motion and 154 on Euler's, × 2).
     castimate reports no σ for the motion, and χ²/dof does not show the wrong minima. α counts ω²
     as well as ω̇; the bounds hold for this motion family (ω² ≈ 3 |ω̇|).
     """
