@@ -51,7 +51,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 from scipy.linalg import blas, lapack
 
-from ..jit import compile_functions, worth_compiling
+from ..jit import compile_functions
 from ..problem.parameters import Layout
 from .assembly import CHUNK, LOCAL, Block, EvaluationError, NotStaged, StagedBlock, entries_at, exact_hessian
 from .threads import map_threads, pool
@@ -886,8 +886,7 @@ class Projection:
                 if blk is not b:
                     blk.compile(cache, sb.n_cal, hessian, jit, () if applies else LOCAL, sb.J * sb.K)
                 f = blk.f
-                # compiled where they run over enough instances, else CasADi's virtual machine
-                many = jit and worth_compiling(sb.J * sb.K, f.symbolic["rgh"])
+                many = f.compiled  # where they run over enough instances, else CasADi's virtual machine
                 u = _Unit(blk, i, rows, order, (fi, sb),
                           _Plan(sb.K, sb.is_st, sb.rel, sb.q, f.act, f.pairs, fam.scale, fam.m, self.tpos, xs, n, c))
                 key = (id(blk.block.residual), blk.order.tobytes(), sb.n_cal)
