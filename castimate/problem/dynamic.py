@@ -169,6 +169,8 @@ class DynamicData:
 
     def valid(self, kind: str, name: str) -> np.ndarray:
         """(N,) the samples where any axis of a triad's reading counts: its instances in the problem."""
+        if (self.acc_valid if kind == "acc" else self.gyro_valid).get(name) is None:  # every sample (no (N, 3) to reduce)
+            return np.ones(self.n, bool)
         return self.axis_valid(kind, name).any(axis=1)
 
 
@@ -364,7 +366,6 @@ class DynamicProblem:
             K, C = len(names), 17 + N_SAMPLE_REGRESSORS
             ok = self.valid(kind, names)
             ax = (self.axes or {}).get(kind, {})
-            axes = ok[..., None] & np.stack([ax.get(n, np.ones((self.n_samples, 3), bool)) for n in names], axis=1)
             Rcols = np.stack([R[n].ravel(order="F") for n in names])
             sig = [data.sigma(kind, n) for n in names]
             moments = [reg.sample_moments(data.t, data.temp.get(n), n) for n in names]
@@ -381,7 +382,8 @@ class DynamicProblem:
                 t[:, :, 15 + N_SAMPLE_REGRESSORS] = inv_span[None, s0:s1]
                 t[:, :, 16 + N_SAMPLE_REGRESSORS] = inv_h2[None, s0:s1]
                 out[s0:s1] = t.transpose(1, 0, 2)
-            if not axes.all():
+            if not ok.all() or not all(ax[n].all() for n in names if n in ax):  # some axis masked
+                axes = ok[..., None] & np.stack([ax.get(n, np.ones((self.n_samples, 3), bool)) for n in names], axis=1)
                 out[:, :, 0:3][~axes] = 0.0
                 out[:, :, 3:6] = np.where(axes, out[:, :, 3:6], np.where(ok[..., None], MASKED_SIGMA, np.inf))
             return out.reshape(-1, C)
@@ -480,14 +482,16 @@ def initial_motion(config: DynamicConfig, data: DynamicData, gyro_triads: list[s
         return {OMEGA: omega, OMEGA_DOT: omega_dot, S: s}
     if gyro_triads:
         est, weight = np.zeros((data.n, 3)), np.zeros(data.n)
+        Tfn = gyroscope_matrix()  # one CasADi function for every triad (1 ms to build)
         for name in gyro_triads:
             t = next(t for t in config.triads if t.name == name)
-            Tg = gyroscope_matrix()(_start_value(t.gyroscope, "gain", [1, 1, 1]),
-                                    _start_value(t.gyroscope, "misalignment", [0, 0, 0]), t.R_nominal)
+            Tg = Tfn(_start_value(t.gyroscope, "gain", [1, 1, 1]), _start_value(t.gyroscope, "misalignment", [0, 0, 0]),
+                     t.R_nominal)
             w = linear_inverse(Tg, np.asarray(_start_value(t.gyroscope, "bias", [0, 0, 0]), float), data.gyro[name])
             ok = data.axis_valid("gyro", name).all(axis=1)  # a clipped axis leaks into the others through T_g
-            est[ok] += w[ok]
-            weight[ok] += 1
+            # the valid samples' sums, in place (boolean indexing copied both sides: 1.4 ms per triad)
+            np.add(est, w, out=est, where=ok[:, None])
+            weight += ok
         good = weight > 0
         if good.any():
             omega = np.column_stack([np.interp(data.t, data.t[good], est[good, i] / weight[good]) for i in range(3)])
@@ -502,8 +506,12 @@ R_COLUMNS = tuple(range(6, 15))
 
 
 def _valid(rows: dict, names, N: int) -> np.ndarray:
-    """(N, K) from the valid sample indices of each triad."""
-    return np.stack([np.isin(np.arange(N), rows[n]) for n in names], axis=1)
+    """(N, K) from the valid sample indices of each triad (sample indices, as from np.flatnonzero:
+    set by index, 0.02 ms per triad at 20 000 samples where np.isin sorted them, 0.3 ms)."""
+    out = np.zeros((N, len(names)), bool)
+    for k, n in enumerate(names):
+        out[rows[n], k] = True
+    return out
 
 
 def _neighbours(N: int) -> tuple[np.ndarray, np.ndarray]:
