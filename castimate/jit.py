@@ -32,7 +32,16 @@ from pathlib import Path
 
 import casadi as ca
 
-FLAGS = ("-O2", "-shared", "-fPIC")
+FLAGS = ("-shared", "-fPIC")
+#: Work of one evaluation (instances × SX instructions) from which gcc optimises the code (-O2);
+#: below it, -O0. The same bits either way (no -ffast-math, no FMA contraction on the baseline
+#: x86-64 target). gcc's optimisation only repays itself where an evaluation is heavy: on 190
+#: libraries of the suite's diagnose and effect tests, those below 10⁶ took 134.5 s of gcc at -O2
+#: against 50.2 s at -O0 (0.66 s a library), while their code ran 3-5 × slower, e.g. 0.042 against
+#: 0.008 ms an evaluation of a staged pose factor of work 4·10⁵ (2·10⁴ evaluations before -O2
+#: pays); a 32 × 20 000 sample's accelerometers (work 4·10⁷) take 42 ms at -O0 and 11 ms at -O2 an
+#: evaluation (2026-11-27, load 1-2).
+OPTIMISE_WORK = 1_000_000
 #: Work of one evaluation (instances × SX instructions) below which a function stays on CasADi's
 #: virtual machine (:func:`worth_compiling`): at ~7 ns an instruction, 2·10⁴ take 0.14 ms there.
 #: Compiling costs gcc 0.2-2 s once per new library and, once cached, its serialization (to find
@@ -41,11 +50,17 @@ FLAGS = ("-O2", "-shared", "-fPIC")
 MIN_WORK = 20_000
 
 
+def evaluation_work(instances: int, fn: ca.Function) -> int:
+    """The instructions of one evaluation of ``fn`` on ``instances`` instances at a time: what decides
+    whether it is compiled (:func:`worth_compiling`) and how (:func:`optimisation`)."""
+    return instances * fn.n_instructions()
+
+
 def worth_compiling(instances: int, fn: ca.Function) -> bool:
     """Whether ``fn`` evaluated on ``instances`` instances at a time is worth compiling: at least
     :data:`MIN_WORK` instructions an evaluation (on MIMU4444 exp_1 the static poses' functions per
     triad do 0.012·10⁶, those of all triads 0.15·10⁶, the dynamic samples' 52·10⁶)."""
-    return instances * fn.n_instructions() >= MIN_WORK
+    return evaluation_work(instances, fn) >= MIN_WORK
 
 
 def cache_dir() -> Path:
@@ -61,13 +76,21 @@ def compiler() -> str | None:
     return shutil.which(os.environ.get("CC", "")) or shutil.which("gcc") or shutil.which("cc")
 
 
-def compile_functions(functions: list[ca.Function]) -> list[ca.Function] | None:
+def optimisation(work: int | None) -> str:
+    """gcc's optimisation level for functions whose evaluation does ``work`` instructions (None:
+    unknown, optimised): :data:`OPTIMISE_WORK`."""
+    return "-O2" if work is None or work >= OPTIMISE_WORK else "-O0"
+
+
+def compile_functions(functions: list[ca.Function], work: int | None = None) -> list[ca.Function] | None:
     """Compiled equivalents of ``functions``, or None when no compiler is available or compilation
-    fails. Names must be unique among them."""
+    fails. Names must be unique among them. ``work``: instructions of one evaluation (instances ×
+    SX instructions), which sets the optimisation level (:func:`optimisation`)."""
     cc = compiler()
     if cc is None:
         return None
-    lib = cache_dir() / f"{cache_key(functions)}.so"
+    flags = (optimisation(work), *FLAGS)
+    lib = cache_dir() / f"{cache_key(functions, flags)}.so"
     if not lib.exists():
         try:
             lib.parent.mkdir(parents=True, exist_ok=True)
@@ -76,7 +99,7 @@ def compile_functions(functions: list[ca.Function]) -> list[ca.Function] | None:
                     with tempfile.TemporaryDirectory(dir=lib.parent) as tmp:
                         src, out = Path(tmp) / "local.c", Path(tmp) / "local.so"
                         src.write_text(source(functions))
-                        subprocess.run([cc, *FLAGS, str(src), "-o", str(out), "-lm"], check=True, capture_output=True)
+                        subprocess.run([cc, *flags, str(src), "-o", str(out), "-lm"], check=True, capture_output=True)
                         os.replace(out, lib)  # atomic: a reader sees no library or the whole one
         except (OSError, subprocess.CalledProcessError):
             return None
@@ -91,16 +114,16 @@ def source(functions: list[ca.Function]) -> str:
     return gen.dump()
 
 
-def cache_key(functions: list[ca.Function]) -> str:
-    """The cache name of the library of ``functions``: the SHA-256 of the CasADi version, the
-    compiler flags, how :func:`source` generates the C file, and each function's serialization.
+def cache_key(functions: list[ca.Function], flags: tuple[str, ...] = ("-O2", *FLAGS)) -> str:
+    """The cache name of the library of ``functions`` compiled with ``flags``: the SHA-256 of the
+    CasADi version, the compiler flags, how :func:`source` generates the C file, and each function's serialization.
     A serialization is CasADi's complete description of a function (deserializing it rebuilds the
     same function, names, sparsity patterns and constants bit for bit included), so functions with
     the same key generate the same C source. It costs less than the source: in the chip-age
     diagnose of tests/test_diagnose_warm.py (231 calls, 95 distinct libraries), 2.0-2.2 s of
     serialization against 5.5 s of code generation (load 3-5)."""
     h = hashlib.sha256()
-    for part in [ca.__version__, " ".join(FLAGS), "castimate_local.c with_header=False",
+    for part in [ca.__version__, " ".join(flags), "castimate_local.c with_header=False",
                  *(f.serialize() for f in functions)]:
         data = part.encode()
         h.update(f"{len(data)}:".encode())  # length-prefixed: no two lists of parts give the same bytes

@@ -10,7 +10,7 @@ import casadi as ca
 import numpy as np
 import scipy.sparse as sp
 
-from ..jit import compile_functions, worth_compiling
+from ..jit import compile_functions, evaluation_work, worth_compiling
 from ..problem.parameters import Layout
 from ..problem.graph import FactorBlock
 
@@ -88,9 +88,11 @@ class _Compiled:
         self.symbolic = dict(zip(LOCAL, local))  # for functions built on them
         # compiled to C when they run over enough instances (``jit``), else on CasADi's virtual machine
         self.compiled = jit and worth_compiling(instances, self.symbolic["rgh"])
+        self.work = evaluation_work(instances, self.symbolic["rgh"])  # gcc's optimisation level (castimate.jit)
         names = [name for name in LOCAL if name in which]
         chosen = [self.symbolic[name] for name in names]
-        compiled = dict(zip(names, (compile_functions(chosen) if self.compiled and chosen else None) or chosen))
+        compiled = dict(zip(names, (compile_functions(chosen, self.work) if self.compiled and chosen else None)
+                            or chosen))
         self.res, self.jac, self.rgh, self.gn = (compiled.get(name, self.symbolic[name]) for name in LOCAL)
         self.nz, self.nd, self.m, self.n_cal = nz, nd, fn.size1_out(0), n_cal
         self._buffers: dict = {}

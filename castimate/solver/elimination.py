@@ -435,7 +435,7 @@ class _StageFunctions:
             functions.append(pre)
             names_.append("vec_shared")
         layouts["vec"] = (True, [], [], 1, [K * f.m])
-        compiled = (compile_functions(functions) if jit else None) or functions
+        compiled = (compile_functions(functions, f.work) if jit else None) or functions
         return dict(zip(names_, compiled)), layouts
 
     @staticmethod
@@ -941,7 +941,7 @@ class Projection:
                     u.stage_fns = _StageFunctions(f, fn, u.plan, inner_plan, sb, fam.m, c, many,
                                                   blk.block.shared_data)
                 else:
-                    u.inner = (((compile_functions([fn]) if many else None) or [fn])[0], inner_plan)
+                    u.inner = (((compile_functions([fn], f.work) if many else None) or [fn])[0], inner_plan)
                 self.units.append(u)
         self.stage_fns = [u.stage_fns for u in self.units if u.stage_fns is not None]
         self._written = {mode: self._direct(mode) for mode in ("res", "grad", "full", "info", "inner")}
