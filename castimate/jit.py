@@ -3,7 +3,8 @@
 CasADi evaluates SX functions on a virtual machine at about 7 ns per instruction; the exact local
 Hessian of one Schopp accelerometer factor has about 4500 instructions, so its 3375 instances took
 0.1 s per evaluation, and compiled C does the same in 0.01 s with bit-identical results. Compiling
-costs about 1-2 s of gcc per library, so each library is cached in ``$CASTIMATE_CACHE_DIR`` (default
+costs about 1-2 s of gcc per library (0.3-0.5 s for the light ones, which gcc does not optimise:
+:data:`OPTIMISE_WORK`), so each library is cached in ``$CASTIMATE_CACHE_DIR`` (default
 ``$XDG_CACHE_HOME/castimate/jit`` or ``~/.cache/castimate/jit``) under the SHA-256 of the functions'
 CasADi serialization (:func:`cache_key`): only the first build of a problem structure pays it, and a
 cached one is loaded without generating its C source again. Functions whose evaluation is cheap on
