@@ -84,7 +84,7 @@ CASES = {
     "carlsson_20k": ("carlsson", 20000),
 }
 SCHOPP_REPEATS = 3  # castimate solves of the small case: the first is reported (a user's one solve, which also
-# builds the solver's CasADi maps: 0.04-0.08 s here), the median of the others kept as the steady cost
+# builds the solver's CasADi maps: about 0.1 s here), the median of the others kept as the steady cost
 LSQ_TOL = 1e-10  # ftol = xtol = gtol of least_squares
 # lsmr's own tolerances. With its defaults (1e-6) or x_scale="jac", trf makes no progress on the
 # Schopp case from ω = 0 (100 nfev, positions metres off): the stiff integration rows of the process
@@ -421,21 +421,21 @@ def worker_castimate(d: dict, progress: Progress, hessian: str = "exact", cold: 
                      "iterations": sol.iterations + (gn.iterations if polish else 0),
                      "stats": {k: float(v) for k, v in st.items() if k.startswith(("t_wall_", "n_call_"))}})
         progress("solved", total_s=total)
-    med = runs[0]  # the first solve: what a single solve costs (SCHOPP_REPEATS)
+    first = runs[0]  # what a single solve costs (SCHOPP_REPEATS)
     later = sorted(runs[1:], key=lambda r: r["total"])
     names = config.names
     pos = np.stack([sol.values[f"{n}.position"] for n in names])
     std = np.stack([sol.std[f"{n}.position"] for n in names])
     out = {
         "build_dynamic_s": t_build, "solver_build_s": t_solver, "build_s": t_build + t_solver,
-        "solve_total_s": med["total"], "ipopt_s": med["ipopt"], "nlpsol_call_s": med["wall"],
+        "solve_total_s": first["total"], "ipopt_s": first["ipopt"], "nlpsol_call_s": first["wall"],
         # Solver.solve = IPOPT + covariance (sparse Schur complement of the motion) + unpacking
-        "covariance_s": med["total"] - med["wall"],
+        "covariance_s": first["total"] - first["wall"],
         "solve_total_s_samples": [r["total"] for r in runs], "ipopt_s_samples": [r["ipopt"] for r in runs],
         "solve_total_s_steady": later[len(later) // 2]["total"] if later else None,
-        "cpu_s": cpu_build + med["cpu"], "cpu_build_s": cpu_build, "cpu_solve_s": med["cpu"],
-        "iterations": med["iterations"], "success": sol.success, "elimination": solver.elimination_note, "message": sol.message, "cost": sol.cost,
-        "chi2_per_dof": sol.chi2_per_dof, "ipopt_stats": med["stats"],
+        "cpu_s": cpu_build + first["cpu"], "cpu_build_s": cpu_build, "cpu_solve_s": first["cpu"],
+        "iterations": first["iterations"], "success": sol.success, "elimination": solver.elimination_note, "message": sol.message, "cost": sol.cost,
+        "chi2_per_dof": sol.chi2_per_dof, "ipopt_stats": first["stats"],
         "n_x": int(prob.lsq.layout.n_x), "n_residuals": int(solver.n_residuals), "n_constraints": int(solver.n_constraints),
         "positions": pos.tolist(), "position_std": std.tolist(),
     }

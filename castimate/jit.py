@@ -115,14 +115,16 @@ def source(functions: list[ca.Function]) -> str:
     return gen.dump()
 
 
-def cache_key(functions: list[ca.Function], flags: tuple[str, ...] = ("-O2", *FLAGS)) -> str:
-    """The cache name of the library of ``functions`` compiled with ``flags``: the SHA-256 of the
-    CasADi version, the compiler flags, how :func:`source` generates the C file, and each function's serialization.
+def cache_key(functions: list[ca.Function], flags: tuple[str, ...] | None = None) -> str:
+    """The cache name of the library of ``functions`` compiled with ``flags`` (default: optimised,
+    :func:`optimisation`): the SHA-256 of the CasADi version, the compiler flags, how
+    :func:`source` generates the C file, and each function's serialization.
     A serialization is CasADi's complete description of a function (deserializing it rebuilds the
     same function, names, sparsity patterns and constants bit for bit included), so functions with
     the same key generate the same C source. It costs less than the source: in the chip-age
     diagnose of tests/test_diagnose_warm.py (231 calls, 95 distinct libraries), 2.0-2.2 s of
     serialization against 5.5 s of code generation (load 3-5)."""
+    flags = (optimisation(None), *FLAGS) if flags is None else flags
     h = hashlib.sha256()
     for part in [ca.__version__, " ".join(flags), "castimate_local.c with_header=False",
                  *(f.serialize() for f in functions)]:
