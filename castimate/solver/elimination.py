@@ -544,7 +544,11 @@ class _StageFunctions:
             fn = self._plain_fns[mode]
         key = (mode, nJ, threading.get_ident(), fn.n_in())  # a buffer holds its arguments and work: one per thread
         if key not in self._buffers:
-            self._buffers[key] = fn.map(f"stages_{nJ}", "serial", nJ, [0, 3] if fn.n_in() == 4 else [0], [0]).buffer()
+            # CasADi's MapSum: zc and the shared data are one column for all stage groups, and the
+            # first output is summed in place (the named map's repmat/repsum would build and fill
+            # nJ copies of both)
+            self._buffers[key] = fn.map(nJ, [i in (0, 3) for i in range(fn.n_in())],
+                                        [o == 0 for o in range(fn.n_out())]).buffer()
         buf, run = self._buffers[key]
         _, _, _, Lr, widths = self.layout[mode]
         red = np.empty(Lr)
