@@ -228,18 +228,20 @@ def _chain_candidates(t: np.ndarray, w: np.ndarray, wd: np.ndarray) -> np.ndarra
     """The candidate (M,) of every sample, out of w, wd (M, C, 3) (ω and ω̇ per candidate), chained by
     continuity with the trapezoid integral of ω̇ (see :func:`angular_motion_from_specific_forces`):
     each sample takes the candidate nearest to ω_{n−1} + (ω̇_{n−1} + ω̇_n) Δt/2; every first
-    candidate is tried and the chain with the smallest sum of squared misfits wins."""
-    dt = np.diff(t)
-    best, best_cost = np.zeros(len(w), int), np.inf
-    for first in range(w.shape[1]):
-        pick = np.zeros(len(w), int)
-        pick[0] = first
-        cost = 0.0
-        for n in range(1, len(w)):
-            prev = pick[n - 1]
-            miss = np.sum((w[n] - w[n - 1, prev] - 0.5 * (wd[n - 1, prev] + wd[n]) * dt[n - 1]) ** 2, axis=1)
-            pick[n] = int(np.argmin(miss))
-            cost += miss[pick[n]]
-        if cost < best_cost:
-            best, best_cost = pick, cost
-    return best
+    candidate is tried and the chain with the smallest sum of squared misfits wins.
+
+    The misfit of every candidate after every candidate of the previous sample is one array
+    (M − 1, C, C); the chains then only follow its row minima, all first candidates at once."""
+    M, C = w.shape[:2]
+    dt = np.diff(t)[:, None, None, None]
+    # miss[n − 1, prev, cand]: sample n's candidate cand after sample n − 1's candidate prev
+    miss = np.sum((w[1:, None] - w[:-1, :, None] - 0.5 * (wd[:-1, :, None] + wd[1:, None]) * dt) ** 2, axis=3)
+    nxt = np.argmin(miss, axis=2)  # (M − 1, C): the nearest candidate after each previous one
+    step = np.take_along_axis(miss, nxt[:, :, None], axis=2)[:, :, 0]
+    picks = np.empty((M, C), int)
+    picks[0] = np.arange(C)  # one chain per first candidate
+    cost = np.zeros(C)
+    for n in range(1, M):
+        cost += step[n - 1, picks[n - 1]]
+        picks[n] = nxt[n - 1, picks[n - 1]]
+    return picks[:, int(np.argmin(cost))]
