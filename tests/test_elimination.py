@@ -183,11 +183,36 @@ def _projection_at_optimum(kind):
     return P, prob.lsq.layout.p0(), P.reset(sol.x, None)
 
 
-@pytest.mark.parametrize("kind", [k for k in CASES if k.startswith("dynamic")])
+@pytest.mark.parametrize("kind", ["static", "static_quaternion"])
+def test_tangent_basis_carried_to_a_moved_point(kind):
+    """The tangent basis of unit-norm rows carried to a moved point is tangent there (orthogonal to
+    the constraint gradient 2 x scale²), unchanged at its own point, and within the order of the
+    move of the basis at the start (a fresh basis there may turn within the tangent space)."""
+    P, pf, th0 = _projection_at_optimum(kind)
+    fi = next(i for i, f in enumerate(P.fams) if f.unit)
+    fam, X0 = P.fams[fi], P._X0[fi]  # noqa: SLF001
+    Z0, _ = P._tangent(fi, X0, pf)  # noqa: SLF001
+    assert np.abs(P._carried(fi, Z0, X0) - Z0).max() < 1e-15  # noqa: SLF001
+    rng = np.random.default_rng(3)
+    for size in (1e-6, 1e-3):
+        X1 = X0 + size * rng.standard_normal(X0.shape) * np.abs(X0).max()
+        for pos, _ in fam.unit:  # back onto the unit sphere (unscaled), as the Newton step's move does
+            X1[:, pos] /= np.linalg.norm(X1[:, pos] * fam.scale[pos], axis=1)[:, None]
+        Z1 = P._carried(fi, Z0, X1)  # noqa: SLF001
+        for pos, _ in fam.unit:
+            a = X1[:, pos] * fam.scale[pos] ** 2
+            cos = np.einsum("rk,rka->ra", a, Z1[:, pos, :]) / np.linalg.norm(a, axis=1)[:, None]
+            assert np.abs(cos).max() < 1e-13
+        assert 0 < np.abs(Z1 - Z0).max() < 100 * size
+
+
+@pytest.mark.parametrize("kind", [k for k in CASES if k.startswith("dynamic")] + ["static", "static_quaternion"])
 def test_newton_point_shortcut_keeps_the_reduced_objective_and_gradient(kind):
     """Off the optimum, φ and ∇φ accepted from the gradient at the Newton point of the nuisance
     (one full evaluation fewer) equal those of the path that evaluates everything there, to
-    round-off; the Hessian is the previous point's, within the Newton step's size."""
+    round-off; the Hessian is the previous point's, within the Newton step's size. Also with
+    unit-norm nuisance rows (the static cases' pose directions), whose tangent basis moves with
+    the step."""
     P, pf, th0 = _projection_at_optimum(kind)
     for size in (1e-5, 1e-4, 1e-3, 1e-2):  # a step whose prediction needs one Newton step, not more
         theta = th0 + size * np.random.default_rng(1).standard_normal(P.c)
@@ -420,22 +445,29 @@ def test_singular_stage_factor_is_the_pseudo_inverse_and_indefinite_stages_are_r
 
 
 @pytest.mark.parametrize("kind", ["static", "static_quaternion", "dynamic"])
-def test_no_gradient_assembly_where_no_shortcut_can_use_it(monkeypatch, kind):
-    """The gradient alone (at a Newton point, or with the previous point's factors) is assembled only
-    where a shortcut can use it: not with unit-norm nuisance rows (pose directions as tilt
-    quaternions), whose tangent basis moves with the step; the dynamic case uses it."""
+def test_gradient_alone_at_newton_points_and_with_earlier_factors_only_without_unit_rows(monkeypatch, kind):
+    """The gradient alone is assembled at a Newton point of the nuisance for every kind (the
+    shortcut; unit-norm rows take it in their tangent basis carried there), and with the previous
+    point's factors (:meth:`_grad_first`) only without unit-norm nuisance rows (pose directions as
+    tilt quaternions), whose kept coupling is in the earlier point's tangent basis."""
     prob = CASES[kind]()
     solver = Solver(prob.lsq)
     P = solver.projection
-    modes = []
-    assemble = type(P).assemble
+    modes, firsts = [], []
+    assemble, grad_first = type(P).assemble, type(P)._grad_first  # noqa: SLF001
 
     def spy(self, theta, Xs, pf, data, mode, *a, **k):
         modes.append(mode)
         return assemble(self, theta, Xs, pf, data, mode, *a, **k)
 
+    def spy_first(self, *a, **k):
+        firsts.append(True)
+        return grad_first(self, *a, **k)
+
     monkeypatch.setattr(type(P), "assemble", spy)
+    monkeypatch.setattr(type(P), "_grad_first", spy_first)
     assert solver.solve().success
     unit = any(f.unit for f in P.fams)
     assert unit == (kind != "dynamic")
-    assert ("grad" in modes) != unit and modes.count("full") >= 2
+    assert P.shortcuts > 0 and "grad" in modes and modes.count("full") >= 2
+    assert (not firsts) == unit

@@ -1239,17 +1239,34 @@ class Projection:
         """At the Newton point Xs of the elimination that :meth:`eliminate` left at its limit, with
         the gradient ``grad`` assembled there: (decrement, Newton steps) by the factors of that
         elimination (its Hessian, one step earlier: the error is of the order of the step times
-        this gradient, which is at the tolerance). Not for families with unit-norm rows (a tangent
-        basis that moved with the step): :meth:`_evaluate` then assembles no gradient for it."""
+        this gradient, which is at the tolerance). Unit-norm rows take the gradient in their
+        tangent space at Xs, the factors' basis carried there (:meth:`_carried`)."""
         _, prepared = self._pending
-        dec, steps, ys = 0.0, [], []
-        for (F, _, _), G in zip(prepared, grad.G):
+        dec, steps, ys, Zs = 0.0, [], [], []
+        for fi, ((F, _, Z), G) in enumerate(zip(prepared, grad.G)):
+            if Z is not None:
+                Z = self._carried(fi, Z, Xs[fi])
+                G = np.einsum("rmk,rm->rk", Z, G)
             y = F.lower(G[:, :, None].copy())
             dec += float(np.einsum("ijk,ijk->", y, y))
-            steps.append(-F.upper(y.copy())[:, :, 0])
-            ys.append(y)
-        self._recheck = ys
+            step = -F.upper(y.copy())[:, :, 0]
+            steps.append(step if Z is None else np.einsum("rmk,rk->rm", Z, step))
+            ys.append(y), Zs.append(Z)
+        self._recheck = ys, Zs
         return dec, steps
+
+    def _carried(self, fi, Z, X):
+        """The tangent basis Z (R, m, m') of family fi's unit-norm rows carried to X (scaled): its
+        projection onto the tangent space there, which moves with X as continuously as X (a basis
+        of its own, :meth:`_tangent`'s, may turn within the tangent space); within the order of the
+        step of Z. The rows' groups share no positions: projected one at a time."""
+        fam = self.fams[fi]
+        for pos, _ in fam.unit:
+            n = X[:, pos] * fam.scale[pos] ** 2  # the constraint gradient's direction
+            Zp = Z[:, pos, :]
+            Z = Z.copy()
+            Z[:, pos, :] = Zp - n[:, :, None] * (np.einsum("rk,rka->ra", n, Zp) / np.einsum("rk,rk->r", n, n)[:, None])[:, None, :]
+        return Z
 
     def couple(self) -> np.ndarray:
         """The Schur complement S of the elimination that :meth:`eliminate` left at its limit (its
@@ -1272,12 +1289,14 @@ class Projection:
         """The reduced gradient g = gc - Hcs H^-1 G of the elimination that :meth:`eliminate` left
         at its limit, without the Schur complement: H^-1 G by the factors' band solves and one
         product with the coupling (a fiftieth of the Schur complement's work at 32 x 20 000).
-        With ``gc``, from the stage gradients of :meth:`recheck`. The factors stay pending for
-        :meth:`couple` (the Hessian, when IPOPT asks for it)."""
+        With ``gc``, from the stage gradients of :meth:`recheck` (in its tangent bases). The
+        factors stay pending for :meth:`couple` (the Hessian, when IPOPT asks for it), with their
+        own tangent bases: the Schur complement of the factors' point."""
         parts, prepared = self._pending
         if gc is not None:
-            prepared = [(F, y, Z) for (F, _, Z), y in zip(prepared, self._recheck)]
-            self._pending = (parts, prepared)
+            ys, Zs = self._recheck
+            self._pending = (parts, [(F, y, Z) for (F, _, Z), y in zip(prepared, ys)])
+            prepared = [(F, y, Z) for (F, _, _), y, Z in zip(prepared, ys, Zs)]
         g = (parts.gc if gc is None else gc).copy()
         for fi, (F, y, Z) in enumerate(prepared):
             v = F.upper(y.copy())[:, :, 0]  # H^-1 G (tangent coordinates)
@@ -1417,9 +1436,10 @@ class Projection:
         anchor = self._anchor
         self._anchor = self._factors = self._lazy = None  # as large as the coupling: freed before the next ones
         # the gradient alone with an earlier point's factors: not for unit-norm rows (their tangent
-        # basis moves with the step)
-        shortcut = self.shortcut and not any(f.unit for f in self.fams)
-        if grad_first and not hessian and shortcut and self._last_dec <= self.grad_first_dec \
+        # basis moves with the step, and the coupling kept is in the earlier basis)
+        shortcut = self.shortcut
+        if grad_first and not hessian and shortcut and not any(f.unit for f in self.fams) \
+                and self._last_dec <= self.grad_first_dec \
                 and anchor is not None and anchor[2] is not None:
             out = self._grad_first(theta, Xs, pf, data, [(*f, anchor[3]) for f in anchor[2]], key)
             if out is not None:
