@@ -1411,13 +1411,19 @@ class Projection:
         """Accept the predicted stage variables Xs on the gradient alone, with the factors and the
         coupling of the previous point (as the Newton-point shortcut does): when the prediction is
         converged there, φ and ∇φ need no Hessian, and the full evaluation is left to a request for
-        the Hessian (IPOPT makes none at its last iterate). None if the decrement is above inner_tol."""
+        the Hessian (IPOPT makes none at its last iterate). None if the decrement is above inner_tol.
+        Unit-norm rows take the gradient in the factors' tangent basis carried to Xs (:meth:`recheck`)."""
         pg = self.assemble(theta, Xs, pf, data, "grad")
         dec, steps, g = 0.0, [], pg.gc.copy()
-        for (F, Y, Z, coupled), G in zip(factors, pg.G):
+        for fi, ((F, Y, Z, coupled), G) in enumerate(zip(factors, pg.G)):
+            if Z is not None:
+                Z = self._carried(fi, Z, Xs[fi])
+                G = np.einsum("rmk,rm->rk", Z, G)
             y = F.lower(G[:, :, None].copy())
             dec += float(np.einsum("ijk,ijk->", y, y))
             step = -F.upper(y.copy())[:, :, 0]
+            if Z is not None:
+                step = np.einsum("rmk,rk->rm", Z, step)
             if coupled:  # Y = L^-1 H_mθ: g - Y^T L^-1 G
                 g -= Y.T @ y.reshape(-1)
             else:  # Y = H_mθ: g - H_θm H^-1 G
@@ -1435,11 +1441,9 @@ class Projection:
         Xs = self.predict(theta, pf) if self._anchor is not None else self._X0
         anchor = self._anchor
         self._anchor = self._factors = self._lazy = None  # as large as the coupling: freed before the next ones
-        # the gradient alone with an earlier point's factors: not for unit-norm rows (their tangent
-        # basis moves with the step, and the coupling kept is in the earlier basis)
+        # the gradient alone with an earlier point's factors (:meth:`_grad_first`)
         shortcut = self.shortcut
-        if grad_first and not hessian and shortcut and not any(f.unit for f in self.fams) \
-                and self._last_dec <= self.grad_first_dec \
+        if grad_first and not hessian and shortcut and self._last_dec <= self.grad_first_dec \
                 and anchor is not None and anchor[2] is not None:
             out = self._grad_first(theta, Xs, pf, data, [(*f, anchor[3]) for f in anchor[2]], key)
             if out is not None:
