@@ -405,11 +405,18 @@ class DynamicProblem:
         prev, nxt = _neighbours(data.n)
         wd, s = values[OMEGA_DOT], values[S]
         inv_span = 1.0 / (data.t[nxt] - data.t[prev]) if data.n > 1 else np.zeros(data.n)
-        F = _rate_function(jit).map(data.n)
-        both = lambda i: np.hstack([wd[i], s[i]]).T  # noqa: E731
-        # the motion is the same for every triad: converted to CasADi once (half the time of a call)
-        motion = [ca.DM(np.ascontiguousarray(a)) for a in (values[OMEGA].T, wd.T, both(prev), both(nxt), inv_span[None])]
-        acc = {n: np.asarray(F(T, values[f"{n}.position"], *motion)).T for n, (T, _) in self.calibration(values).items()}
+        # one call per triad over all samples (T and r shared: CasADi's MapSum), in place: the
+        # motion's (N, k) rows are the columns of CasADi's column-major (k, N) inputs
+        buf, run = _rate_function(jit).map(data.n, [True, True] + [False] * 5, [False]).buffer()
+        motion = [np.ascontiguousarray(a, float) for a in (values[OMEGA], wd, np.hstack([wd[prev], s[prev]]),
+                                                           np.hstack([wd[nxt], s[nxt]]), inv_span)]
+        for i, a in enumerate(motion, start=2):
+            buf.set_arg(i, memoryview(a))
+        acc = {}
+        for n, (T, _) in self.calibration(values).items():
+            Tc, r, acc[n] = np.asfortranarray(T, float), np.ascontiguousarray(values[f"{n}.position"], float), np.empty((data.n, 3))
+            buf.set_arg(0, memoryview(Tc.ravel(order="K"))), buf.set_arg(1, memoryview(r)), buf.set_res(0, memoryview(acc[n]))
+            run()
         gyro = {n: wd @ T.T for n, (T, _) in self.gyro_calibration(values).items()}
         return acc, gyro
 
