@@ -414,8 +414,12 @@ class DynamicProblem:
             buf.set_arg(i, memoryview(a))
         acc = {}
         for n, (T, _) in self.calibration(values).items():
-            Tc, r, acc[n] = np.asfortranarray(T, float), np.ascontiguousarray(values[f"{n}.position"], float), np.empty((data.n, 3))
-            buf.set_arg(0, memoryview(Tc.ravel(order="K"))), buf.set_arg(1, memoryview(r)), buf.set_res(0, memoryview(acc[n]))
+            Tc = np.asarray(T, float).ravel(order="F")  # column-major, as CasADi stores a 3 x 3
+            r = np.ascontiguousarray(values[f"{n}.position"], float)
+            acc[n] = np.empty((data.n, 3))
+            for i, a in enumerate((Tc, r)):
+                buf.set_arg(i, memoryview(a))
+            buf.set_res(0, memoryview(acc[n]))
             run()
         gyro = {n: wd @ T.T for n, (T, _) in self.gyro_calibration(values).items()}
         return acc, gyro

@@ -1244,16 +1244,22 @@ class Projection:
         _, prepared = self._pending
         dec, steps, ys, Zs = 0.0, [], [], []
         for fi, ((F, _, Z), G) in enumerate(zip(prepared, grad.G)):
-            if Z is not None:
-                Z = self._carried(fi, Z, Xs[fi])
-                G = np.einsum("rmk,rm->rk", Z, G)
-            y = F.lower(G[:, :, None].copy())
+            y, step, Z = self._earlier_factors_step(fi, F, Z, G, Xs[fi])
             dec += float(np.einsum("ijk,ijk->", y, y))
-            step = -F.upper(y.copy())[:, :, 0]
-            steps.append(step if Z is None else np.einsum("rmk,rk->rm", Z, step))
-            ys.append(y), Zs.append(Z)
+            steps.append(step), ys.append(y), Zs.append(Z)
         self._recheck = ys, Zs
         return dec, steps
+
+    def _earlier_factors_step(self, fi, F, Z, G, X):
+        """(y = L⁻¹ G, the Newton step −H⁻¹ G, the tangent basis used) of family fi's gradient G at
+        X by the factors F of an earlier point (tangent basis Z there): unit-norm rows take G in Z
+        carried to X (:meth:`_carried`), and the step comes back to the stage variables."""
+        if Z is not None:
+            Z = self._carried(fi, Z, X)
+            G = np.einsum("rmk,rm->rk", Z, G)
+        y = F.lower(G[:, :, None].copy())
+        step = -F.upper(y.copy())[:, :, 0]
+        return y, step if Z is None else np.einsum("rmk,rk->rm", Z, step), Z
 
     def _carried(self, fi, Z, X):
         """The tangent basis Z (R, m, m') of family fi's unit-norm rows carried to X (scaled): its
@@ -1412,18 +1418,12 @@ class Projection:
         coupling of the previous point (as the Newton-point shortcut does): when the prediction is
         converged there, φ and ∇φ need no Hessian, and the full evaluation is left to a request for
         the Hessian (IPOPT makes none at its last iterate). None if the decrement is above inner_tol.
-        Unit-norm rows take the gradient in the factors' tangent basis carried to Xs (:meth:`recheck`)."""
+        Unit-norm rows take the gradient in the factors' tangent basis carried to Xs."""
         pg = self.assemble(theta, Xs, pf, data, "grad")
         dec, steps, g = 0.0, [], pg.gc.copy()
         for fi, ((F, Y, Z, coupled), G) in enumerate(zip(factors, pg.G)):
-            if Z is not None:
-                Z = self._carried(fi, Z, Xs[fi])
-                G = np.einsum("rmk,rm->rk", Z, G)
-            y = F.lower(G[:, :, None].copy())
+            y, step, _ = self._earlier_factors_step(fi, F, Z, G, Xs[fi])
             dec += float(np.einsum("ijk,ijk->", y, y))
-            step = -F.upper(y.copy())[:, :, 0]
-            if Z is not None:
-                step = np.einsum("rmk,rk->rm", Z, step)
             if coupled:  # Y = L^-1 H_mθ: g - Y^T L^-1 G
                 g -= Y.T @ y.reshape(-1)
             else:  # Y = H_mθ: g - H_θm H^-1 G
@@ -1442,8 +1442,7 @@ class Projection:
         anchor = self._anchor
         self._anchor = self._factors = self._lazy = None  # as large as the coupling: freed before the next ones
         # the gradient alone with an earlier point's factors (:meth:`_grad_first`)
-        shortcut = self.shortcut
-        if grad_first and not hessian and shortcut and self._last_dec <= self.grad_first_dec \
+        if grad_first and not hessian and self.shortcut and self._last_dec <= self.grad_first_dec \
                 and anchor is not None and anchor[2] is not None:
             out = self._grad_first(theta, Xs, pf, data, [(*f, anchor[3]) for f in anchor[2]], key)
             if out is not None:
@@ -1476,7 +1475,7 @@ class Projection:
             # (with the factors of the step), and the Hessian from the previous point (the
             # Schur complement one Newton step of the nuisance earlier: IPOPT's model, not its
             # stopping test, sees the difference)
-            near = shortcut and dec <= self.shortcut_dec * (1.0 + abs(parts.f))
+            near = self.shortcut and dec <= self.shortcut_dec * (1.0 + abs(parts.f))
             pg = self.assemble(theta, Xs, pf, data, "grad") if near else None
             chk = self.recheck(pg, Xs) if near else None
             if chk is not None and pg.f <= prev[1] and chk[0] <= self.inner_tol * (1.0 + abs(pg.f)):
