@@ -349,8 +349,12 @@ def _hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None,
     Jm = sp.csr_matrix((data[plan["left"]], plan["Jm"][0], plan["Jm"][1]), shape=plan["Jm"][2])
     Jm.has_canonical_format = True  # its index arrays are the plan's: never sorted in place
     Jt_data = data[~plan["left"]]
-    Hmm = (Jm.T @ Jm).tocsc()
-    N, m, pad = plan["N"], plan["m"], plan["pad"]
+    N, m, pad, c = plan["N"], plan["m"], plan["pad"], plan["c"]
+    # H_mm and H_mθ (coupled columns, flat (N·m, c)): two sparse products, side by side on worker
+    # threads with threads > 1 (scipy's release Python's lock)
+    Jc = sp.csr_matrix((Jt_data[plan["Jc"][0]], plan["Jc"][1], plan["Jc"][2]), shape=(Jm.shape[0], c))
+    Hmm, Hmt = map_threads(lambda k: (Jm.T @ Jm).tocsc() if k == 0 else
+                           (Jm.T.tocsr() @ Jc).toarray(out=_buffer(plan, "Hmt", (N * m, c))), range(2), threads)
     if pad is not None:
         # rows that read samples n-1..n+1 (sample-age effects' central differences) couple stages w
         # apart: super-stages of w samples are block-tridiagonal again, padded with decoupled unit
@@ -360,17 +364,15 @@ def _hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None,
     span = 2 if C.any() and N > 1 else 1  # independent stages (no row reads two): span 1
     if span != plan["span"]:  # stages coupled by exactly cancelling values only: the plan made for this span
         plan = _structure(J, stages, rows, cache, span)
-    first, n_all, c, coupled = plan["first"], Jm.shape[0], plan["c"], plan["coupled"]
+    first, n_all, coupled = plan["first"], Jm.shape[0], plan["coupled"]
     # each row's values v on its first stage (its smallest column; any for a row that reads none) and the next
     V = _buffer(plan, "V", (n_all, span * m))
     V.ravel()[plan["V"]] = Jm.data
     groups = [(idx, cols, Jt_data[at], ci, used, sel, fs) for idx, cols, at, ci, used, sel, fs in plan["groups"]]
-    # H_θθ summed pattern by pattern; H_mθ (coupled columns, flat (N·m, c)) as one sparse product
+    # H_θθ summed pattern by pattern
     S = np.zeros((len(theta), len(theta)))
     for idx, cols, t, *_ in groups:
         S[np.ix_(cols, cols)] += t.T @ t
-    Jc = sp.csr_matrix((Jt_data[plan["Jc"][0]], plan["Jc"][1], plan["Jc"][2]), shape=(n_all, c))
-    Hmt = (Jm.T.tocsr() @ Jc).toarray(out=_buffer(plan, "Hmt", (N * m, c)))
     if span == 1:
         Sd = _stage_inverse(A)
         B = np.matmul(Sd, Hmt.reshape(N, m, c), out=_buffer(plan, "B", (N, m, c))).reshape(N * m, c)
