@@ -391,9 +391,25 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+#: The arguments that name a file or directory (argparse's dest -> how the usage names it).
+PATH_ARGUMENTS = {"problem": "PROBLEM", "scenario": "SCENARIO", "results": "RESULTS", "data": "DATA",
+                  "directory": "DIR", "source": "SOURCE", "template": "TEMPLATE", "recordings": "RECORDINGS",
+                  "plan": "PLAN", "gyro": "--gyro", "output": "-o"}
+
+
+def check_path_arguments(args) -> None:
+    """Refuse an empty path argument: Path("") is the current directory, so `-o ""` wrote results.json
+    (and `simulate` its data) into whatever directory the command ran in."""
+    for dest, name in PATH_ARGUMENTS.items():
+        v = getattr(args, dest, None)
+        if "" in (v if isinstance(v, list) else [v]):
+            raise InputError(name, "", "expected a path, found an empty string")
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
+        check_path_arguments(args)
         return args.func(args)
     except CastimateError as e:
         print(f"castimate {args.verb}: error: {e}", file=sys.stderr)

@@ -1,5 +1,6 @@
 """The command line: descriptions, --version, report -o, apply with an imu_tk gyroscope file."""
 
+import os
 import shutil
 from pathlib import Path
 
@@ -67,3 +68,17 @@ def test_apply_reads_the_imutk_gyroscope_file(shared_data, tmp_path, capsys):
     assert "no gyroscope readings (imutk: pass --gyro FILE)" in capsys.readouterr().err
     lines = (tmp_path / "b.csv").read_text().split("\n")
     assert lines[1] == "t,imu.ax,imu.ay,imu.az" and len(lines) > 1000
+
+
+def test_empty_path_arguments_are_refused(tmp_path, monkeypatch, capsys):
+    """Path("") is the current directory: `castimate solve P -o ""` wrote results.json and details.npz
+    into the directory the command ran in, `simulate -o ""` its data and problem."""
+    monkeypatch.chdir(tmp_path)
+    for argv, name in ((["solve", str(ROOT / "problems" / "xsens_imutk.yaml"), "-o", ""], "-o"),
+                       (["simulate", "", "-o", "x"], "SCENARIO"),
+                       (["report", str(tmp_path), "-o", ""], "-o"),
+                       (["apply", str(XSENS_RESULTS), "", "-o", "o.csv"], "DATA"),
+                       (["batch", "t.yaml", "a.csv", "", "-o", "x"], "RECORDINGS")):
+        assert main(argv) == 2, argv
+        assert capsys.readouterr().err == f"castimate {argv[0]}: error: {name}: expected a path, found an empty string\n"
+    assert os.listdir(tmp_path) == []
