@@ -38,7 +38,7 @@ from typing import Any, Callable
 from .calibration import Calibration
 from .errors import InputError, NotConvergedError
 from .spec import ProblemSpec, load_problem, parse_problem
-from .validation import as_path
+from .validation import as_path, plain_values
 
 __all__ = ["Calibration", "InputError", "NotConvergedError", "ProblemSpec", "diagnose", "load", "solve", "write"]
 
@@ -57,7 +57,8 @@ def as_log(log: Any, function: str) -> Log | None:
 
 def load(source: Problem, base_dir: str | Path = ".") -> ProblemSpec:
     """A validated problem from a YAML file, or from a dict with the file's content (relative data
-    paths then count from ``base_dir``). A ProblemSpec is returned as it is.
+    paths then count from ``base_dir``; numpy arrays and tuples count as lists, numpy scalars as
+    numbers). A ProblemSpec is returned as it is.
 
     >>> import castimate
     >>> castimate.load("problems/xsens_imutk.yaml").kind
@@ -75,6 +76,7 @@ def load(source: Problem, base_dir: str | Path = ".") -> ProblemSpec:
         return source
     if isinstance(source, dict):
         base = as_path(base_dir, "castimate.load", "base_dir", "a directory path")
+        source = plain_values(source, base / "<dict>")  # numpy arrays and tuples as the lists of a YAML file
         spec = parse_problem(source, base / "<dict>")  # first: a key that is not a string is named there
         text = json.dumps(source, sort_keys=True, default=str)
         return replace(spec, sha256=hashlib.sha256(text.encode()).hexdigest())

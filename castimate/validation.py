@@ -143,10 +143,33 @@ MAX_INT_DIGITS = 30
 
 
 def as_path(v: Any, function: str, argument: str, expected: str = "a path") -> Path:
-    """An API argument as a Path; a value that is not a path is a TypeError naming the argument."""
+    """An API argument as a Path; a value that is not a path is a TypeError naming the argument, an
+    empty string an InputError (``Path("")`` is the current directory: ``castimate.write(outcome, "")``
+    wrote results.json there)."""
     if not isinstance(v, (str, os.PathLike)):
         raise TypeError(f"{function}: {argument}: expected {expected}, found {type(v).__name__} {shown(v)}")
+    if isinstance(v, str) and not v:
+        raise InputError(function, argument, f"expected {expected}, found an empty string")
     return Path(v)
+
+
+def plain_values(v: Any, source: object, where: str = "", depth: int = 1) -> Any:
+    """A problem given as a Python dict, with the values a YAML file holds: numpy arrays as (nested)
+    lists, numpy scalars as Python ones, tuples as lists. The checks compare values with names
+    (``v == "auto"``, ``v in ("free", "fixed")``), which an array answers element by element:
+    ``noise: {accelerometer: np.array([...])}`` raised numpy's "truth value of an array is
+    ambiguous". Nested at most :data:`MAX_YAML_DEPTH` deep, as a YAML file (a dict holding itself is
+    refused by that too)."""
+    if depth > MAX_YAML_DEPTH:
+        raise InputError(source, where, f"expected mappings and lists nested at most {MAX_YAML_DEPTH} deep, "
+                                        "found deeper nesting")
+    if isinstance(v, dict):
+        return {k: plain_values(x, source, f"{where}.{k}" if where else str(k), depth + 1) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [plain_values(x, source, f"{where}[{i}]", depth + 1) for i, x in enumerate(v)]
+    if isinstance(v, (np.ndarray, np.generic)):
+        return plain_values(v.tolist(), source, where, depth)
+    return v
 
 
 def input_file(path: str | os.PathLike, what: str = "file", source: object = None, where: str = "") -> os.stat_result:

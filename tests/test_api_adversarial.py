@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 
 import numpy as np
 import pytest
@@ -174,6 +175,46 @@ def test_load_accepts_paths_in_a_dict(tmp_path):
     assert spec.data.path == (tmp_path / "d.csv").resolve()
 
 
+def test_load_takes_numpy_values_and_tuples_as_lists(tmp_path):
+    """A dict built in Python may hold numpy arrays, numpy scalars and tuples: they count as the lists and
+    numbers of a YAML file. An array where a name or number goes raised numpy's "truth value of an array
+    with more than one element is ambiguous" from the checks' comparisons (v == "auto")."""
+    from castimate.io.readers import write_csv
+    from castimate.io.recording import Recording
+
+    t = np.arange(20) * 0.01
+    write_csv(tmp_path / "d.csv", Recording(t=t, acc={n: np.tile([0, 0, 9.81], (20, 1)) for n in "ab"}, gyro={},
+                                            source="x"))
+
+    def doc(**noise):
+        return {"kind": "dynamic_array", "data": {"path": "d.csv", "format": "csv", "time_range": (0.0, np.float32(0.5))},
+                "array": {"reference": "a", "triads": ({"name": "a"}, {"name": np.str_("b"),
+                                                                       "position": np.array([0.01, 0.0, 0.0])})},
+                "noise": {"accelerometer": np.float64(0.01), **noise}}
+    spec = castimate.load(doc(), base_dir=tmp_path)
+    assert spec.data.time_range == (0.0, 0.5) and spec.array.names == ["a", "b"]
+    np.testing.assert_array_equal(spec.array.triads[1].position, [0.01, 0.0, 0.0])
+    for value, found in ((np.array([0.01, 0.02]), "[0.01, 0.02]"), (np.array(["auto", "auto"]), "['auto', 'auto']")):
+        with pytest.raises(castimate.InputError, match=rf"<dict>: noise.gyroscope: expected a positive finite number, "
+                                                       rf"found {re.escape(found)}$"):
+            castimate.load(doc(gyroscope=value), base_dir=tmp_path)
+    loop = doc()
+    loop["model"] = {"triads": loop}
+    with pytest.raises(castimate.InputError, match="<dict>: model.triads.model.triads.*: expected mappings and lists "
+                                                   "nested at most 32 deep"):
+        castimate.load(loop, base_dir=tmp_path)
+
+
+def test_empty_paths_are_refused():
+    """Path("") is the current directory: castimate.write(outcome, "") wrote results.json and details.npz there."""
+    for call, names in ((lambda: castimate.load(""), "castimate.load: source: expected a problem file path, a dict or a "
+                                                     "ProblemSpec, found an empty string"),
+                        (lambda: Calibration.read(""), "Calibration.read: path: expected the path of a results.json, "
+                                                       "found an empty string")):
+        with pytest.raises(castimate.InputError, match=names):
+            call()
+
+
 def test_write_is_staged_and_spares_inputs(tmp_path, monkeypatch):
     """castimate.write refuses an output slot that is a directory or an input, and a failure while
     writing leaves nothing behind."""
@@ -183,6 +224,9 @@ def test_write_is_staged_and_spares_inputs(tmp_path, monkeypatch):
     p = tmp_path / "sim"
     assert main(["simulate", str(_scenario(tmp_path)), "-o", str(p)]) == 0
     outcome = castimate.solve(p / "problem.yaml")
+    with pytest.raises(castimate.InputError, match="castimate.write: directory: expected a directory path, found an "
+                                                   "empty string"):
+        castimate.write(outcome, "")
     (tmp_path / "out" / "results.json").mkdir(parents=True)
     with pytest.raises(castimate.InputError, match="results.json: directory: is a directory"):
         castimate.write(outcome, tmp_path / "out")
