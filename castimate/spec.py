@@ -272,6 +272,9 @@ def parse_problem(raw: Any, path: Path, sha256: str = "") -> ProblemSpec:
                                       "data.sections (indices into the whole table); remove this key")
     if data.static_range is not None and kind != "dynamic_array":
         c.fail("data.static", f"a static phase beside the dynamic one is for kind dynamic_array, not {kind}")
+    if "saturation" in top["data"] and kind != "dynamic_array":
+        c.fail("data.saturation", f"masks of readings on an ADC rail are for kind dynamic_array; kind {kind} "
+                                  "would ignore them (a clipped channel is refused instead): remove this key")
     array = _array(c, top["array"])
     if kind == "ferraris" and len(array.triads) > 1:
         c.fail("array.triads", f"the Ferraris protocol calibrates one IMU; found {len(array.triads)} triads")

@@ -172,6 +172,9 @@ SPEC_CASES = [
     ("missing_array", {"array": DELETE}, "(top level)", "missing required key 'array'"),
     ("unknown_kind", {"kind": "dynamic_arrray"}, "kind", "expected one of static_array, dynamic_array, ferraris, found 'dynamic_arrray'"),
     ("motion_for_static", {"motion": {"sigma_omega_dot": 1.0}}, "motion", "not used by kind static_array"),
+    # ignored by the static kind before: 0.001 m/s^2 "masked" every reading and the solve reported success
+    ("saturation_for_static", {"data.saturation": {"accelerometer": 0.001}}, "data.saturation",
+     "masks of readings on an ADC rail are for kind dynamic_array; kind static_array would ignore them"),
     # data
     ("data_not_mapping", {"data": "data.csv"}, "data", "expected a mapping, found str 'data.csv'"),
     ("unknown_data_key", {"data.pth": "x.csv"}, "data.pth", "unknown key; expected one of detection, format"),
