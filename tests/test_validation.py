@@ -846,7 +846,11 @@ def test_scenario_effect_errors(tmp_path, edits, where, found):
      "a gyroscope effect needs gyroscope: true"),
     ({"effects": {"accelerometer.time_offset": "realistic"}}, "effects.accelerometer.time_offset",
      "was retired: a chip's constant sample age is accelerometer.age"),
-], ids=["too_few_imus", "static_effect_in_dynamic_scenario", "gyro_effect_without_gyro", "retired_time_offset"])
+    # a ZeroDivisionError in chip_clock before
+    ({"effects": {"accelerometer.clock_beat": 0}}, "effects.accelerometer.clock_beat",
+     "expected the chips' sampling period, a positive number of seconds, or realistic (0.001 s), found 0"),
+], ids=["too_few_imus", "static_effect_in_dynamic_scenario", "gyro_effect_without_gyro", "retired_time_offset",
+        "clock_beat_zero"])
 def test_dynamic_scenario_effect_errors(tmp_path, edits, where, found):
     p = write_yaml(tmp_path / "scenario.yaml", {"kind": "dynamic_array", "geometry": "carlsson", "samples": 50, **edits})
     expect_error(lambda: simulate_scenario(p, tmp_path / "out"), p, where, found)

@@ -153,6 +153,9 @@ def _effects(c: Check, s: dict, gyro: bool, realistic: dict[str, float] = REALIS
         out[k] = realistic[k] if v == "realistic" else c.number(v, f"effects.{k}", hi=1e3)
         if out[k] < 0:
             c.fail(f"effects.{k}", f"expected a magnitude >= 0 or realistic, found {v}")
+        if k == "accelerometer.clock_beat" and out[k] == 0:  # the chips' sampling period (chip_clock)
+            c.fail(f"effects.{k}", f"expected the chips' sampling period, a positive number of seconds, or realistic "
+                                   f"({realistic[k]:g} s), found {v}")
     return out
 
 
