@@ -1061,8 +1061,16 @@ def report_dir_is_a_file(base, tmp):
 
 @case("vague")
 def codegen_start_beyond_data(base, tmp):
-    return Spec(["codegen", str(base / "dyn" / "problem.yaml"), "-o", str(tmp / "out"), "--window", "50",
-                 "--start", "1000000"], 2, ("--start", "200"))
+    p = problem_in(base, tmp, "dyn", lambda d: d.update(motion={"process_model": False}))  # the C solver's motion
+    return Spec(["codegen", str(p), "-o", str(tmp / "out"), "--window", "50", "--start", "1000000"], 2,
+                ("--start", "200"))
+
+
+@case("traceback")
+def codegen_window_of_one_sample_with_a_process_model(base, tmp):
+    """An internal LinAlgError from the reference solve's covariance (the nuisance variables not determined)."""
+    return Spec(["codegen", str(base / "dyn" / "problem.yaml"), "-o", str(tmp / "out"), "--window", "1"], 2,
+                ("problem.yaml", "motion.process_model", "expected process_model: false, found true"))
 
 
 @case("vague")

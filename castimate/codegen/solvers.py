@@ -102,9 +102,10 @@ def reference(spec, options: CodegenOptions = CodegenOptions(), log=lambda m: No
     if spec.data.static_range is not None:
         raise InputError(spec.path, "data.static", "the C solver covers the dynamic phase alone; "
                          "remove data.static (joint static-plus-dynamic problems are not emitted)")
-    if options.motion_only and spec.motion.process_model:
-        raise InputError(spec.path, "motion.process_model", "the motion estimator treats every sample on its own "
-                         "(Carlsson 2017); expected process_model: false, found true")
+    if spec.kind == DYNAMIC and spec.motion.process_model:  # before the reference solve, which may fail first
+        raise InputError(spec.path, "motion.process_model", "a process model couples every sample to the next, and "
+                         "the C solver treats every sample on its own (Carlsson 2017); expected process_model: false, "
+                         "found true")
     coupled = sample_coupling_effects(spec)
     if coupled:
         raise InputError(spec.path, "model", f"{', '.join(coupled)} take{'s' if len(coupled) == 1 else ''} the reading's "
