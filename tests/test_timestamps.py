@@ -133,6 +133,10 @@ def test_counter_repairs_a_stuck_and_a_jumping_clock():
 @pytest.mark.parametrize("stamps, kw, found", [
     (np.concatenate([np.arange(200), np.arange(200, 400) - 101]) / 100.0, {},
      "time runs backwards by 1.01 s at line 202 (0.99 after 1.99 on line 201; 100 Hz)"),
+    # a duplicated row: "time runs backwards by 0.01 s at line 102 (0.99 after 0.99 on line 101)" before
+    (np.insert(np.arange(200) / 100.0, 100, 0.99), {},
+     "time repeats 0.99 (on line 101 and line 102) and the stamps after it fall 0.01 s behind those before (100 Hz): "
+     "a duplicated row? expected increasing time"),
     (np.zeros(20), {}, "expected increasing time, found stamps that do not advance (0.0 to 0.0 over 20 rows)"),
     (np.array([0.0, 1.0, 1.0]), {}, ("expected strictly increasing time, found 1.0 at line 4 after 1.0 at line 3 "
                                      "(with 3 rows, too few to repair")),

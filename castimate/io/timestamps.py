@@ -170,6 +170,10 @@ def _sample_numbers(t: np.ndarray, period: float, declared: bool, source: str, c
         before = np.median(level[max(a0, k + 1 - LEVEL_WINDOW):k + 1])
         after = np.median(level[k + 1:min(b1, k + 1 + LEVEL_WINDOW)])
         m = int(np.round((after - before) / period))
+        if m < 0 and t[k + 1] == t[k]:  # "runs backwards by 0.02 s (1.2 after 1.2)" said it before
+            raise InputError(source, column, f"time repeats {float(t[k])!r} (on {row_label(k)} and {row_label(k + 1)}) "
+                                             f"and the stamps after it fall {-(after - before):.6g} s behind those "
+                                             f"before ({1 / period:.6g} Hz): a duplicated row? expected increasing time")
         if m < 0:
             raise InputError(source, column, f"time runs backwards by {-(after - before):.6g} s at {row_label(k + 1)} "
                                              f"({float(t[k + 1])!r} after {float(t[k])!r} on {row_label(k)}; "
