@@ -94,3 +94,57 @@ def test_fitted_estimates_outside_their_physical_range_are_refused(tmp_path):
         text = str(err.value)
         assert "data.csv" in text and column in text and f"at {found}, outside its physical range" in text, text
         assert "\n" not in text
+
+
+def test_gyroscope_bias_beyond_one_rad_per_s_is_refused_naming_the_worst_triad(tmp_path):
+    """A dynamic fit of data with one triad's gyroscope read with reversed sign (a simulated 4-IMU board, all
+    three axes of imu11 negated) converged with χ²/dof 1.04 and reported success, positions 5σ (13-21 mm)
+    off: it explained the rates by gyroscope biases of 7 rad/s (σ 0.6) on every triad and 40 rad/s (σ 7.9)
+    on imu11, inside the old range (±100 rad/s). The range is now ±1 rad/s; a value outside it by more than
+    5 of its σ's is refused, naming the component furthest outside (significant or not). A 1 s session
+    fits biases of 1.1 rad/s with σ 0.6: kept."""
+    from types import SimpleNamespace
+
+    from castimate.kinds.static import check_estimates
+
+    spec = SimpleNamespace(data=SimpleNamespace(path=tmp_path / "data.csv"))
+    names = ["imu1", "imu11"]
+    fine = {f"{n}.gyroscope.bias": np.array([0.09, -0.05, 0.03]) for n in names}
+    check_estimates(spec, fine, names)
+    short = {f"{n}.gyroscope.bias": np.array([1.106, -0.639, -0.924]) for n in names}
+    check_estimates(spec, short, names, {k: np.array([0.6, 0.32, 0.34]) for k in short})
+    with pytest.raises(InputError, match=r"imu1.gx: the fit puts the gyroscope bias \(x\) at 1.106, outside"):
+        check_estimates(spec, short, names)  # without σ's: the range alone
+    with pytest.raises(InputError, match=r"imu1.gx: the fit puts the gyroscope gain \(x\) at -7.5e\+08 \(σ 1e\+09\)"):
+        check_estimates(spec, {"imu1.gyroscope.gain": np.array([-7.5e8, 1.0, 1.0])}, names,
+                        {"imu1.gyroscope.gain": np.array([1e9, 0.01, 0.01])})  # further out than the range is wide
+    bad = {"imu1.gyroscope.bias": np.array([-0.217, 7.399, 5.163]), "imu11.gyroscope.bias": np.array([1.7, -39.68, -28.6])}
+    std = {"imu1.gyroscope.bias": np.array([0.6, 0.6, 0.9]), "imu11.gyroscope.bias": np.array([2.0, 7.9, 6.0])}
+    with pytest.raises(InputError, match=r"data.csv: imu11.gy: the fit puts the gyroscope bias \(y\) at -39.68 \(σ 7.9\), "
+                                         r"outside its physical range -1 to 1: the data contradict the model \(an axis "
+                                         r"read with reversed sign, mislabelled poses or wrong units\)$"):
+        check_estimates(spec, bad, names, std)
+
+
+def test_positions_mirrored_through_the_reference_are_refused(tmp_path):
+    """Accelerometers read with reversed sign (every axis, e.g. a negative data.units scale) fit exactly with
+    every position mirrored: a simulated 4-IMU board solved so with χ²/dof 1.05, success, 1500σ off."""
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    from castimate.kinds.dynamic import check_mirrored
+
+    spec = SimpleNamespace(path=Path(tmp_path / "problem.yaml"))
+    nominal = {"imu1": np.zeros(3), "imu11": np.array([0.0126, 0.0126, 0.0]), "imu22": np.array([0.0063, 0.0063, -0.002]),
+               "imu32": np.array([0.0189, 0.0189, -0.002])}
+    names = list(nominal)
+    fitted = {f"{n}.position": r + 1e-3 for n, r in nominal.items()}
+    check_mirrored(spec, fitted, nominal, names)
+    check_mirrored(spec, {**fitted, "imu22.position": -nominal["imu22"]}, nominal, names)  # one of three: the median holds
+    mirrored = {f"{n}.position": -r + 1e-4 for n, r in nominal.items()}
+    with pytest.raises(InputError, match=r"problem.yaml: array.triads: the fit puts the triads opposite their nominal "
+                                         r"positions \(median cosine between estimated and nominal position -1.00 over 3 "
+                                         r"triads; imu\d+ at \[.*\] mm, nominal \[.*\] mm\): the data contradict the problem "
+                                         r"\(accelerometers read with reversed sign, e.g. a negative data.units scale, or "
+                                         r"nominal positions in another frame\)$"):
+        check_mirrored(spec, mirrored, nominal, names)

@@ -115,10 +115,22 @@ def check_temperature(spec: ProblemSpec, logged: set[str]) -> None:
                              f"needs a logged temperature, but {spec.data.path.name} has none for triad {missing[0]!r}")
 
 
-def check_estimates(spec: ProblemSpec, values: dict, names: list[str]) -> None:
+#: A fitted value counts as outside its physical range when it is outside by more than this many of its σ's
+#: (where the fit has them), or by more than the range's width whatever its σ (a gyroscope gain of 7.5e8 comes
+#: with a σ as absurd); the component furthest outside is named, significant or not. A 1 s Carlsson session
+#: (100 samples) fits gyroscope biases of 0 rad/s with σ 0.3-0.6 rad/s, 1.1 rad/s in 2 of 30 noise draws; a
+#: gyroscope read with reversed sign put them 5.7-11 σ out on a 2 s one.
+RANGE_SIGMAS = 5.0
+
+
+def check_estimates(spec: ProblemSpec, values: dict, names: list[str], std: dict | None = None) -> None:
     """Refuse a converged fit whose gain, angle or effect lies outside its physical range
-    (``GroupDef.physical_range``): the data contradict the model, e.g. an axis read with reversed sign.
-    Keys are ``triad.sensor.group`` or, for a dynamic problem's positions, ``triad.position``."""
+    (``GroupDef.physical_range``; with ``std``, the groups' σ's, by more than :data:`RANGE_SIGMAS` of
+    its σ or by the range's width): the data contradict the model, e.g. an axis read with reversed sign.
+    Keys are ``triad.sensor.group`` or, for a dynamic problem's positions, ``triad.position``. The
+    component furthest outside its range (in range widths) is named: with one triad's gyroscope read
+    with reversed sign, every triad's gyroscope bias left the range, that triad's most (40 against 7 rad/s)."""
+    worst, refused = None, False  # worst: (how far outside, in range widths; column; message)
     for name in names:
         for key, v in values.items():
             parts = key.split(".")
@@ -130,17 +142,26 @@ def check_estimates(spec: ProblemSpec, values: dict, names: list[str]) -> None:
                 continue
             lo, hi = gdef.physical_range()
             v = np.ravel(v)
-            bad = (v < lo) | (v > hi) if v.shape == lo.shape else np.zeros(v.shape, bool)
-            if bad.any():
-                i = int(np.argmax(bad))
-                axis = gdef.components[i]
-                reading = axis in "xyz" and sensor in ("accelerometer", "gyroscope")
-                column = f"{name}.{'a' if sensor == 'accelerometer' else 'g'}{axis}" if reading else name
-                what = f"{sensor} {group}" if sensor != group else group
-                raise InputError(spec.data.path, column,
-                                 f"the fit puts the {what} ({axis}) at {v[i]:.4g}, outside its physical "
-                                 f"range {lo[i]:g} to {hi[i]:g}: the data contradict the model (an axis read with "
-                                 "reversed sign, mislabelled poses or wrong units)")
+            if v.shape != lo.shape:
+                continue
+            sigma = np.ravel((std or {}).get(key, np.zeros(v.shape))).astype(float)
+            sigma = np.where(np.isfinite(sigma), sigma, 0.0) if sigma.shape == v.shape else np.zeros(v.shape)
+            excess = np.nan_to_num(np.maximum(lo - v, v - hi), nan=-np.inf)
+            refused |= bool(np.any((excess > RANGE_SIGMAS * sigma) | (excess > hi - lo)))
+            i = int(np.argmax(excess / (hi - lo)))
+            if excess[i] <= 0 or (worst is not None and excess[i] / (hi[i] - lo[i]) <= worst[0]):
+                continue
+            axis = gdef.components[i]
+            reading = axis in "xyz" and sensor in ("accelerometer", "gyroscope")
+            column = f"{name}.{'a' if sensor == 'accelerometer' else 'g'}{axis}" if reading else name
+            what = f"{sensor} {group}" if sensor != group else group
+            sd = f" (σ {sigma[i]:.2g})" if sigma[i] > 0 else ""
+            worst = (excess[i] / (hi[i] - lo[i]), column,
+                     f"the fit puts the {what} ({axis}) at {v[i]:.4g}{sd}, outside its physical range {lo[i]:g} to "
+                     f"{hi[i]:g}: the data contradict the model (an axis read with reversed sign, mislabelled poses or "
+                     "wrong units)")
+    if refused:
+        raise InputError(spec.data.path, worst[1], worst[2])
 
 
 def gyroscopes_read(spec: ProblemSpec, rec: Recording) -> list[str]:
@@ -460,7 +481,7 @@ def solve_static(spec: ProblemSpec, data: StaticData, problem: StaticProblem, no
     sol = solver.solve()
     if not sol.success:
         raise NotConvergedError(f"{spec.path}: IPOPT did not converge: {sol.message} after {sol.iterations} iterations")
-    check_estimates(spec, sol.values, problem.config.names)
+    check_estimates(spec, sol.values, problem.config.names, sol.std)
     cal, gcal = problem.calibration(sol.values), problem.gyro_calibration(sol.values)
     P = avg.n_poses
     names = config.names + problem.gyro_triads

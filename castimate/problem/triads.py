@@ -26,9 +26,13 @@ ACCELEROMETER_GROUPS = {
     "nonorthogonality": GroupDef(tri.NONORTHOGONALITY_COMPONENTS, (0.0, 0.0, 0.0), 1e-2, "rad", limits=ANGLE_RANGE),
     "misalignment": GroupDef(XYZ, (0.0, 0.0, 0.0), 1e-2, "rad", limits=ANGLE_RANGE),
 }
+#: A gyroscope's zero-rate offset, rad/s: consumer MEMS datasheets give at most 20-40 °/s (MPU-9150 ±20,
+#: L3GD20 ±25); ±1 rad/s (57 °/s) leaves room. Beyond it the gyroscope was read with reversed sign or in wrong
+#: units: a dynamic fit of a gyroscope read with reversed sign explained the rates by biases of 2-40 rad/s.
+GYRO_BIAS_RANGE = (-1.0, 1.0)
 GYROSCOPE_GROUPS = {
     "gain": GroupDef(XYZ, (1.0, 1.0, 1.0), 1.0, "-", limits=GAIN_RANGE),
-    "bias": GroupDef(XYZ, (0.0, 0.0, 0.0), 1e-2, "rad/s"),
+    "bias": GroupDef(XYZ, (0.0, 0.0, 0.0), 1e-2, "rad/s", limits=GYRO_BIAS_RANGE),
     "misalignment": GroupDef(XYZ, (0.0, 0.0, 0.0), 1e-2, "rad", limits=ANGLE_RANGE),
 }
 #: Misalignment as a full rotation: a unit quaternion with |q|^2 = 1.
