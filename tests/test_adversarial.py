@@ -1282,6 +1282,9 @@ FERRARIS_SECTIONS = {
     "face_on_a_turn": (lambda s: s.update(y_p=dict(s["x_rot"])), ("y_p",)),
     "turns_swapped": (_swap("x_rot", "y_rot"), ("x_rot",)),
     "turn_without_rotation": (lambda s: s.update(z_rot=dict(s["z_p"])), ("z_rot",)),
+    # both silently accepted before: an extra label ignored, a face averaged over its neighbour's samples too
+    "unknown_label": (lambda s: s.update(w_p={"start": 0, "end": 10}), ("w_p", "unknown section")),
+    "overlapping": (lambda s: s["x_a"].update(start=s["x_p"]["end"] - 50), ("x_a", "overlap x_p")),
 }
 for _name, (_edit, _names) in FERRARIS_SECTIONS.items():
     CASES.append(Case(f"ferraris_sections_{_name}", "ferraris", _sections_edit(_edit, _names)))

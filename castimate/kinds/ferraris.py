@@ -4,6 +4,7 @@ faces, integrate the turns, solve (castimate.problem.ferraris)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import pairwise
 
 import numpy as np
 
@@ -33,12 +34,22 @@ def ferraris_sections(spec: ProblemSpec, n_samples: int) -> dict[str, tuple[int,
     """The labelled sample ranges of the faces and turns, checked against the recording."""
     path = spec.data.sections
     sections = read_sections(path)
-    for label in (*FACES, *TURNS):
+    labels = (*FACES, *TURNS)
+    for label in sections:  # an unknown label was ignored: a misspelt or extra section, silently
+        if label not in labels:
+            raise InputError(path, label, f"unknown section; the Ferraris protocol's are {', '.join(labels)}")
+    for label in labels:
         if label not in sections:
             raise InputError(path, label, f"missing section; the Ferraris protocol needs {', '.join((*FACES, *TURNS))}")
         if sections[label][1] > n_samples:
             raise InputError(path, f"{label}.end", f"expected at most {n_samples} (the recording's samples), "
                                                    f"found {sections[label][1]}")
+    # overlapping sections were each averaged or integrated over the other's samples too, silently
+    (a, (a0, a1)), (b, (b0, b1)) = min(pairwise(sorted(sections.items(), key=lambda kv: kv[1])),
+                                       key=lambda p: p[1][1][0] - p[0][1][1])
+    if b0 < a1:
+        raise InputError(path, b, f"samples {b0} to {b1} overlap {a} ({a0} to {a1}; end exclusive); expected "
+                                  "sections apart")
     return sections
 
 
