@@ -97,9 +97,12 @@ def solve(problem: Problem, log: Log | None = None):
     True
     """
     from .kinds import calibrate
+    from .solver.ipopt import solve_settings
 
     log = as_log(log, "castimate.solve")  # before the work, not deep inside the solve
-    return calibrate(load(problem), log)
+    spec = load(problem)
+    with solve_settings():  # as the CLI's: one BLAS thread, freed memory kept, ...
+        return calibrate(spec, log)
 
 
 def write(outcome, directory: str | Path) -> Path:

@@ -37,17 +37,17 @@ def cmd_solve(args) -> int:
     from .io.atomic import StagedOutput
     from .kinds import calibrate
     from .output import write_outputs
-    from .solver.ipopt import heap_allocation
+    from .solver.ipopt import solve_settings
     from .spec import load_problem
 
     out = Path(args.output)
     spec = load_problem(args.problem)
     log = _progress(args)
     # refused up front (a file where the directory goes, an input in the way), written only on success;
-    # freed memory kept on the heap throughout (heap_allocation): fresh pages cost system time
+    # the process's settings for solving throughout (solve_settings: freed memory kept on the heap)
     # a report.html of earlier results there goes (castimate report renders the new ones)
     with StagedOutput(out, names=("results.json", "details.npz"), inputs=spec.inputs, stale=("report.html",)) \
-            as stage, heap_allocation():
+            as stage, solve_settings():
         summary = write_outputs(stage, calibrate(spec, log))
     print(summary)
     print(f"wrote {out / 'results.json'}")

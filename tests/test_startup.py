@@ -67,8 +67,8 @@ class FakeLibc:
         self.calls.append(("malloc_trim", pad))
 
 
-def test_nested_heap_allocation_leaves_the_defaults_to_the_outermost(monkeypatch):
-    """``castimate solve`` holds heap_allocation over the calibration and a full-NLP solve opens its
+def test_nested_solve_settings_leaves_the_defaults_to_the_outermost(monkeypatch):
+    """``castimate solve`` holds solve_settings over the calibration and a full-NLP solve opens its
     own inside: glibc's options are set once at the outer entry and restored (and the heap trimmed)
     only at the outer exit, also when the inner block raises."""
     libc = FakeLibc()
@@ -76,14 +76,81 @@ def test_nested_heap_allocation_leaves_the_defaults_to_the_outermost(monkeypatch
     on = [("mallopt", ipopt._M_MMAP_MAX, 0), ("mallopt", ipopt._M_TRIM_THRESHOLD, 2**31 - 1)]
     off = [("mallopt", ipopt._M_MMAP_MAX, 65536), ("mallopt", ipopt._M_TRIM_THRESHOLD, 128 * 1024),
            ("malloc_trim", 0)]
-    with ipopt.heap_allocation():
+    with ipopt.solve_settings():
         assert libc.calls == on
-        with pytest.raises(RuntimeError), ipopt.heap_allocation():
+        with pytest.raises(RuntimeError), ipopt.solve_settings():
             raise RuntimeError("a failed solve")
-        with ipopt.heap_allocation():
+        with ipopt.solve_settings():
             pass
         assert libc.calls == on
     assert libc.calls == on + off
-    with ipopt.heap_allocation():  # a later block sets them again
+    with ipopt.solve_settings():  # a later block sets them again
         pass
     assert libc.calls == on + off + on + off
+
+
+def test_solve_settings_turns_numpys_huge_page_advice_off_and_restores_it(monkeypatch):
+    """NumPy's huge-page advice for large arrays is off inside the outermost block (also when a
+    nested one raises) and back to what it was afterwards, whatever that was; left alone where the
+    user chose it (NUMPY_MADVISE_HUGEPAGE set)."""
+    state = {"on": True}
+
+    def switch(enabled):
+        previous, state["on"] = state["on"], bool(enabled)
+        return previous
+
+    monkeypatch.setattr(ipopt, "_numpy_hugepage", switch)
+    monkeypatch.delenv("NUMPY_MADVISE_HUGEPAGE", raising=False)
+    for before in (True, False):
+        state["on"] = before
+        with ipopt.solve_settings():
+            assert not state["on"]
+            with pytest.raises(RuntimeError), ipopt.solve_settings():
+                raise RuntimeError("a failed solve")
+            assert not state["on"]
+        assert state["on"] == before
+    monkeypatch.setenv("NUMPY_MADVISE_HUGEPAGE", "1")  # the user's choice stands
+    state["on"] = True
+    with ipopt.solve_settings():
+        assert state["on"]
+
+
+def test_numpys_huge_page_switch_is_found_and_left_as_it_was(monkeypatch):
+    """The installed NumPy has the switch (else solve_settings would leave its advice on), and a
+    real block leaves its setting as it found it."""
+    switch = ipopt._numpy_hugepage
+    assert switch is not None
+    monkeypatch.delenv("NUMPY_MADVISE_HUGEPAGE", raising=False)
+    before = switch(True)  # the switch returns the previous setting
+    try:
+        with ipopt.solve_settings():
+            assert switch(False) is False  # off inside
+        assert switch(True) is True
+    finally:
+        switch(before)
+
+
+def test_solve_settings_run_every_openblas_on_one_thread_and_restore_them(monkeypatch):
+    """Every OpenBLAS library loaded (CasADi's, NumPy's, SciPy's) runs on one thread inside the
+    outermost block and on its earlier count afterwards; a count the user chose by the environment
+    stays as it is. Found by name in this process: at least NumPy's and SciPy's are loaded here."""
+    import scipy.linalg  # noqa: F401 - loads SciPy's OpenBLAS
+
+    controls = ipopt._openblas_controls()
+    assert len(controls) >= 2
+    for v in ("OPENBLAS_NUM_THREADS", "GOTO_NUM_THREADS", "OMP_NUM_THREADS"):
+        monkeypatch.delenv(v, raising=False)
+    before = [get() for get, _ in controls]
+    try:
+        for _, put in controls:
+            put(2)
+        counts = [get() for get, _ in controls]  # 2, or what OpenBLAS allows on this machine
+        with ipopt.solve_settings():
+            assert [get() for get, _ in controls] == [1] * len(controls)
+        assert [get() for get, _ in controls] == counts
+        monkeypatch.setenv("OPENBLAS_NUM_THREADS", "2")
+        with ipopt.solve_settings():
+            assert [get() for get, _ in controls] == counts
+    finally:
+        for (_, put), n in zip(controls, before):
+            put(n)

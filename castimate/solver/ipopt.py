@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import functools
+import os
 import platform
 import sys
 import time
@@ -342,7 +343,7 @@ class Solver:
         cov = self.options.covariance if covariance is None else covariance
         if self.projection is not None:  # no MUMPS factor storage to keep: glibc's defaults fragment less
             return self._solve(x0, p_fixed, data, lam_g0, cov, settle, warm)
-        with heap_allocation():
+        with solve_settings():
             return self._solve(x0, p_fixed, data, lam_g0, cov, settle, warm)
 
     def _solve(self, x0, p_fixed, data, lam_g0, with_covariance: bool, settle=None, warm=False) -> Solution:
@@ -515,35 +516,115 @@ class Stall(ca.Callback):
 
 
 @contextlib.contextmanager
-def heap_allocation():
-    """Serve large allocations from the heap and keep freed memory, for the duration of a solve
-    (glibc only; elsewhere nothing changes). MUMPS allocates and frees its factor storage at every
-    factorisation; by glibc's default every block above 32 MB is a fresh mmap whose pages the
-    kernel zeroes on first touch. On the joint MIMU4444 problem that was 10 s of system time in 24 s
-    of IPOPT search directions (31 s -> 19 s per solve), and 32 x 20 000 went from 16.9 s to 14.3 s
-    with the same peak memory. Afterwards glibc's defaults are restored and the heap is trimmed.
-    Nested blocks (``castimate solve`` holds one around the whole calibration) leave that to the outermost."""
-    libc = _glibc()
-    if libc is None or _HEAP_DEPTH[0]:
-        _HEAP_DEPTH[0] += 1
+def solve_settings():
+    """The process's settings for the duration of a solve, each restored afterwards; nested blocks
+    (``castimate solve`` and :func:`castimate.solve` hold one around the whole calibration) leave
+    them to the outermost. The same settings serve the calibration from Python as from the CLI.
+
+    - Large allocations served from the heap, freed memory kept (where glibc is the C library).
+      MUMPS allocates and frees its factor storage at every factorisation; by glibc's default every
+      block above 32 MB is a fresh mmap whose pages the kernel zeroes on first touch. On the joint
+      MIMU4444 problem that was 10 s of system time in 24 s of IPOPT search directions (31 s -> 19 s
+      per solve), and 32 x 20 000 went from 16.9 s to 14.3 s with the same peak memory. Afterwards
+      the heap is trimmed.
+    - No advice of transparent huge pages for NumPy's large arrays (``madvise(MADV_HUGEPAGE)``, on by
+      default on Linux), unless the user chose (``NUMPY_MADVISE_HUGEPAGE`` set, as the CLI does for
+      its whole process). On a virtual machine that returns freed memory to its host (the 2-core VM
+      of the benchmarks: a balloon's free-page reporting) a huge page's first touch is the host's
+      too: there 1 GiB of np.ones took 3.8-4.1 s with the advice and 0.74-0.76 s without, and
+      MIMU4444 exp_1 joint through the CLI 12.5-13.4 s (3.4-3.9 s system time) with
+      NUMPY_MADVISE_HUGEPAGE=1 against 11.0-11.5 s (1.3-1.6 s) with 0, the same user time.
+    - One thread in each OpenBLAS library loaded (CasADi's, NumPy's and SciPy's bundle their own),
+      unless the user chose (``OPENBLAS_NUM_THREADS``, ``GOTO_NUM_THREADS`` or ``OMP_NUM_THREADS``
+      set, as the CLI does): castimate's threads are its own (``solver.threads``), and its dense
+      kernels are small (the CLI's reasons, at the top of :mod:`castimate.cli`)."""
+    if _DEPTH[0]:
+        _DEPTH[0] += 1
         try:
             yield
         finally:
-            _HEAP_DEPTH[0] -= 1
+            _DEPTH[0] -= 1
         return
-    libc.mallopt(_M_MMAP_MAX, 0)
-    libc.mallopt(_M_TRIM_THRESHOLD, 2**31 - 1)
-    _HEAP_DEPTH[0] = 1
+    restore = [_heap(), _numpy_hugepage_off(), _one_blas_thread()]
+    _DEPTH[0] = 1
     try:
         yield
     finally:
-        _HEAP_DEPTH[0] = 0
+        _DEPTH[0] = 0
+        for undo in restore:
+            undo()
+
+
+_DEPTH = [0]  # open solve_settings blocks (one thread of control sets the process's options)
+
+
+def _heap():
+    """glibc: large blocks from the heap, freed memory kept; returns what restores the defaults."""
+    libc = _glibc()
+    if libc is None:
+        return lambda: None
+    libc.mallopt(_M_MMAP_MAX, 0)
+    libc.mallopt(_M_TRIM_THRESHOLD, 2**31 - 1)
+
+    def undo():
         libc.mallopt(_M_MMAP_MAX, 65536)
         libc.mallopt(_M_TRIM_THRESHOLD, 128 * 1024)
         libc.malloc_trim(0)
+    return undo
 
 
-_HEAP_DEPTH = [0]  # open heap_allocation blocks (one thread of control sets glibc's options)
+try:  # NumPy's switch of its huge-page advice (returns the previous setting); NumPy < 2: numpy.core
+    from numpy._core.multiarray import _set_madvise_hugepage as _numpy_hugepage
+except ImportError:  # pragma: no cover - depends on the NumPy version
+    try:
+        from numpy.core.multiarray import _set_madvise_hugepage as _numpy_hugepage
+    except ImportError:
+        _numpy_hugepage = None
+
+
+def _numpy_hugepage_off():
+    """NumPy's huge-page advice off unless the user chose; returns what restores it."""
+    if _numpy_hugepage is None or os.environ.get("NUMPY_MADVISE_HUGEPAGE") is not None:
+        return lambda: None
+    before = _numpy_hugepage(False)
+    return lambda: _numpy_hugepage(before)
+
+
+def _one_blas_thread():
+    """One thread in every OpenBLAS library loaded, unless the user chose; returns what restores
+    their counts."""
+    if any(os.environ.get(v) is not None for v in ("OPENBLAS_NUM_THREADS", "GOTO_NUM_THREADS", "OMP_NUM_THREADS")):
+        return lambda: None
+    controls = _openblas_controls()
+    before = [get() for get, _ in controls]
+    for _, put in controls:
+        put(1)
+    return lambda: [put(n) for (_, put), n in zip(controls, before)]
+
+
+def _openblas_controls() -> list:
+    """(get, set) of the thread count of every OpenBLAS library this process has loaded, found by
+    file name in /proc/self/maps and by the names they export (``openblas_set_num_threads``,
+    SciPy's ``scipy_openblas_...``, NumPy's 64-bit ``..._num_threads64_``); none elsewhere."""
+    try:
+        with open("/proc/self/maps") as f:
+            paths = sorted({ln.split()[-1] for ln in f if "openblas" in ln.rsplit("/", 1)[-1].lower() and "/" in ln})
+    except OSError:
+        return []
+    out = []
+    for path in paths:
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for prefix, suffix in (("openblas", ""), ("scipy_openblas", ""), ("scipy_openblas", "64_"), ("openblas", "64_")):
+            get = getattr(lib, f"{prefix}_get_num_threads{suffix}", None)
+            put = getattr(lib, f"{prefix}_set_num_threads{suffix}", None)
+            if get is not None and put is not None:
+                get.restype, put.argtypes = ctypes.c_int, [ctypes.c_int]
+                out.append((get, put))
+                break
+    return out
 
 
 _M_TRIM_THRESHOLD, _M_MMAP_MAX = -1, -4  # glibc's mallopt parameters

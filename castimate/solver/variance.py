@@ -321,12 +321,12 @@ def hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None, 
     the patterns, the rows by stage) is kept in ``cache`` (a dict the caller keeps) for the next call
     with the same structure, stages and rows: the noise model's rounds.
 
-    Large freed blocks are kept on the heap meanwhile (:func:`castimate.solver.ipopt.heap_allocation`):
+    Large freed blocks are kept on the heap meanwhile (:func:`castimate.solver.ipopt.solve_settings`):
     its arrays of a few 10 MB would otherwise come as fresh pages from the kernel, zeroed on first
     touch (on MIMU4444 exp_1 joint up to as much system time as user time, about 1 s a call).
     """
-    from .ipopt import heap_allocation
-    with heap_allocation():
+    from .ipopt import solve_settings
+    with solve_settings():
         return _hat_diagonal(J, G, stages, rows, cache, threads)
 
 
