@@ -94,6 +94,8 @@ def check_results(doc: dict, path: str | Path, require_success: bool = True) -> 
             if not isinstance(t[sensor], dict):
                 raise InputError(path, w, f"expected a mapping {{T, b}}, found {t[sensor]!r}")
             try:
+                if _has_bool(t[sensor].get("T")) or _has_bool(t[sensor].get("b")):  # JSON true is no number
+                    raise TypeError
                 T, b = np.asarray(t[sensor].get("T"), float), np.asarray(t[sensor].get("b"), float)
             except (TypeError, ValueError):
                 raise InputError(path, w, f"expected T 3x3 and b of 3 numbers, found T={t[sensor].get('T')!r} "
@@ -110,6 +112,11 @@ def check_results(doc: dict, path: str | Path, require_success: bool = True) -> 
 
 #: Largest results.json read, bytes.
 MAX_RESULTS_BYTES = 64 << 20
+
+
+def _has_bool(v) -> bool:
+    """Whether a JSON value holds true or false, in nested lists at any depth (numpy reads them as 1 and 0)."""
+    return isinstance(v, bool) or (isinstance(v, list) and any(_has_bool(x) for x in v))
 
 
 def _numbers(c: Check, v, where: str, shape: tuple[int, ...] | None = None, nullable: bool = False) -> np.ndarray:
