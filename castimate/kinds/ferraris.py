@@ -40,7 +40,7 @@ def ferraris_sections(spec: ProblemSpec, n_samples: int) -> dict[str, tuple[int,
             raise InputError(path, label, f"unknown section; the Ferraris protocol's are {', '.join(labels)}")
     for label in labels:
         if label not in sections:
-            raise InputError(path, label, f"missing section; the Ferraris protocol needs {', '.join((*FACES, *TURNS))}")
+            raise InputError(path, label, f"missing section; the Ferraris protocol needs {', '.join(labels)}")
         if sections[label][1] > n_samples:
             raise InputError(path, f"{label}.end", f"expected at most {n_samples} (the recording's samples), "
                                                    f"found {sections[label][1]}")

@@ -1186,13 +1186,17 @@ class Projection:
         if not fam.unit:
             return None, []
         N = np.zeros((fam.R, fam.m, len(fam.unit)))
-        grads = []
-        for u, (pos, _) in enumerate(fam.unit):
-            a = 2 * X[:, pos] * fam.scale[pos] ** 2
+        grads = self._constraint_gradients(fi, X)
+        for u, (pos, a) in enumerate(grads):
             N[:, pos, u] = a
-            grads.append((pos, a))
         U = np.linalg.svd(N, full_matrices=True)[0]
         return U[:, :, len(fam.unit):], grads
+
+    def _constraint_gradients(self, fi, X):
+        """[(positions, a (R, k))]: the gradient 2 x scale² of each unit-norm row group of family fi
+        at X (scaled)."""
+        fam = self.fams[fi]
+        return [(pos, 2 * X[:, pos] * fam.scale[pos] ** 2) for pos, _ in fam.unit]
 
     def eliminate(self, parts, Xs, pf, coupling: bool, curvature: bool, damping: float = 0.0,
                   limit: float = np.inf, gauss_newton: bool = False):
@@ -1266,11 +1270,9 @@ class Projection:
         projection onto the tangent space there, which moves with X as continuously as X (a basis
         of its own, :meth:`_tangent`'s, may turn within the tangent space); within the order of the
         step of Z. The rows' groups share no positions: projected one at a time."""
-        fam = self.fams[fi]
-        for pos, _ in fam.unit:
-            n = X[:, pos] * fam.scale[pos] ** 2  # the constraint gradient's direction
+        Z = Z.copy()
+        for pos, n in self._constraint_gradients(fi, X):
             Zp = Z[:, pos, :]
-            Z = Z.copy()
             Z[:, pos, :] = Zp - n[:, :, None] * (np.einsum("rk,rka->ra", n, Zp) / np.einsum("rk,rk->r", n, n)[:, None])[:, None, :]
         return Z
 
