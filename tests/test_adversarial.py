@@ -744,11 +744,38 @@ def dynamic_gyro_in_deg_declared_rad(base, tmp):
 
 @case("silent")
 def dynamic_accelerometers_negative_units_scale(base, tmp):
-    """Every accelerometer read with reversed sign: the fit mirrored every position through the reference
-    triad (χ²/dof 1.05, success, 1500σ from the truth)."""
+    """Every accelerometer read with reversed sign by a negative data.units scale: the fit mirrored every
+    position through the reference triad (χ²/dof 1.05, success, 1500σ from the truth); refused when read,
+    as in the static kind (a static fit cannot see it)."""
     p = problem_in(base, tmp, "dyn", lambda d: d["data"].update(units={"accelerometer": {"unit": "counts", "scale": -1.0}}))
     return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2,
+                ("problem.yaml", "data.units.accelerometer.scale", "expected a positive scale", "found -1.0"))
+
+
+@case("silent")
+def dynamic_accelerometers_negated_columns(base, tmp):
+    """Every accelerometer column negated in the data file: the fit mirrors every position (check_mirrored)."""
+    rec = read_csv(base / "dyn" / "data.csv")
+    p = with_data(base, tmp, edited(rec, acc={n: -a for n, a in rec.acc.items()}), problem=problem_doc(base, "dyn"))
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2,
                 ("problem.yaml", "array.triads", "opposite their nominal positions", "reversed sign"))
+
+
+@case("silent")
+def static_accelerometers_negative_units_scale(base, tmp):
+    """A negative data.units scale mirrors every triad, which static poses cannot show: the fit had the same
+    χ²/dof (0.987), positive gains and success, with every pose direction and the calibration reflected."""
+    p = problem_in(base, tmp, "rows", lambda d: d["data"].update(units={"accelerometer": {"unit": "counts", "scale": -1.0}}))
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2,
+                ("problem.yaml", "data.units.accelerometer.scale", "expected a positive scale", "found -1.0"))
+
+
+@case("silent")
+def static_gyroscope_negative_units_scale_one_axis(base, tmp):
+    p = problem_in(base, tmp, "static", lambda d: d["data"].update(
+        units={"gyroscope": {"unit": "counts", "scale": [1.0, -1.0, 1.0]}}))
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2,
+                ("problem.yaml", "data.units.gyroscope.scale", "expected a positive scale", "found [1.0, -1.0, 1.0]"))
 
 
 @case("silent")

@@ -77,6 +77,11 @@ class TestUnits:
         # (168 - 4) / 16.4 = 10 deg/s
         np.testing.assert_allclose(c.to_si(np.array([[168, 4, -160]])), [[10, 0, -10]] * np.array(math.pi / 180))
 
+    def test_counts_temperature_counting_down(self):
+        # a sensor whose counts fall as it warms (an NTC): a negative scale mirrors no triad, so it is kept
+        c = self.conv({"unit": "counts", "scale": -0.5, "offset": 600, "scale_unit": "degC"}, "temperature")
+        np.testing.assert_allclose(c.to_si(np.array([560.0])), [293.15], rtol=1e-14)
+
     def test_counts_temperature_degC(self):
         c = self.conv({"unit": "counts", "scale": 0.5, "offset": 10, "scale_unit": "degC"}, "temperature")
         # (50 - 10) * 0.5 = 20 degC = 293.15 K
@@ -126,6 +131,8 @@ class TestUnits:
             ({"unit": "g", "scale": 1}, "accelerometer", "data.units.x.unit", "'g'"),
             ({"unit": "counts", "offset": 1}, "accelerometer", "data.units.x.scale", "missing"),
             ({"unit": "counts", "scale": 0}, "accelerometer", "data.units.x.scale", "non-zero"),
+            ({"unit": "counts", "scale": -1e-3}, "accelerometer", "data.units.x.scale", "positive scale (per axis), found -0.001"),
+            ({"unit": "counts", "scale": [1, 1, -1]}, "gyroscope", "data.units.x.scale", "positive scale (per axis), found [1, 1, -1]"),
             ({"unit": "counts", "scale": [1, 2]}, "accelerometer", "data.units.x.scale", "list of 2"),
             ({"unit": "counts", "scale": [1, "a", 2]}, "accelerometer", "data.units.x.scale[1]", "'a'"),
             ({"unit": "counts", "scale": True}, "accelerometer", "data.units.x.scale", "True"),

@@ -127,8 +127,8 @@ def test_gyroscope_bias_beyond_one_rad_per_s_is_refused_naming_the_worst_triad(t
 
 
 def test_positions_mirrored_through_the_reference_are_refused(tmp_path):
-    """Accelerometers read with reversed sign (every axis, e.g. a negative data.units scale) fit exactly with
-    every position mirrored: a simulated 4-IMU board solved so with χ²/dof 1.05, success, 1500σ off."""
+    """Accelerometers read with reversed sign (every axis: the data's columns negated) fit exactly with every
+    position mirrored: a simulated 4-IMU board solved so with χ²/dof 1.05, success, 1500σ off."""
     from pathlib import Path
     from types import SimpleNamespace
 
@@ -145,6 +145,6 @@ def test_positions_mirrored_through_the_reference_are_refused(tmp_path):
     with pytest.raises(InputError, match=r"problem.yaml: array.triads: the fit puts the triads opposite their nominal "
                                          r"positions \(median cosine between estimated and nominal position -1.00 over 3 "
                                          r"triads; imu\d+ at \[.*\] mm, nominal \[.*\] mm\): the data contradict the problem "
-                                         r"\(accelerometers read with reversed sign, e.g. a negative data.units scale, or "
-                                         r"nominal positions in another frame\)$"):
+                                         r"\(accelerometers read with reversed sign, or nominal positions in another "
+                                         r"frame\)$"):
         check_mirrored(spec, mirrored, nominal, names)

@@ -8,7 +8,7 @@ import pytest
 from castimate.errors import InputError
 from castimate.io.mimu import INT16_RAILS
 from castimate.io.recording import Recording
-from castimate.io.units import declared_rails, parse_units
+from castimate.io.units import UnitConversion, declared_rails, parse_units
 from castimate.prepare.masks import SaturationOptions, plateau_rails, saturation_mask
 
 #: MPU9150 gyroscope at ±2000 °/s: 16.4 counts per °/s, in rad/s per count.
@@ -87,9 +87,10 @@ def test_plateaus_are_found_at_each_extreme_separately():
 
 def test_rails_from_the_readers():
     # MIMU packets are int16 whatever the declared scale: the rails are −32768 and +32767 counts, converted.
-    conv = parse_units({"unit": "counts", "scale": -0.5, "offset": 10}, "p.yaml", "u", "accelerometer")
+    # (count - 10) * -0.5: a negative scale swaps the rails (a problem file cannot declare one, parse_units
+    # refuses it; a conversion made in code can)
+    conv = UnitConversion("accelerometer", np.full(3, -0.5), np.full(3, 10.0))
     r = declared_rails(type(conv)(conv.quantity, conv.scale, conv.offset, rails=INT16_RAILS), None, ["a"], [])
-    # (count - 10) * -0.5: a negative scale swaps the rails
     np.testing.assert_array_equal(r["accelerometer"]["a"], [[(32767 - 10) * -0.5] * 3, [(-32768 - 10) * -0.5] * 3])
     assert "gyroscope" not in r
     # a counts declaration with rails (an unsigned 16-bit converter), the offset and scale per axis

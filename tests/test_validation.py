@@ -193,6 +193,11 @@ SPEC_CASES = [
     ("bad_acc_unit", {"data.units.accelerometer": "furlongs"}, "data.units.accelerometer",
      "unknown accelerometer unit 'furlongs'"),
     ("bad_gyro_unit", {"data.units.gyroscope": "m/s^2"}, "data.units.gyroscope", "'m/s^2'"),
+    # a negative scale mirrors every triad's axis, which a static fit cannot see (same χ²/dof, positive gains)
+    ("acc_scale_negative", {"data.units.accelerometer": {"unit": "counts", "scale": -0.001, "offset": 0}},
+     "data.units.accelerometer.scale", "expected a positive scale (per axis), found -0.001: a negative one reverses"),
+    ("gyro_scale_one_axis_negative", {"data.units.gyroscope": {"unit": "counts", "scale": [0.001, -0.001, 0.001]}},
+     "data.units.gyroscope.scale", "expected a positive scale (per axis), found [0.001, -0.001, 0.001]"),
     ("time_range_three", {"data.time_range": [0, 5, 10]}, "data.time_range",
      "expected [start, end] in seconds, found [0, 5, 10]"),
     ("time_range_scalar", {"data.time_range": 5}, "data.time_range", "expected [start, end] in seconds, found 5"),

@@ -173,6 +173,18 @@ def test_process_model_settings_without_process_model(doc, tmp_path, motion, whe
     assert spec.motion.process_model and all(getattr(spec.motion, k) == v for k, v in motion.items())
 
 
+@pytest.mark.parametrize("sensor, scale", [("accelerometer", -1.0), ("gyroscope", [1.0, 1.0, -1.0])])
+def test_negative_units_scale(doc, tmp_path, sensor, scale):
+    """A negative data.units scale is refused when the problem is read, as for the static kind (one check,
+    castimate.io.units.parse_units): it mirrors every triad, which a static fit cannot see, and which the
+    dynamic fit showed only after solving, by a consequence: the positions mirrored (accelerometers), or a
+    gyroscope bias out of range on another axis (every z axis reversed: imu11.gy at 7.4 rad/s, σ 0.77)."""
+    doc["data"]["units"] = {sensor: {"unit": "counts", "scale": scale}}
+    p = write(tmp_path / "p.yaml", doc)
+    expect_error(lambda: load_problem(p), p, f"data.units.{sensor}.scale",
+                 f"expected a positive scale (per axis), found {scale!r}: a negative one reverses that axis of every triad")
+
+
 # ============================================================================ results.json regressors
 
 

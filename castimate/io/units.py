@@ -7,7 +7,9 @@ problem file, either as a plain unit name or as a raw-counts mapping::
     gyroscope: {unit: counts, scale: 0.0609756, offset: [0, 0, 0], scale_unit: deg/s}
 
 A counts mapping means ``SI = (counts - offset) * scale * (scale_unit in SI)``. Both ``scale``
-and ``offset`` may be one number or one per axis (a list of three). :func:`parse_units` turns
+and ``offset`` may be one number or one per axis (a list of three); ``scale`` is positive (a negative
+one would mirror every triad: the mounting belongs in the problem's ``array.triads[].rotation``;
+temperature may count down). :func:`parse_units` turns
 either form into a :class:`UnitConversion`, which always has the normalised form
 ``SI = (raw - offset) * scale`` with ``scale`` and ``offset`` of shape (3,). An optional
 ``rails: [lowest, highest]`` declares the converter's range in counts (e.g. [0, 65535]), so that the
@@ -295,7 +297,7 @@ def parse_units(spec: UnitSpec, source: object, where: str, quantity: str) -> Un
     ------
     InputError
         Unknown unit names, a unit of another quantity, missing ``scale``, unknown keys,
-        non-numeric, non-finite or zero scales, or per-axis lists of the wrong length.
+        non-numeric, non-finite or zero scales, negative accelerometer or gyroscope scales, or per-axis lists of the wrong length.
     """
     if quantity not in QUANTITIES:
         raise InputError(source, where, f"unknown quantity {quantity!r}; expected one of {', '.join(QUANTITIES)}")
@@ -335,6 +337,15 @@ def parse_units(spec: UnitSpec, source: object, where: str, quantity: str) -> Un
         scale = _per_axis(spec["scale"], quantity, source, f"{where}.scale")
         if np.any(scale == 0.0):
             raise InputError(source, f"{where}.scale", f"expected non-zero scale, found {spec['scale']!r}")
+        if quantity != "temperature" and np.any(scale < 0.0):
+            # A negative scale reverses that axis of every triad: with one or three, a mirrored (left-handed)
+            # triad, which a static fit cannot tell from the true one (the gravity norm and every pose's
+            # direction are blind to a reflection of the whole array: a simulated 3-triad session fitted
+            # scale -1 with the same χ²/dof, 0.987, and positive gains); no sensor format needs one, and how
+            # a triad is mounted is array.triads[].rotation. (A temperature sensor may count down: NTC.)
+            raise InputError(source, f"{where}.scale", f"expected a positive scale (per axis), found {spec['scale']!r}: "
+                             "a negative one reverses that axis of every triad (a mirrored triad fits static poses "
+                             "as well as the true one); give how a triad is mounted in array.triads[].rotation")
         offset = (
             _per_axis(spec["offset"], quantity, source, f"{where}.offset")
             if "offset" in spec

@@ -213,9 +213,10 @@ def minimum_checks(config: DynamicConfig, values: dict, nominal: dict[str, np.nd
 def check_mirrored(spec: ProblemSpec, values: dict, nominal: dict[str, np.ndarray], names: list[str]) -> None:
     """Refuse a converged fit that puts the triads on the other side of the reference triad from their
     nominal positions (the median over the triads of the cosine between estimated and nominal position
-    below 0): the data contradict the problem. Accelerometers read with reversed sign (every axis: a
-    negative ``data.units`` scale) fit exactly with every position mirrored: a simulated 4-IMU board
-    solved so with χ²/dof 1.05 and reported success, each position 1500σ from the truth."""
+    below 0): the data contradict the problem. Accelerometers read with reversed sign (every axis: the
+    data's columns negated; a negative ``data.units`` scale is refused when the problem is read) fit exactly
+    with every position mirrored: a simulated 4-IMU board solved so with χ²/dof 1.05 and reported success,
+    each position 1500σ from the truth."""
     cos = {n: float(values[f"{n}.position"] @ nominal[n]) / (np.linalg.norm(values[f"{n}.position"]) *
                                                              np.linalg.norm(nominal[n]))
            for n in names if np.linalg.norm(nominal[n]) > 0 and np.linalg.norm(values[f"{n}.position"]) > 0}
@@ -225,8 +226,8 @@ def check_mirrored(spec: ProblemSpec, values: dict, nominal: dict[str, np.ndarra
         raise InputError(spec.path, "array.triads", f"the fit puts the triads opposite their nominal positions (median "
                          f"cosine between estimated and nominal position {np.median(list(cos.values())):+.2f} over "
                          f"{len(cos)} triads; {n} at {mm(values[f'{n}.position'])}, nominal {mm(nominal[n])}): the data "
-                         "contradict the problem (accelerometers read with reversed sign, e.g. a negative data.units "
-                         "scale, or nominal positions in another frame)")
+                         "contradict the problem (accelerometers read with reversed sign, or nominal positions in "
+                         "another frame)")
 
 
 @dataclass
