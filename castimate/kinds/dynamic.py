@@ -30,7 +30,7 @@ from ..models.rotation import rotation_to_quaternion
 from ..problem.dynamic import (OMEGA, OMEGA_DOT, DynamicConfig, DynamicData, MotionSigmas, build_dynamic,
                                build_dynamic_sigma_masked, build_joint, geometry_fixed)
 from ..spec import ProblemSpec, motion_noise_setting
-from ..problem.triads import TriadConfig, fixed_config
+from ..problem.triads import GAIN_RANGE, TriadConfig, fixed_config
 from ..problem.static import recover_nominal_rotation
 from ..prepare.poses import average_poses
 from ..prepare.detect import detect_static
@@ -228,6 +228,55 @@ def check_mirrored(spec: ProblemSpec, values: dict, nominal: dict[str, np.ndarra
                          f"{len(cos)} triads; {n} at {mm(values[f'{n}.position'])}, nominal {mm(nominal[n])}): the data "
                          "contradict the problem (accelerometers read with reversed sign, or nominal positions in "
                          "another frame)")
+
+
+#: A gyroscope axis whose readings correlate with the fit's prediction of them below this is refused as read
+#: with reversed sign. The prediction is the angular rate the fit finds from the whole array (the
+#: accelerometers, the process model, the other gyroscopes), so a reversed axis reads against it: measured,
+#: correlation -0.9998 (gain -1.03) for acc3.gx reversed in a 5-triad Schopp board with gyroscopes and the
+#: process model (675 samples, sinusoids to 10 rad/s), -0.9997 without the process model, -1.0000 (gain -2.0)
+#: for imu11.gx in a 4-IMU Carlsson board (200 samples, no motion-dependent noise; the fit's rate half the true
+#: one on that axis, from 3 gyroscopes against 1). Correct axes: +0.9997 or more on correct data (the Schopp
+#: board at 300 and 675 samples, the Carlsson board; MIMU4444 exp_1 to exp_5 dynamic and exp_1 joint, +0.9998),
+#: +0.9993 or more beside a reversed one. An axis the motion leaves alone correlates by its own noise, positively.
+REVERSED_CORRELATION = -0.5
+
+
+def check_gyroscope_signs(spec: ProblemSpec, data: DynamicData, residual_gyro: dict[str, np.ndarray],
+                          names: list[str]) -> None:
+    """Refuse a converged fit in which a gyroscope axis reads against the angular rate the fit finds (the
+    correlation of its readings with the fit's prediction of them, ``y - residual``, below
+    :data:`REVERSED_CORRELATION`): the axis reads with reversed sign. Neither the ranges of
+    :func:`check_estimates` nor :func:`check_mirrored` see it: the motion's mean rate is about zero, so no
+    bias can absorb it (0.23 ± 1 rad/s), the accelerometers keep the positions on their side, and the
+    motion-dependent noise takes the misfit (a gyroscope floor of 1.12 rad/s against 0.001), leaving
+    χ²/dof 0.85 and a lag-1 autocorrelation that correct data of the same board show too. The axis that
+    reads most against the fit is named. ``residual_gyro``: triad -> (N, 3) rad/s, NaN where masked."""
+    worst = None  # (correlation, triad, axis, gain, samples)
+    for n in names:
+        r = residual_gyro.get(n)
+        if r is None or n not in data.gyro:
+            continue
+        y = data.gyro[n]
+        for k in range(3):
+            ok = np.isfinite(r[:, k]) & np.isfinite(y[:, k])
+            if ok.sum() < 2:
+                continue
+            yk, pk = y[ok, k], y[ok, k] - r[ok, k]  # the readings and the fit's prediction of them
+            yc, pc = yk - yk.mean(), pk - pk.mean()
+            den = float(np.sqrt((yc @ yc) * (pc @ pc)))
+            if not den > 0:
+                continue
+            corr = float(yc @ pc) / den
+            if corr < REVERSED_CORRELATION and (worst is None or corr < worst[0]):
+                worst = (corr, n, "xyz"[k], float(yc @ pc) / float(pc @ pc), int(ok.sum()))
+    if worst is not None:
+        corr, n, axis, gain, m = worst
+        raise InputError(spec.data.path, f"{n}.g{axis}",
+                         f"the readings run against the angular rate the fit finds from the whole array (gain "
+                         f"{gain:+.3g}, correlation {corr:+.4f} over {m} samples), expected a positive gain "
+                         f"({GAIN_RANGE[0]:g} to {GAIN_RANGE[1]:g}): the gyroscope axis ({axis}) of {n} reads with "
+                         "reversed sign (or the triad's rotation in array.triads is wrong)")
 
 
 @dataclass
@@ -493,6 +542,7 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = quiet, max_restarts: int = 2
         check_mirrored(spec, sol.values, nominal, problem.config.names)
         cal, gcal = problem.calibration(sol.values), problem.gyro_calibration(sol.values)
         res_acc, res_gyro = measurement_residuals(problem, data, sol)
+        check_gyroscope_signs(spec, data, res_gyro, problem.config.names)
         return DynamicOutcome(spec, data, config, problem, solver, sol, attempts, sat, cal, gcal, res_acc, res_gyro,
                               nominal)
     problem, solver, sol, attempts, variance = solve_dynamic(config, data, nominal, spec.solver, spec.path,
@@ -504,6 +554,7 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = quiet, max_restarts: int = 2
     check_mirrored(spec, sol.values, nominal, problem.config.names)
     cal, gcal = problem.calibration(sol.values), problem.gyro_calibration(sol.values)
     res_acc, res_gyro = measurement_residuals(problem, data, sol)
+    check_gyroscope_signs(spec, data, res_gyro, problem.config.names)
     return DynamicOutcome(spec, data, problem.config, problem, solver, sol, attempts, sat, cal, gcal, res_acc,
                           res_gyro, nominal, variance, noise, serial)
 
