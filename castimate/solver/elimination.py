@@ -401,7 +401,9 @@ class _StageFunctions:
         self.fns, self.layout = self._functions(specs, f, inner_fn, K, nc, nd, widths, self.shared, jit)
         # without the shared part, for data whose declared-shared columns are not (built when needed)
         self._plain_args, self._plain_fns = (specs, f, inner_fn, K, nc, nd, widths, (), jit), None
-        self._buffers: dict = {}
+        self._maps: dict = {}  # (mode, stage groups, inputs) -> the map, built once for every thread
+        self._buffers: dict = {}  # the same and the thread -> a buffer of the map (arguments and work: one per thread)
+        self._lock = threading.Lock()  # the workers' first calls build the maps one after the other
         self._flat: dict = {}  # (mode, segment, stage groups) -> flat indices of a scattered target in its slab
 
     @classmethod
@@ -537,19 +539,22 @@ class _StageFunctions:
         are new arrays); ``shared``: the shared values of :meth:`shared_values` (None: the
         functions without a shared part)."""
         nJ = zs.shape[0]
-        fn = self.fns[mode]
-        if shared is None and fn.n_in() == 4:  # data without the shared columns shared (shared_values)
-            if self._plain_fns is None:
-                self._plain_fns = self._functions(*self._plain_args)[0]
-            fn = self._plain_fns[mode]
-        key = (mode, nJ, threading.get_ident(), fn.n_in())  # a buffer holds its arguments and work: one per thread
+        plain = shared is None and self.fns[mode].n_in() == 4  # data without the shared columns shared
+        key = (mode, nJ, not plain, threading.get_ident())
         if key not in self._buffers:
-            # CasADi's MapSum: zc and the shared data are one column for all stage groups, and the
-            # first output is summed in place (the named map's repmat/repsum would build and fill
-            # nJ copies of both)
-            self._buffers[key] = fn.map(nJ, [i in (0, 3) for i in range(fn.n_in())],
-                                        [o == 0 for o in range(fn.n_out())]).buffer()
-        buf, run = self._buffers[key]
+            with self._lock:
+                if plain and self._plain_fns is None:  # (shared_values)
+                    self._plain_fns = self._functions(*self._plain_args)[0]
+                fn = (self._plain_fns if plain else self.fns)[mode]
+                mapped = self._maps.get(key[:3])
+                if mapped is None:
+                    # CasADi's MapSum: zc and the shared data are one column for all stage groups, and
+                    # the first output is summed in place (the named map's repmat/repsum would build and
+                    # fill nJ copies of both)
+                    mapped = self._maps[key[:3]] = fn.map(nJ, [i in (0, 3) for i in range(fn.n_in())],
+                                                          [o == 0 for o in range(fn.n_out())])
+                self._buffers[key] = mapped, mapped.buffer()
+        fn, (buf, run) = self._buffers[key]
         _, _, _, Lr, widths = self.layout[mode]
         red = np.empty(Lr)
         outs = []
