@@ -57,19 +57,6 @@ def block_rows(solver, name: str) -> np.ndarray:
     raise KeyError(f"no factor block {name!r}")
 
 
-def _tridiagonal_blocks(H: sp.spmatrix, N: int, m: int) -> tuple[np.ndarray, np.ndarray]:
-    """Diagonal (N, m, m) and upper off-diagonal (N-1, m, m) blocks of a block-tridiagonal matrix."""
-    H = sp.coo_matrix(H)
-    bi, bj = H.row // m, H.col // m
-    if np.any(np.abs(bi - bj) > 1):
-        raise ValueError("the stage Hessian couples more than neighbouring stages")
-    A, C = np.zeros((N, m, m)), np.zeros((max(N - 1, 0), m, m))
-    d, u = bi == bj, bj == bi + 1
-    np.add.at(A, (bi[d], H.row[d] % m, H.col[d] % m), H.data[d])
-    np.add.at(C, (bi[u], H.row[u] % m, H.col[u] % m), H.data[u])
-    return A, C
-
-
 def selected_inverse(A: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The block-tridiagonal part of the inverse of a symmetric positive-definite block-tridiagonal
     matrix (diagonal blocks A (N, m, m), upper blocks C (N-1, m, m)): (Σ_nn (N, m, m), Σ_n,n+1
@@ -93,31 +80,34 @@ def selected_inverse(A: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return 0.5 * (S + S.transpose(0, 2, 1)), So
 
 
-def _factor(Hmm: sp.spmatrix, u: int):
-    """Band Cholesky of the stage Hessian, with a ridge of 1e-12 × its largest diagonal where it is
-    singular (a direction of one sample that no row reads: its leverage is then 0, not undefined).
-    Returns the (possibly regularised) matrix and the factor."""
-    H = sp.coo_matrix(Hmm)
-    up = H.row <= H.col
-    if np.any(H.col[up] - H.row[up] > u):
-        raise ValueError("the stage Hessian is wider than its band")
-    ab = np.zeros((u + 1, H.shape[0]))
-    np.add.at(ab, (u + H.row[up] - H.col[up], H.col[up]), H.data[up])
+def _band_cholesky(A: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Band Cholesky factor of the block-tridiagonal matrix of diagonal blocks A (N, m, m) and upper
+    blocks C (N-1, m, m), with a ridge of 1e-12 × its largest diagonal where it is singular (a
+    direction of one sample that no row reads: its leverage is then 0, not undefined). Returns the
+    (possibly regularised) diagonal blocks and the factor (``scipy.linalg.cholesky_banded``'s upper form)."""
+    N, m = A.shape[:2]
+    u = 2 * m - 1
+    ab = np.zeros((u + 1, N * m))
+    for a in range(m):
+        for b in range(m):
+            if b >= a:  # diagonal blocks: row n·m + a, column n·m + b
+                ab[u + a - b, b::m] = A[:, a, b]
+            ab[u - (m + b - a), m + b::m] = C[:, a, b]  # upper blocks: row n·m + a, column (n+1)·m + b
     try:
-        return Hmm, sla.cholesky_banded(ab)
+        return A, sla.cholesky_banded(ab)
     except np.linalg.LinAlgError:
         ridge = 1e-12 * max(float(ab[u].max(initial=0.0)), 1e-300)
         ab[u] += ridge
-        return (Hmm + ridge * sp.eye(Hmm.shape[0])).tocsc(), sla.cholesky_banded(ab)
+        return A + ridge * np.eye(m), sla.cholesky_banded(ab)
 
 
-#: Stages per chunk of :func:`hat_diagonal` (bounds its memory: chunk × m × n_θ floats of X and the
-#: rows that read these stages; a chunk of X stays in the processor's cache while its rows use it).
-CHUNK = 512
+#: First stages per chunk of :func:`hat_diagonal` (bounds its memory: per chunk and worker thread,
+#: two arrays of stages × rows per slot × coupled θ floats, 18 MB on MIMU4444 exp_1 joint).
+CHUNK = 256
 
 
 def _stage_inverse(A: np.ndarray) -> np.ndarray:
-    """Inverses of independent stage blocks A (N, m, m), with :func:`_factor`'s ridge where one is singular."""
+    """Inverses of independent stage blocks A (N, m, m), with :func:`_band_cholesky`'s ridge where one is singular."""
     try:
         np.linalg.cholesky(A)
     except np.linalg.LinAlgError:
@@ -177,108 +167,84 @@ def _row_patterns(Jt: sp.csr_matrix) -> list[tuple[np.ndarray, np.ndarray, np.nd
     return out
 
 
-def _halves(used: np.ndarray, m: int, span: int):
-    """The stage variables ``used`` (0 ... span·m − 1, from a row's first stage) split by stage:
-    (offset of the stage from the first, the positions in ``used``, the variables within the stage)."""
-    for k in range(span):
-        sel = np.flatnonzero(used // m == k)
-        if sel.size:
-            yield k, sel, used[sel] % m
+def _segment_reduce(ufunc, values: np.ndarray, indptr: np.ndarray, has: np.ndarray) -> np.ndarray:
+    """``ufunc`` over the segments values[indptr[i]:indptr[i+1]] of the rows with ``has`` (non-empty)."""
+    return ufunc.reduceat(values, indptr[:-1][has]) if has.any() else np.zeros(0, values.dtype)
 
 
-def _split_columns(A: sp.csr_matrix, k: int, left: np.ndarray | None = None) -> tuple[sp.csr_matrix, sp.csr_matrix]:
-    """A canonical CSR's columns < k and ≥ k (shifted by k), both canonical: a row's first entries are
-    its columns < k (the same as ``A[:, :k], A[:, k:]``, without scipy's general column slicing).
-    ``left``: ``A.indices < k`` if the caller has it."""
-    if left is None:
-        left = A.indices < k
-    at, rest = np.flatnonzero(left), np.flatnonzero(~left)
-    ptr = np.searchsorted(at, A.indptr).astype(A.indptr.dtype)  # the entries < k up to each row
-    right = A.indices[rest]
-    right -= k
-    return (sp.csr_matrix((A.data[at], A.indices[at], ptr), shape=(A.shape[0], k)),
-            sp.csr_matrix((A.data[rest], right, A.indptr - ptr), shape=(A.shape[0], A.shape[1] - k)))
+def _structure(J: sp.csr_matrix, stages: np.ndarray, cache: dict | None) -> dict:
+    """What :func:`hat_diagonal` needs of the sparsity of a canonical J (not of its values), kept in
+    ``cache`` while J's structure and the stages stay the same (the noise model's rounds):
 
-
-def _structure(J: sp.csr_matrix, stages: np.ndarray, rows, cache: dict | None, span: int | None = None) -> dict:
-    """What :func:`hat_diagonal` needs of the sparsity of a canonical J (not of its values): the
-    permutation of its entries into the stage columns then the θ columns, the stage part's CSR
-    structure, the super-stages, each row's first stage and the positions of its stage entries in
-    V, the coupled θ columns, the rows grouped by θ pattern (rows, columns, positions of their
-    entries), H_mθ's right factor and the rows wanted. Kept in ``cache`` while J's structure, the
-    stages and the rows stay the same (the noise model's rounds); ``span`` forces the stages to be
-    treated as coupled (2) or not (1), else it comes from J's structure."""
+    - the (super-)stages: N stages of m variables (super-stages of w samples where a row reads
+      samples w apart, padded with decoupled unit variables to a whole number), whether rows read two
+      neighbouring ones (``span`` 2) or one, each row's first stage;
+    - the slots: the rows that read a stage, by their first stage, R to a slot (a stage with more
+      rows takes several, one with fewer leaves some empty), each row's place in them; the stage
+      entries' places in V (slots, R, span·m) and the coupled θ entries' in T (slots, R, c), those
+      sorted, with c the θ columns that rows reading a stage also read;
+    - the θ part as a canonical CSR (J's θ entries keep their order: the θ numbering follows J's
+      columns) and its rows grouped by pattern (:func:`_row_patterns`)."""
     def same(a, b):
-        return a is b or (a is not None and b is not None and a.shape == b.shape and np.array_equal(a, b))
+        return a is b or (a.shape == b.shape and np.array_equal(a, b))
 
-    key = (J.shape, J.indptr, J.indices, stages, None if rows is None else np.asarray(rows, int).ravel())
-    if cache is not None and "plan" in cache and (span is None or cache["plan"]["span"] == span):
+    key = (J.shape, J.indptr, J.indices, stages)
+    if cache is not None and "plan" in cache:
         old = cache["key"]
         if old[0] == key[0] and all(same(a, b) for a, b in zip(old[1:], key[1:])):
             return cache["plan"]
-    N, m = stages.shape
-    mx = stages.ravel()
-    on_stage = np.zeros(J.shape[1], bool)
-    on_stage[mx] = True
-    theta = np.flatnonzero(~on_stage)
-    # the permutation of J's entries: J's entry numbers as the data of J with its columns permuted, sorted
-    # row by row (in J's index type: scipy keeps it, no copies)
-    perm = np.empty(J.shape[1], J.indices.dtype)
-    perm[mx], perm[theta] = np.arange(mx.size), mx.size + np.arange(theta.size)
-    Jp = sp.csr_matrix((np.arange(J.nnz), perm[J.indices], J.indptr.copy()), shape=J.shape)
-    Jp.sort_indices()
-    order = Jp.data
-    left = Jp.indices < mx.size
-    Jm, Jt = _split_columns(Jp, mx.size, left)
-    # each row's smallest and largest stage column (canonical: its first and last entry), if it reads one
-    reads = np.diff(Jm.indptr) > 0
-    lo, hi = Jm.indices[Jm.indptr[:-1][reads]], Jm.indices[Jm.indptr[1:][reads] - 1]
-    w = max(int(np.max(hi // m - lo // m, initial=0)), 1)  # the farthest stages a row reads apart
-    pad = None
-    if w > 1:
-        pad = (-N) % w * m
-        Jm = sp.csr_matrix((Jm.data, Jm.indices, Jm.indptr), shape=(Jm.shape[0], Jm.shape[1] + pad))
-        N, m = (N * m + pad) // (w * m), w * m
-    if span is None:  # stages coupled when a row reads two of them
-        span = 2 if N > 1 and np.any(hi // m != lo // m) else 1
-    n_all = Jm.shape[0]
-    first = np.zeros(n_all, int)
-    first[reads] = lo // m
-    first = np.minimum(first, N - span)
-    # each stage entry's position in its row of V: its column less its row's first stage's first column
-    counts = np.diff(Jm.indptr)
-    vpos = Jm.indices - np.repeat(first * m, counts)
-    if np.any((vpos < 0) | (vpos >= span * m)):
-        raise ValueError("a residual row spans more than two neighbouring stages")
-    vpos += np.repeat(np.arange(n_all) * (span * m), counts)  # unique (canonical CSR)
-    on_v = np.zeros(n_all * span * m, bool)
-    on_v[vpos] = True
-    on_v = on_v.reshape(n_all, span * m)
-    # the θ columns that rows reading a stage also read: the border's coupled part
-    coupled = np.zeros(Jt.shape[1], bool)
-    coupled[Jt.indices[np.repeat(reads, np.diff(Jt.indptr))]] = True
+    n_all, n_x = J.shape
+    N0, m0 = stages.shape
+    place = np.full(n_x, -1)  # each stage variable's place n·m0 + i in the stage order
+    place[stages.ravel()] = np.arange(stages.size)
+    theta = np.flatnonzero(place < 0)
+    tmap = np.full(n_x, -1)
+    tmap[theta] = np.arange(theta.size)
+    at_stage = place[J.indices]
+    ev, et = np.flatnonzero(at_stage >= 0), np.flatnonzero(at_stage < 0)
+    pv = at_stage[ev]
+    # each row's segments of ev and et, its smallest and largest stage place
+    ptr, tptr = np.searchsorted(ev, J.indptr), np.searchsorted(et, J.indptr)
+    reads = np.diff(ptr) > 0
+    lo, hi = np.zeros(n_all, int), np.zeros(n_all, int)
+    lo[reads], hi[reads] = _segment_reduce(np.minimum, pv, ptr, reads), _segment_reduce(np.maximum, pv, ptr, reads)
+    w = max(int(np.max(hi[reads] // m0 - lo[reads] // m0, initial=0)), 1)  # the farthest samples a row reads apart
+    m = w * m0
+    N = -(-N0 * m0 // m)
+    span = 2 if N > 1 and np.any(hi[reads] // m != lo[reads] // m) else 1
+    first = np.minimum(lo // m, N - span)  # a row reads its first stage and the next at most
+    rt, tt = np.repeat(np.arange(n_all), np.diff(tptr)), tmap[J.indices[et]]
+    coupled = np.zeros(theta.size, bool)
+    coupled[tt[reads[rt]]] = True  # the θ columns of the rows that read a stage
     coupled = np.flatnonzero(coupled)
     c = coupled.size
-    cmap = np.full(Jt.shape[1], -1)
+    cmap = np.full(theta.size, -1)
     cmap[coupled] = np.arange(c)
-    want = np.arange(n_all) if rows is None else np.asarray(rows, int).ravel()
-    if want.size > 1 and not np.all(want[1:] > want[:-1]):  # unordered or repeated rows
-        want = np.unique(want)
-    wanted = np.zeros(n_all, bool)
-    wanted[want] = True
-    # per pattern also its wanted rows (positions in the pattern's rows) in the order of their first
-    # stage and those stages: the chunks of stages of hat_diagonal take runs of them
-    groups = []
-    for idx, cols, at in _row_patterns(Jt):
-        sel = np.flatnonzero(wanted[idx])
-        sel = sel[np.argsort(first[idx[sel]], kind="stable")]
-        groups.append((idx, cols, at, cmap[cols], np.flatnonzero(np.any(on_v[idx], axis=0)), sel, first[idx[sel]]))
-    want = want[np.argsort(first[want], kind="stable")]
-    on = np.flatnonzero((cmap >= 0)[Jt.indices])  # the entries on coupled columns
-    plan = {"order": order, "left": left, "Jm": (Jm.indices, Jm.indptr, Jm.shape), "N": N, "m": m, "pad": pad,
-            "span": span, "first": first, "V": vpos, "c": c, "coupled": coupled, "groups": groups,
-            "Jc": (on, cmap[Jt.indices[on]], np.searchsorted(on, Jt.indptr)),
-            "want": want, "want_first": first[want]}
+    # the slots: rows reading a stage ordered by their first stage, R per slot
+    sr = np.flatnonzero(reads)
+    sr = sr[np.argsort(first[sr], kind="stable")]
+    per_stage = np.bincount(first[sr], minlength=N)
+    R = max(1, int(np.ceil(np.quantile(per_stage[per_stage > 0], 0.9)))) if sr.size else 1
+    slots = -(-per_stage // R)
+    slot_ptr = np.r_[0, np.cumsum(slots)]  # each stage's first slot
+    within = np.arange(sr.size) - np.r_[0, np.cumsum(per_stage)][first[sr]]
+    rowpos = np.full(n_all, -1)
+    rowpos[sr] = (slot_ptr[first[sr]] + within // R) * R + within % R
+    slot_rows = np.full(slot_ptr[-1] * R, -1)
+    slot_rows[rowpos[sr]] = sr
+    rv = np.repeat(np.arange(n_all), np.diff(ptr))
+    # the coupled θ entries in the order of their place in T: the rows in slot order, each its
+    # entries in J's order (increasing column)
+    q = slot_rows[slot_rows >= 0]
+    lens = tptr[q + 1] - tptr[q]
+    e = np.repeat(tptr[q] - np.r_[0, np.cumsum(lens)[:-1]], lens) + np.arange(int(lens.sum()))
+    tdest = rowpos[rt[e]] * c + cmap[tt[e]]
+    e = et[e]
+    groups = _row_patterns(sp.csr_matrix((np.arange(et.size), tt, tptr), shape=(n_all, theta.size)))
+    plan = {"N": N, "m": m, "pad": N * m - N0 * m0, "span": span, "R": R, "theta": theta, "coupled": coupled,
+            "ev": ev, "V": rowpos[rv] * (span * m) + pv - first[rv] * m, "et": et, "T": (e, tdest),
+            "slot_ptr": slot_ptr, "slot_stage": np.repeat(np.arange(N), slots), "slot_rows": slot_rows,
+            "groups": groups}
     if cache is not None:
         cache["key"], cache["plan"] = key, plan
     return plan
@@ -297,90 +263,123 @@ def _buffer(plan: dict, name: str, shape: tuple) -> np.ndarray:
     return buffers[name]
 
 
+def _by_stage(x: np.ndarray, slots: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """Per stage the sum of its slots' ``x`` (slots in stage order; ``slots`` per stage, ``starts``
+    each stage's first slot, from the chunk's first); as is when every stage has one slot."""
+    if np.all(slots == 1):
+        return x
+    out = np.zeros((slots.size,) + x.shape[1:])
+    has = slots > 0
+    if has.any():
+        out[has] = np.add.reduceat(x, starts[has], axis=0)
+    return out
+
+
 def hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None, cache: dict | None = None,
                  threads: int = 1) -> np.ndarray:
     """Leverages h_j = (J P Jᵀ)_jj of residual rows at one Jacobian (the module docstring's sweep).
 
     J (rows, n_x) and G (constraints, n_x) are the Jacobians of the whitened residuals and of the
     constraints (``Solver.jacobians``), ``stages`` (N, m) the x indices of the banded nuisance
-    variables, stage by stage (no constraint may act on them); every other variable is θ. ``rows``
-    (default: all) the rows wanted, each reading at most two neighbouring (super-)stages. Time and
+    variables, stage by stage (no constraint may act on them); every other variable is θ. Every row
+    reads at most two neighbouring (super-)stages; ``rows`` (default: all) the rows wanted. Time and
     memory are linear in the number of rows and samples. The redundancy of a row is 1 − h_j; Σ h_j
     over all rows is the number of variables less the constraints.
 
     With the covariance written out, a row j = (v on its stage(s) s, t on θ) has
     j P jᵀ = v Q_s vᵀ − 2 v X_s tᵀ + t P_θ tᵀ, Q_s = Σ_s + B_s P_θ B_sᵀ the stages' covariance and
-    X = B P_θ (−X their covariance with θ). B, X and H_mθ only have the columns of the θ's that rows
-    reading a stage also read (not a joint problem's static pose directions); H_mθ is one sparse
-    product, H_θθ and the θ terms are summed per pattern of θ columns (one per sensor axis and
-    reading kind), on the entries a row has: no (rows × n_θ) array is formed. X, Q and the rows'
-    leverages are formed chunk by chunk of :data:`CHUNK` stages (a row's in the chunk of its first
-    stage), on ``threads`` worker threads when > 1 (``solver.threads``), as are the two halves of
-    H_θm B: the same operations on the same numbers for any number of threads, so the same bits.
-    What depends on J's sparsity only (:func:`_structure`: the permutation and split of its columns,
-    the patterns, the rows by stage) is kept in ``cache`` (a dict the caller keeps) for the next call
-    with the same structure, stages and rows: the noise model's rounds.
+    X = B P_θ (−X their covariance with θ). B, X and H_mθ only have the c columns of the θ's that rows
+    reading a stage also read (not a joint problem's static pose directions). The rows that read a
+    stage sit in slots of R rows (:func:`_structure`), stage by stage: their stage values V
+    (slots, R, span·m) and, a chunk of :data:`CHUNK` stages at a time, their θ values T (slots, R, c)
+    are dense, so that H_mm's blocks (VᵀV), H_mθ (VᵀT), v Q_s vᵀ and v X_s (V X) are batched
+    matrix products; v X_s tᵀ takes V X at the row's θ entries. H_θθ and t P_θ tᵀ are summed per pattern
+    of θ columns (one per sensor axis and reading kind), on the entries a row has. The chunks run
+    on ``threads`` worker threads when > 1 (``solver.threads``), as do the two halves of H_θm B and
+    the patterns: the same operations on the same numbers for any number of threads, so the same
+    bits. What depends on J's sparsity only is kept in ``cache`` (a dict the caller keeps) for the
+    next call with the same structure and stages: the noise model's rounds.
 
     Large freed blocks are kept on the heap meanwhile (:func:`castimate.solver.ipopt.solve_settings`):
     its arrays of a few 10 MB would otherwise come as fresh pages from the kernel, zeroed on first
-    touch (on MIMU4444 exp_1 joint up to as much system time as user time, about 1 s a call).
+    touch.
     """
     from .ipopt import solve_settings
     with solve_settings():
-        return _hat_diagonal(J, G, stages, rows, cache, threads)
+        h = _hat_diagonal(J, G, stages, cache, threads)
+    return h if rows is None else h[np.asarray(rows, int).ravel()]
 
 
-def _hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None, cache: dict | None = None,
-                  threads: int = 1) -> np.ndarray:
-    """:func:`hat_diagonal` itself."""
+def _hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, cache: dict | None, threads: int
+                  ) -> np.ndarray:
+    """:func:`hat_diagonal` of every row."""
     J, G = sp.csr_matrix(J), sp.csr_matrix(G)
     if not J.has_canonical_format:
         J = J.copy()
         J.sum_duplicates()
-    on_stage = np.zeros(J.shape[1], bool)
-    on_stage[stages.ravel()] = True
-    theta = np.flatnonzero(~on_stage)
-    if np.any(on_stage[G.indices] & (G.data != 0)):
+    plan = _structure(J, stages, cache)
+    N, m, span, R, theta, coupled = (plan[k] for k in ("N", "m", "span", "R", "theta", "coupled"))
+    if np.any(np.isin(G.indices[G.data != 0], stages.ravel())):
         raise ValueError("constraints on the stage variables")
-    plan = _structure(J, stages, rows, cache)
-    # the columns permuted (stages first, then θ), canonical (sorted column indices per row, used
-    # below) and split into the stage and the θ columns: each row's stage entries come first
-    data = J.data[plan["order"]]
-    Jm = sp.csr_matrix((data[plan["left"]], plan["Jm"][0], plan["Jm"][1]), shape=plan["Jm"][2])
-    Jm.has_canonical_format = True  # its index arrays are the plan's: never sorted in place
-    Jt_data = data[~plan["left"]]
-    N, m, pad, c = plan["N"], plan["m"], plan["pad"], plan["c"]
-    # H_mm and H_mθ (coupled columns, flat (N·m, c)): two sparse products, side by side on worker
-    # threads with threads > 1 (scipy's release Python's lock)
-    Jc = sp.csr_matrix((Jt_data[plan["Jc"][0]], plan["Jc"][1], plan["Jc"][2]), shape=(Jm.shape[0], c))
-    Hmm, Hmt = map_threads(lambda k: (Jm.T @ Jm).tocsc() if k == 0 else
-                           (Jm.T.tocsr() @ Jc).toarray(out=_buffer(plan, "Hmt", (N * m, c))), range(2), threads)
-    if pad is not None:
-        # rows that read samples n-1..n+1 (sample-age effects' central differences) couple stages w
-        # apart: super-stages of w samples are block-tridiagonal again, padded with decoupled unit
-        # stages (no rows read them) to a whole number of super-stages (plan["N"], plan["m"])
-        Hmm = (Hmm + sp.diags(np.r_[np.zeros(Hmm.shape[0] - pad), np.ones(pad)])).tocsc()
-    A, C = _tridiagonal_blocks(Hmm, N, m)
-    span = 2 if C.any() and N > 1 else 1  # independent stages (no row reads two): span 1
-    if span != plan["span"]:  # stages coupled by exactly cancelling values only: the plan made for this span
-        plan = _structure(J, stages, rows, cache, span)
-    first, n_all, coupled = plan["first"], Jm.shape[0], plan["coupled"]
-    # each row's values v on its first stage (its smallest column; any for a row that reads none) and the next
-    V = _buffer(plan, "V", (n_all, span * m))
-    V.ravel()[plan["V"]] = Jm.data
-    groups = [(idx, cols, Jt_data[at], ci, used, sel, fs) for idx, cols, at, ci, used, sel, fs in plan["groups"]]
+    c, sm, slot_ptr, slot_stage = coupled.size, span * m, plan["slot_ptr"], plan["slot_stage"]
+    V = _buffer(plan, "V", (slot_ptr[-1], R, sm))
+    V.ravel()[plan["V"]] = J.data[plan["ev"]]
+    t_entries, t_dest = plan["T"]
+    t_data = J.data[t_entries]
+    Jt_data = J.data[plan["et"]]
+    chunks = range(0, N - span + 1, CHUNK)
+
+    def chunk_rows(n0):
+        """The chunk of first stages n0 ... n1 − 1: (n1, its slots s0, s1, its θ entries' T places from
+        its first (its slots' rows × c + column) and values)."""
+        n1 = min(n0 + CHUNK, N - span + 1)
+        s0, s1 = slot_ptr[n0], slot_ptr[n1]
+        a, b = np.searchsorted(t_dest, (s0 * R * c, s1 * R * c))
+        return n1, s0, s1, t_dest[a:b] - s0 * R * c, t_data[a:b]
+
+    # H_mm (diagonal blocks A, upper blocks C) and H_mθ (N, m, c) from the slots, chunk by chunk; with
+    # coupled stages a chunk's last first stage adds to the next chunk's first: added after
+    A, C = np.zeros((N, m, m)), np.zeros((max(N - 1, 0), m, m))
+    Hmt = _buffer(plan, "Hmt", (N, m, c))
+
+    def assemble(n0):
+        n1, s0, s1, dest, vals = chunk_rows(n0)
+        T = np.zeros((s1 - s0) * R * c)
+        T[dest] = vals
+        Vt = V[s0:s1].transpose(0, 2, 1)
+        slots, starts = np.diff(slot_ptr[n0:n1 + 1]), slot_ptr[n0:n1] - s0
+        Gm = _by_stage(np.matmul(Vt, V[s0:s1]), slots, starts)
+        Hm = _by_stage(np.matmul(Vt, T.reshape(s1 - s0, R, c)), slots, starts)
+        if span == 1:
+            A[n0:n1], Hmt[n0:n1] = Gm, Hm
+            return None
+        A[n0:n1] += Gm[:, :m, :m]
+        A[n0 + 1:n1] += Gm[:-1, m:, m:]
+        C[n0:n1] = Gm[:, :m, m:]
+        Hmt[n0:n1] += Hm[:, :m]
+        Hmt[n0 + 1:n1] += Hm[:-1, m:]
+        return n1, Gm[-1, m:, m:], Hm[-1, m:]
+
+    for spill in map_threads(assemble, chunks, threads):
+        if spill is not None:
+            A[spill[0]] += spill[1]
+            Hmt[spill[0]] += spill[2]
+    if plan["pad"]:  # the padding of the last super-stage: decoupled unit variables that no row reads
+        A[-1, m - plan["pad"]:, m - plan["pad"]:] += np.eye(plan["pad"])
+    groups = [(idx, cols, Jt_data[at]) for idx, cols, at in plan["groups"]]
     # H_θθ summed pattern by pattern
     S = np.zeros((len(theta), len(theta)))
-    for idx, cols, t, *_ in groups:
+    for idx, cols, t in groups:
         S[np.ix_(cols, cols)] += t.T @ t
+    Hmt = Hmt.reshape(N * m, c)
     if span == 1:
         Sd = _stage_inverse(A)
         B = np.matmul(Sd, Hmt.reshape(N, m, c), out=_buffer(plan, "B", (N, m, c))).reshape(N * m, c)
     else:
-        Hmm, chol = _factor(Hmm, 2 * m - 1)
+        A, chol = _band_cholesky(A, C)
         # factor, then solve: LAPACK's one-call pbsv is orders of magnitude slower for many right-hand sides
         B = sla.cho_solve_banded((chol, False), Hmt) if c else np.zeros((N * m, 0))
-        Sd, So = selected_inverse(*_tridiagonal_blocks(Hmm, N, m))
+        Sd, So = selected_inverse(A, C)
     if c:  # H_θm B by halves of its rows (the same products either way), on worker threads with threads > 1
         half = (c + 1) // 2
         S[np.ix_(coupled, coupled)] -= np.vstack(map_threads(lambda k: Hmt[:, k:k + half].T @ B, range(0, c, half), threads))
@@ -391,22 +390,14 @@ def _hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None,
     pos = ev > ev.max(initial=0.0) * len(ev) * np.finfo(float).eps
     K = U @ (vec[:, pos] / np.sqrt(ev[pos]))
     P = K @ K.T
-    Pc, want, want_first = P[np.ix_(coupled, coupled)], plan["want"], plan["want_first"]
-    h = np.zeros(n_all)
+    Pc = P[np.ix_(coupled, coupled)]
+    h = np.zeros(J.shape[0])
+    slot_rows = plan["slot_rows"]
 
-    def theta_terms(idx, cols, t, ci, used, X3, n0):
-        """t P_θ tᵀ − 2 v X_s tᵀ of a pattern's rows (their stages' X from X3, which starts at stage n0)."""
-        ht = np.einsum("ri,ri->r", t @ P[np.ix_(cols, cols)], t)
-        if used.size:  # −2 v X_s tᵀ, X_s the rows' stages' X on their θ columns
-            s = first[idx] - n0
-            Xs = np.concatenate([X3[:, u[:, None], ci[None, :]][s + k] for k, _, u in _halves(used, m, span)], axis=1)
-            ht -= 2.0 * np.einsum("rk,rk->r", np.matmul(V[idx][:, None, used], Xs)[:, 0], t)
-        h[idx] += ht
-
-    def chunk(n0):
-        """The leverages of the wanted rows whose first stage is n0 ... n0 + CHUNK − 1 (X = B P_θ and Q of
-        these stages and the next, formed here: rows of other chunks do not read them)."""
-        n1 = min(n0 + CHUNK, N - span + 1)
+    def leverages(n0):
+        """v Q_s vᵀ − 2 v X_s tᵀ of the rows of the chunk's slots (X = B P_θ and Q of its stages and the
+        next, formed here: rows of other chunks do not read them)."""
+        n1, s0, s1, dest, vals = chunk_rows(n0)
         n = n1 + span - 1 - n0  # the stages the chunk's rows read
         B2 = B[n0 * m:(n0 + n) * m]
         B3, X3 = B2.reshape(n, m, c), np.matmul(B2, Pc).reshape(n, m, c)
@@ -414,24 +405,29 @@ def _hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None,
         if span == 1:
             Q = Sd[n0:n1] + np.matmul(X3, Bt)
         else:
-            Q = np.empty((n1 - n0, 2 * m, 2 * m))
+            Q = np.empty((n1 - n0, sm, sm))
             Q[:, :m, :m] = Sd[n0:n1] + np.matmul(X3[:-1], Bt[:-1])
             Q[:, m:, m:] = Sd[n0 + 1:n1 + 1] + np.matmul(X3[1:], Bt[1:])
             Q[:, :m, m:] = So[n0:n1] + np.matmul(X3[:-1], Bt[1:])
             Q[:, m:, :m] = Q[:, :m, m:].transpose(0, 2, 1)
-        r = want[np.searchsorted(want_first, n0):np.searchsorted(want_first, n1)]
-        h[r] = np.einsum("ri,ri->r", V[r], np.matmul(Q[first[r] - n0], V[r][:, :, None])[:, :, 0])
-        for idx, cols, t, ci, used, sel, fs in groups:
-            if used.size:
-                part = sel[np.searchsorted(fs, n0):np.searchsorted(fs, n1)]
-                if part.size:
-                    theta_terms(idx[part], cols, t[part], ci, used, X3, n0)
+            X3 = np.concatenate([X3[:-1], X3[1:]], axis=1)  # per first stage, its stage's and the next's
+        if np.any(np.diff(slot_ptr[n0:n1 + 1]) != 1):  # not one slot per stage
+            k = slot_stage[s0:s1] - n0
+            Q, X3 = Q[k], X3[k]
+        Vs = V[s0:s1]
+        hv = np.einsum("srj,srj->sr", np.matmul(Vs, Q), Vs).ravel()
+        Y = np.matmul(Vs, X3).ravel()
+        hv -= 2.0 * np.bincount(dest // c, Y[dest] * vals, minlength=hv.size)
+        r = slot_rows[s0 * R:s1 * R]
+        h[r[r >= 0]] = hv[r >= 0]
 
-    map_threads(chunk, range(0, N - span + 1, CHUNK), threads)  # each chunk writes the leverages of its own rows
-    for idx, cols, t, ci, used, sel, fs in groups:  # the rows that read no stage (a joint problem's static rows)
-        if not used.size and sel.size:
-            theta_terms(idx[sel], cols, t[sel], ci, used, None, 0)
-    return h if rows is None else h[np.asarray(rows, int).ravel()]
+    map_threads(leverages, chunks, threads)  # each chunk writes the leverages of its own rows
+    # t P_θ tᵀ pattern by pattern (each pattern its own rows)
+    for (idx, _, _), ht in zip(groups, map_threads(
+            lambda g: np.einsum("ri,ri->r", g[2] @ P[np.ix_(g[1], g[1])], g[2]), groups, threads), strict=True):
+        h[idx] += ht
+    return h
+
 
 
 def redundancies(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, components: dict[str, np.ndarray]
