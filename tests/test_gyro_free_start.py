@@ -183,7 +183,7 @@ def test_gyro_free_board_solves(tmp_path):
     outcome = api.solve(tmp_path / "problem.yaml", log=lines.append)
     assert outcome.solution.success and outcome.solution.chi2_per_dof < 1.2
     assert any(ln.startswith("warning: the model does not fit: the residuals' lag-1 autocorrelation") for ln in lines)
-    assert "warning: the model does not fit" in dynamic_summary(outcome)
+    assert "warning: The model does not fit: the residuals' lag-1 autocorrelation" in dynamic_summary(outcome)
     lag1 = outcome.serial["lag1_autocorrelation"]
     verdict = fit_verdict({"status": {"success": True}, "uncertainty": {"lag1_autocorrelation": lag1},
                            "residuals": {"chi2_per_dof": outcome.solution.chi2_per_dof, "dof": outcome.solution.dof}})
@@ -228,8 +228,8 @@ def test_inflation_phrase():
 
 
 def test_misfit_warning():
-    """kinds.dynamic.misfit_warning by hand: the median over the triads' sensors against 0.7."""
-    from castimate.kinds.dynamic import MISFIT_AUTOCORRELATION, misfit_warning
+    """solver.verdict.misfit_warning by hand: the median over the triads' sensors against 0.7."""
+    from castimate.solver.verdict import MISFIT_AUTOCORRELATION, misfit_warning
 
     assert MISFIT_AUTOCORRELATION == 0.7
     exp1 = {"accelerometer": {"imu1": 0.05, "imu2": 0.06}, "gyroscope": {"imu1": 0.53, "imu2": 0.64}}

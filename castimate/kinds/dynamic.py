@@ -44,6 +44,7 @@ from ..problem.effects import BY_KEY, MOTION, RATE
 from ..solver.motion_noise import COMPONENTS, accelerated_fixed_point, fit_noise, noise_sigma
 from ..solver.serial import serial_covariance
 from ..solver.uncertainty import std_by_group
+from ..solver.verdict import misfit_warning
 
 #: A sensor with more than this fraction of its samples masked as saturated is refused.
 MAX_MASKED = 0.5
@@ -617,30 +618,6 @@ def serial_uncertainty(spec: ProblemSpec, problem, solver: Solver, sol: Solution
     if misfit:
         log(f"warning: {misfit}")
     return replace(sol, covariance=hc.covariance, std=info["hac_std"]), info
-
-
-#: Whitened residuals whose lag-1 autocorrelation, median over the triads' sensors, exceeds this are
-#: mostly deterministic: a misfit of the model that χ²/dof hides once the motion-dependent noise model
-#: has fitted σ's to it (χ²/dof 1.00–1.01 in every case below). Independent noise gives 0; pink noise
-#: as large as the white, with every effect modelled (the messy board of
-#: problems/montecarlo_messy_8x1000.yaml, 7 seeds): 0.38–0.40; the same sessions solved with the
-#: problem simulate writes, which lacks their clock beat, delay and gyroscope coupling: 0.78–0.94; the
-#: five real MIMU4444 sessions as declared: 0.20–0.23, after diagnose 0.01–0.08; a gyro-free board
-#: with positions fixed 1 mm off: 0.98 (0.06 at the true positions).
-MISFIT_AUTOCORRELATION = 0.7
-
-
-def misfit_warning(lag1: dict) -> str | None:
-    """The sentence that says the model does not fit, from the residuals' lag-1 autocorrelation per
-    sensor and triad (results.json's ``uncertainty.lag1_autocorrelation``), or None."""
-    rho = [v for c in lag1.values() for v in c.values() if np.isfinite(v)]
-    if not rho or np.median(rho) <= MISFIT_AUTOCORRELATION:
-        return None
-    return (f"the model does not fit: the residuals' lag-1 autocorrelation is {np.median(rho):.2f} (median over "
-            f"the triads' sensors; independent noise gives 0, above {MISFIT_AUTOCORRELATION} they are nearly "
-            f"deterministic), a "
-            f"misfit that χ²/dof does not show once the noise model has fitted σ's to it; the estimates carry "
-            f"unmodelled errors (try castimate diagnose)")
 
 
 def inflation_phrase(inflation: dict) -> str:

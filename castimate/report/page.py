@@ -55,9 +55,6 @@ code { background: #f3f5f7; padding: 0 0.2em; border-radius: 3px; }
 """
 
 UNIT_DISPLAY = {"-": "–", "": "–"}
-#: A model whose χ²/dof is above this is reported as not fitting, however the solver ended (the
-#: residuals are then about √(χ²/dof) times the noise model's σ).
-NO_FIT = 4.0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -228,26 +225,14 @@ def chi2_text(res: dict) -> str:
 
 
 def fit_verdict(results: dict) -> tuple[str, str]:
-    """(css class, sentence) on whether the model fits the data, from χ²/dof and the solver status."""
+    """(css class, sentence) on whether the model fits the data (:func:`castimate.solver.verdict.fit_verdict`
+    from results.json's solver status, χ²/dof and residual autocorrelation), as HTML."""
+    from ..solver.verdict import fit_verdict as verdict
+
     status, res = results.get("status", {}), results.get("residuals", {})
-    chi2, dof = res.get("chi2_per_dof"), res.get("dof")
-    band = 2.58 * math.sqrt(2 / dof) if finite(dof) and dof > 0 else 0.0
-    if not status.get("success"):
-        return "bad", f"The solver did not converge ({escape(str(status.get('message', '')))}): the estimates are not valid."
-    if not finite(chi2):
-        return "warn", "The solver converged; the fit cannot be judged (no χ²/dof)."
-    if chi2 > NO_FIT:
-        return "bad", (f"The model does not fit the data: χ²/dof = {chi2:.4g}, the residuals are about "
-                       f"{math.sqrt(chi2):.3g} × the noise σ. The solver converged, but the estimates and their σ's "
-                       "carry unmodelled errors (try <code>castimate diagnose</code>).")
-    from ..kinds.dynamic import misfit_warning  # the dynamic kind's residual test, where it was made
-    misfit = misfit_warning((results.get("uncertainty") or {}).get("lag1_autocorrelation") or {})
-    if misfit:
-        return "bad", f"{misfit[0].upper()}{escape(misfit[1:])} (χ²/dof = {chi2:.3g})."
-    if chi2 > 1 + band:
-        return "warn", (f"The model fits approximately: χ²/dof = {chi2:.3g}, the residuals exceed the noise model "
-                        f"(σ's about {math.sqrt(chi2):.2g} × too small for the σ's reported).")
-    return "ok", f"The model fits the data: χ²/dof = {chi2:.3g}, within the noise model."
+    level, sentence = verdict(bool(status.get("success")), str(status.get("message", "")), res.get("chi2_per_dof"),
+                              res.get("dof"), (results.get("uncertainty") or {}).get("lag1_autocorrelation"))
+    return level, escape(sentence).replace("castimate diagnose", "<code>castimate diagnose</code>")
 
 
 def status_row(results: dict) -> tuple[str, str]:
