@@ -159,7 +159,7 @@ def test_gyroscope_axis_read_against_the_fitted_rate_is_refused(tmp_path):
     from pathlib import Path
     from types import SimpleNamespace
 
-    from castimate.kinds.dynamic import check_gyroscope_signs
+    from castimate.kinds.dynamic import check_fitted_gyroscopes
 
     rng = np.random.default_rng(5)
     t = np.arange(200) / 100.0
@@ -176,7 +176,7 @@ def test_gyroscope_axis_read_against_the_fitted_rate_is_refused(tmp_path):
         data = SimpleNamespace(gyro=readings)
         residual = {n: readings[n] - predicted[n] for n in names}
         residual["imu11"][:50, 1] = np.nan  # masked samples (saturated) are left out
-        check_gyroscope_signs(spec, data, residual, names)
+        check_fitted_gyroscopes(spec, data, residual)
 
     check(gyro)
     reversed_y = {**gyro, "imu11": gyro["imu11"] * np.array([1.0, -1.0, 1.0])}
@@ -187,3 +187,39 @@ def test_gyroscope_axis_read_against_the_fitted_rate_is_refused(tmp_path):
                                          r"wrong\)$") as err:
         check(reversed_y)
     assert "\n" not in str(err.value) and err.value.where == "imu11.gy"
+
+
+def test_gyroscope_axis_read_against_the_other_gyroscopes_is_refused(tmp_path):
+    """Before the solve, each gyroscope against the median of the others in the body frame (at least two
+    others reading every axis of a sample), turned into its own frame; by hand: three triads with the
+    rotations identity, 90° about z and 180° about x (ω_b = ω R), a fourth without a gyroscope. With only
+    two gyroscopes nothing is predicted (one other cannot tell which of two is reversed). One axis of one
+    triad reversed, then the reference's (whose gain and alignment a fit cannot change)."""
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    from castimate.kinds.dynamic import check_gyroscope_signs, other_gyroscopes
+
+    t = np.arange(300) / 100.0
+    w_b = np.stack([2 * np.sin(2 * np.pi * 0.7 * t), np.cos(2 * np.pi * 1.3 * t), 3 * np.sin(2 * np.pi * 0.4 * t + 1)],
+                   axis=1)
+    R = {"a": np.eye(3), "b": np.array([[0.0, 1, 0], [-1, 0, 0], [0, 0, 1]]), "c": np.diag([1.0, -1, -1]),
+         "d": np.eye(3)}
+    gyro = {n: w_b @ R[n].T for n in "abc"}  # each triad reads ω_b in its own frame: ω = ω_b Rᵀ
+    valid = {n: np.ones((len(t), 3), bool) for n in "abc"}
+    valid["c"][:100, 0] = False  # a rail of c: its samples leave c out of the others' medians
+    data = SimpleNamespace(gyro=gyro, axis_valid=lambda kind, n: valid[n])
+    pred = other_gyroscopes(data, R)
+    assert set(pred) == set("abc")
+    np.testing.assert_allclose(pred["a"][100:], gyro["a"][100:], atol=1e-12)  # median of b and c: both exact
+    assert np.isnan(pred["a"][:100]).all()  # only b reads there
+    np.testing.assert_allclose(pred["c"], gyro["c"], atol=1e-12)
+    assert other_gyroscopes(data, {n: R[n] for n in "ab"}) == {}
+    spec = SimpleNamespace(data=SimpleNamespace(path=Path(tmp_path / "data.csv")))
+    check_gyroscope_signs(spec, data, pred, "the other triads' gyroscopes")
+    for triad, axis in (("b", 1), ("a", 2)):
+        bad = {**gyro, triad: gyro[triad] * np.where(np.arange(3) == axis, -1.0, 1.0)}
+        data = SimpleNamespace(gyro=bad, axis_valid=lambda kind, n: valid[n])
+        with pytest.raises(InputError, match=rf"data.csv: {triad}.g{'xyz'[axis]}: the readings run against the other "
+                                             r"triads' gyroscopes \(gain -1, correlation -1.0000 over \d+ samples\)"):
+            check_gyroscope_signs(spec, data, other_gyroscopes(data, R), "the other triads' gyroscopes")

@@ -231,40 +231,64 @@ def check_mirrored(spec: ProblemSpec, values: dict, nominal: dict[str, np.ndarra
                          "another frame)")
 
 
-#: A gyroscope axis whose readings correlate with the fit's prediction of them below this is refused as read
-#: with reversed sign. The prediction is the angular rate the fit finds from the whole array (the
-#: accelerometers, the process model, the other gyroscopes), so a reversed axis reads against it: measured,
-#: correlation -0.9998 (gain -1.03) for acc3.gx reversed in a 5-triad Schopp board with gyroscopes and the
-#: process model (675 samples, sinusoids to 10 rad/s), -0.9997 without the process model, -1.0000 (gain -2.0)
-#: for imu11.gx in a 4-IMU Carlsson board (200 samples, no motion-dependent noise; the fit's rate half the true
-#: one on that axis, from 3 gyroscopes against 1). Correct axes: +0.9997 or more on correct data (the Schopp
-#: board at 300 and 675 samples, the Carlsson board; MIMU4444 exp_1 to exp_5 dynamic and exp_1 joint, +0.9998),
-#: +0.9993 or more beside a reversed one. An axis the motion leaves alone correlates by its own noise, positively.
+#: A gyroscope axis whose readings correlate with a prediction of them below this is refused as read with
+#: reversed sign. Two predictions: before the solve, the median over the other triads' gyroscopes (at least
+#: two others) turned into the triad's frame by the nominal rotations (:func:`other_gyroscopes`); after it,
+#: the angular rate the fit finds from the whole array (the accelerometers, the process model, the other
+#: gyroscopes), which a single gyroscope leaves too. Against the fit, measured: correlation -0.9998 (gain
+#: -1.03) for acc3.gx reversed in a 5-triad Schopp board with gyroscopes and the process model (675 samples,
+#: sinusoids to 10 rad/s), -0.9997 without the process model, -1.0000 (gain -2.0) for imu11.gx in a 4-IMU
+#: Carlsson board (200 samples, no motion-dependent noise; the fit's rate half the true one on that axis,
+#: from 3 gyroscopes against 1). Correct axes: +0.9997 or more on correct data (the Schopp board at 300 and
+#: 675 samples, the Carlsson board; MIMU4444 exp_1 to exp_5 dynamic and exp_1 joint, +0.9998), +0.9993 or
+#: more beside a reversed one. An axis the motion leaves alone correlates by its own noise, positively.
+#: Against the other gyroscopes: MIMU4444 exp_1 to exp_5, every axis +0.9996 or more; imu1.gz (the
+#: reference, whose gain and alignment are fixed) reversed -0.9997, which the fit had taken 200 IPOPT
+#: iterations (218 s) to fail on, attempt after attempt.
 REVERSED_CORRELATION = -0.5
 
 
-def check_gyroscope_signs(spec: ProblemSpec, data: DynamicData, residual_gyro: dict[str, np.ndarray],
-                          names: list[str]) -> None:
-    """Refuse a converged fit in which a gyroscope axis reads against the angular rate the fit finds (the
-    correlation of its readings with the fit's prediction of them, ``y - residual``, below
-    :data:`REVERSED_CORRELATION`): the axis reads with reversed sign. Neither the ranges of
-    :func:`check_estimates` nor :func:`check_mirrored` see it: the motion's mean rate is about zero, so no
-    bias can absorb it (0.23 ± 1 rad/s), the accelerometers keep the positions on their side, and the
-    motion-dependent noise takes the misfit (a gyroscope floor of 1.12 rad/s against 0.001), leaving
-    χ²/dof 0.85 and a lag-1 autocorrelation that correct data of the same board show too. The axis that
-    reads most against the fit is named. ``residual_gyro``: triad -> (N, 3) rad/s, NaN where masked."""
+def other_gyroscopes(data: DynamicData, rotations: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Per triad with a gyroscope, the angular rate its axes read by the other triads' gyroscopes: the
+    median over them of their readings in the body frame (ω_b = ω R, ``rotations`` the nominal body ->
+    triad rotations R), where at least two of them read every axis of a sample (not on a rail), turned
+    into the triad's frame (ω_b Rᵀ); NaN elsewhere. Empty with fewer than three triads with gyroscopes:
+    one other cannot tell which of two is reversed."""
+    names = [n for n in rotations if n in data.gyro]
+    if len(names) < 3:
+        return {}
+    body = np.stack([np.where(data.axis_valid("gyro", n).all(axis=1)[:, None], data.gyro[n], np.nan) @ rotations[n]
+                     for n in names])  # (triads, N, 3)
+    out = {}
+    for i, n in enumerate(names):
+        others = np.delete(body, i, axis=0)
+        enough = np.isfinite(others[..., 0]).sum(axis=0) >= 2
+        med = np.full(body.shape[1:], np.nan)
+        med[enough] = np.nanmedian(others[:, enough], axis=0)
+        out[n] = med @ rotations[n].T
+    return out
+
+
+def check_gyroscope_signs(spec: ProblemSpec, data: DynamicData, predicted: dict[str, np.ndarray], against: str
+                          ) -> None:
+    """Refuse a gyroscope axis whose readings run against ``predicted`` (triad -> (N, 3) rad/s, what its axes
+    should read, NaN where unknown or masked), what ``against`` names: a correlation below
+    :data:`REVERSED_CORRELATION`, the axis reading with reversed sign. The axis that reads most against the
+    prediction is named. After the fit, neither the ranges of :func:`check_estimates` nor
+    :func:`check_mirrored` see it: the motion's mean rate is about zero, so no bias can absorb it
+    (0.23 ± 1 rad/s), the accelerometers keep the positions on their side, and the motion-dependent noise
+    takes the misfit (a gyroscope floor of 1.12 rad/s against 0.001), leaving χ²/dof 0.85 and a lag-1
+    autocorrelation that correct data of the same board show too."""
     worst = None  # (correlation, triad, axis, gain, samples)
-    for n in names:
-        r = residual_gyro.get(n)
-        if r is None or n not in data.gyro:
+    for n, p in predicted.items():
+        if n not in data.gyro:
             continue
         y = data.gyro[n]
         for k in range(3):
-            ok = np.isfinite(r[:, k]) & np.isfinite(y[:, k])
+            ok = np.isfinite(p[:, k]) & np.isfinite(y[:, k])
             if ok.sum() < 2:
                 continue
-            yk, pk = y[ok, k], y[ok, k] - r[ok, k]  # the readings and the fit's prediction of them
-            yc, pc = yk - yk.mean(), pk - pk.mean()
+            yc, pc = y[ok, k] - y[ok, k].mean(), p[ok, k] - p[ok, k].mean()
             den = float(np.sqrt((yc @ yc) * (pc @ pc)))
             if not den > 0:
                 continue
@@ -274,10 +298,17 @@ def check_gyroscope_signs(spec: ProblemSpec, data: DynamicData, residual_gyro: d
     if worst is not None:
         corr, n, axis, gain, m = worst
         raise InputError(spec.data.path, f"{n}.g{axis}",
-                         f"the readings run against the angular rate the fit finds from the whole array (gain "
-                         f"{gain:+.3g}, correlation {corr:+.4f} over {m} samples), expected a positive gain "
-                         f"({GAIN_RANGE[0]:g} to {GAIN_RANGE[1]:g}): the gyroscope axis ({axis}) of {n} reads with "
-                         "reversed sign (or the triad's rotation in array.triads is wrong)")
+                         f"the readings run against {against} (gain {gain:+.3g}, correlation {corr:+.4f} over {m} "
+                         f"samples), expected a positive gain ({GAIN_RANGE[0]:g} to {GAIN_RANGE[1]:g}): the gyroscope "
+                         f"axis ({axis}) of {n} reads with reversed sign (or the triad's rotation in array.triads is "
+                         "wrong)")
+
+
+def check_fitted_gyroscopes(spec: ProblemSpec, data: DynamicData, residual_gyro: dict[str, np.ndarray]) -> None:
+    """:func:`check_gyroscope_signs` against the fit's prediction of the gyroscopes' readings (the
+    readings less the residuals ``residual_gyro``, triad -> (N, 3) rad/s, NaN where masked)."""
+    check_gyroscope_signs(spec, data, {n: data.gyro[n] - r for n, r in residual_gyro.items() if n in data.gyro},
+                          "the angular rate the fit finds from the whole array")
 
 
 @dataclass
@@ -485,8 +516,10 @@ def check_gyro_free_span(spec: ProblemSpec, positions: np.ndarray, f: np.ndarray
 
 def check_information(spec: ProblemSpec, data: DynamicData, nominal: dict[str, np.ndarray], log: Log,
                       rotations: dict[str, np.ndarray]) -> None:
-    """Refuse data that cannot determine the motion or the free positions, before solving.
-    ``rotations``: the nominal body -> triad rotations, to read the accelerometers in the body frame."""
+    """Refuse data that cannot determine the motion or the free positions, and a gyroscope axis that reads
+    against the other gyroscopes (:func:`other_gyroscopes`), before solving. ``rotations``: the nominal
+    body -> triad rotations, to read the sensors in the body frame."""
+    check_gyroscope_signs(spec, data, other_gyroscopes(data, rotations), "the other triads' gyroscopes")
     ref = spec.array.reference
     free = [n for n in spec.array.names if n != ref and any(spec.model.settings[n, "position", "position"].free)]
     gyros = [t.name for t in spec.array.triads if t.gyroscope is not False and t.name in data.gyro]
@@ -543,7 +576,7 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = quiet, max_restarts: int = 2
         check_mirrored(spec, sol.values, nominal, problem.config.names)
         cal, gcal = problem.calibration(sol.values), problem.gyro_calibration(sol.values)
         res_acc, res_gyro = measurement_residuals(problem, data, sol)
-        check_gyroscope_signs(spec, data, res_gyro, problem.config.names)
+        check_fitted_gyroscopes(spec, data, res_gyro)
         return DynamicOutcome(spec, data, config, problem, solver, sol, attempts, sat, cal, gcal, res_acc, res_gyro,
                               nominal)
     problem, solver, sol, attempts, variance = solve_dynamic(config, data, nominal, spec.solver, spec.path,
@@ -555,7 +588,7 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = quiet, max_restarts: int = 2
     check_mirrored(spec, sol.values, nominal, problem.config.names)
     cal, gcal = problem.calibration(sol.values), problem.gyro_calibration(sol.values)
     res_acc, res_gyro = measurement_residuals(problem, data, sol)
-    check_gyroscope_signs(spec, data, res_gyro, problem.config.names)
+    check_fitted_gyroscopes(spec, data, res_gyro)
     return DynamicOutcome(spec, data, problem.config, problem, solver, sol, attempts, sat, cal, gcal, res_acc,
                           res_gyro, nominal, variance, noise, serial)
 
