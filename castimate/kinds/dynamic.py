@@ -235,7 +235,7 @@ def check_mirrored(spec: ProblemSpec, values: dict, nominal: dict[str, np.ndarra
 #: reversed sign. Two predictions: before the solve, the median over the other triads' gyroscopes (at least
 #: two others) turned into the triad's frame by the nominal rotations (:func:`other_gyroscopes`); after it,
 #: the angular rate the fit finds from the whole array (the accelerometers, the process model, the other
-#: gyroscopes), which a single gyroscope leaves too. Against the fit, measured: correlation -0.9998 (gain
+#: gyroscopes), the only prediction on a board with fewer than three gyroscopes. Against the fit, measured: correlation -0.9998 (gain
 #: -1.03) for acc3.gx reversed in a 5-triad Schopp board with gyroscopes and the process model (675 samples,
 #: sinusoids to 10 rad/s), -0.9997 without the process model, -1.0000 (gain -2.0) for imu11.gx in a 4-IMU
 #: Carlsson board (200 samples, no motion-dependent noise; the fit's rate half the true one on that axis,
@@ -243,7 +243,7 @@ def check_mirrored(spec: ProblemSpec, values: dict, nominal: dict[str, np.ndarra
 #: 675 samples, the Carlsson board; MIMU4444 exp_1 to exp_5 dynamic and exp_1 joint, +0.9998), +0.9993 or
 #: more beside a reversed one. An axis the motion leaves alone correlates by its own noise, positively.
 #: Against the other gyroscopes: MIMU4444 exp_1 to exp_5, every axis +0.9996 or more; imu1.gz (the
-#: reference, whose gain and alignment are fixed) reversed -0.9997, which the fit had taken 200 IPOPT
+#: reference, whose gain and alignment are fixed) reversed -0.9998, which the fit had taken 200 IPOPT
 #: iterations (218 s) to fail on, attempt after attempt.
 REVERSED_CORRELATION = -0.5
 

@@ -18,6 +18,7 @@ import numpy as np
 from ..errors import InputError
 from ..io.results import check_results, load_results_json
 from ..output.details import DETAILS_SHAPES, check_details, check_pairing
+from ..solver import verdict
 from ..validation import input_file, shown
 
 DEG = 180 / np.pi  # degrees per radian: every angle on a page is shown in degrees
@@ -227,10 +228,8 @@ def chi2_text(res: dict) -> str:
 def fit_verdict(results: dict) -> tuple[str, str]:
     """(css class, sentence) on whether the model fits the data (:func:`castimate.solver.verdict.fit_verdict`
     from results.json's solver status, χ²/dof and residual autocorrelation), as HTML."""
-    from ..solver.verdict import fit_verdict as verdict
-
     status, res = results.get("status", {}), results.get("residuals", {})
-    level, sentence = verdict(bool(status.get("success")), str(status.get("message", "")), res.get("chi2_per_dof"),
+    level, sentence = verdict.fit_verdict(bool(status.get("success")), str(status.get("message", "")), res.get("chi2_per_dof"),
                               res.get("dof"), (results.get("uncertainty") or {}).get("lag1_autocorrelation"))
     return level, escape(sentence).replace("castimate diagnose", "<code>castimate diagnose</code>")
 
