@@ -304,9 +304,9 @@ def _three_stage_rows(c: int = 3, seed: int = 13):
 
 @pytest.mark.parametrize("case", ["independent", "coupled", "three_stages", "no_border"])
 def test_hat_diagonal_in_chunks_on_threads_is_identical(monkeypatch, case):
-    """The leverages computed chunk of stages by chunk (CHUNK stages each: 2 and 3 do not divide the
-    23 stages, a coupled row's second stage and a pattern's rows fall in the next chunk, the static
-    rows in none) on worker threads equal those of the same chunks in the calling thread bit for bit,
+    """The leverages computed chunk of stages by chunk (CHUNK stages each, or fewer by CHUNK_FLOATS: 2
+    and 3 do not divide the 23 stages, a coupled row's second stage and a pattern's rows fall in the
+    next chunk, the static rows in none) on worker threads equal those of the same chunks in the calling thread bit for bit,
     with the structure kept across calls and for a subset of rows (unordered, repeated); and the
     dense hat matrix's diagonal in any chunking; also without a border (no θ: only the motion estimated)."""
     import threading
@@ -325,8 +325,9 @@ def test_hat_diagonal_in_chunks_on_threads_is_identical(monkeypatch, case):
         return by_stage(*a)
 
     monkeypatch.setattr(var, "_by_stage", spy)
-    for chunk in (2, 3, 1000):
+    for chunk, floats in ((2, 1 << 22), (3, 1 << 22), (1000, 1 << 22), (1000, 1)):  # the last: one stage a chunk
         monkeypatch.setattr(var, "CHUNK", chunk)
+        monkeypatch.setattr(var, "CHUNK_FLOATS", floats)
         got = {}
         for threads in (1, 3):
             cache = {}

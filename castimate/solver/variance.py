@@ -101,9 +101,13 @@ def _band_cholesky(A: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray
         return A + ridge * np.eye(m), sla.cholesky_banded(ab)
 
 
-#: First stages per chunk of :func:`hat_diagonal` (bounds its memory: per chunk and worker thread,
-#: two arrays of stages × rows per slot × coupled θ floats, 18 MB on MIMU4444 exp_1 joint).
+#: First stages per chunk of :func:`hat_diagonal`, at most: per chunk and worker thread it holds two
+#: arrays of its slots × rows per slot × coupled θ floats (T and V X), 18 MB on MIMU4444 exp_1 joint.
 CHUNK = 256
+#: Floats of each of those arrays at most (32 MB): a board with more rows per stage and more coupled θ
+#: takes fewer stages per chunk (32 triads with gyroscopes, 192 rows a stage, and 640 θ: 34 stages, not 256
+#: in 250 MB).
+CHUNK_FLOATS = 1 << 22
 
 
 def _stage_inverse(A: np.ndarray) -> np.ndarray:
@@ -291,7 +295,7 @@ def hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, rows=None, 
     X = B P_θ (−X their covariance with θ). B, X and H_mθ only have the c columns of the θ's that rows
     reading a stage also read (not a joint problem's static pose directions). The rows that read a
     stage sit in slots of R rows (:func:`_structure`), stage by stage: their stage values V
-    (slots, R, span·m) and, a chunk of :data:`CHUNK` stages at a time, their θ values T (slots, R, c)
+    (slots, R, span·m) and, a chunk of stages at a time (:data:`CHUNK`, :data:`CHUNK_FLOATS`), their θ values T (slots, R, c)
     are dense, so that H_mm's blocks (VᵀV), H_mθ (VᵀT), v Q_s vᵀ and v X_s (V X) are batched
     matrix products; v X_s tᵀ takes V X at the row's θ entries. H_θθ and t P_θ tᵀ are summed per pattern
     of θ columns (one per sensor axis and reading kind), on the entries a row has. The chunks run
@@ -327,12 +331,13 @@ def _hat_diagonal(J: sp.spmatrix, G: sp.spmatrix, stages: np.ndarray, cache: dic
     t_entries, t_dest = plan["T"]
     t_data = J.data[t_entries]
     Jt_data = J.data[plan["et"]]
-    chunks = range(0, N - span + 1, CHUNK)
+    step = max(1, min(CHUNK, CHUNK_FLOATS // max(1, (slot_ptr[-1] * R * c) // max(N, 1))))  # slots per stage ~ 1
+    chunks = range(0, N - span + 1, step)
 
     def chunk_rows(n0):
         """The chunk of first stages n0 ... n1 − 1: (n1, its slots s0, s1, its θ entries' T places from
         its first (its slots' rows × c + column) and values)."""
-        n1 = min(n0 + CHUNK, N - span + 1)
+        n1 = min(n0 + step, N - span + 1)
         s0, s1 = slot_ptr[n0], slot_ptr[n1]
         a, b = np.searchsorted(t_dest, (s0 * R * c, s1 * R * c))
         return n1, s0, s1, t_dest[a:b] - s0 * R * c, t_data[a:b]
