@@ -34,7 +34,8 @@ def test_fit_verdict_by_hand():
 def test_cli_says_when_the_model_does_not_fit(tmp_path, capsys):
     """A simulated static session (noise 0.02 m/s² per sample) solved as simulated fits; declared with a
     pose-mean σ ten times too small it still converges, at χ²/dof ≈ 100: exit 0, the summary warns that
-    the model does not fit (residuals about 10 × the σ), and results.json's residuals.fit says "bad"."""
+    the model does not fit (residuals about 10 × the σ), and results.json's residuals.fit says "bad", as
+    the outcome's ``fit`` does from Python."""
     sc = tmp_path / "scenario.yaml"
     sc.write_text("kind: static_array\nseed: 5\ntriads: 4\nposes: 20\nnoise: {accelerometer: 0.02}\n")
     assert main(["simulate", str(sc), "-o", str(tmp_path / "sim"), "-q"]) == 0
@@ -56,3 +57,8 @@ def test_cli_says_when_the_model_does_not_fit(tmp_path, capsys):
     # χ²/dof of the true σ is 1 ± 5 √(2/dof) (the fit as simulated), so 100 × that here
     assert chi2 == pytest.approx(100, rel=5 * math.sqrt(2 / dof) + 0.1)
     assert f"warning: The model does not fit the data: χ²/dof = {chi2:.4g}" in out
+    # from Python: the outcome's fit is results.json's
+    import castimate
+
+    outcome = castimate.solve(castimate.load(tmp_path / "sim" / "tight.yaml"))
+    assert outcome.fit == (res["fit"]["level"], res["fit"]["verdict"])

@@ -44,7 +44,7 @@ from ..problem.effects import BY_KEY, MOTION, RATE
 from ..solver.motion_noise import COMPONENTS, accelerated_fixed_point, fit_noise, noise_sigma
 from ..solver.serial import serial_covariance
 from ..solver.uncertainty import std_by_group
-from ..solver.verdict import misfit_warning
+from ..solver.verdict import fit_verdict, misfit_warning
 
 #: A sensor with more than this fraction of its samples masked as saturated is refused.
 MAX_MASKED = 0.5
@@ -333,6 +333,14 @@ class DynamicOutcome:
     @property
     def positions(self) -> dict:
         return {n: (self.solution.values[f"{n}.position"], self.solution.std[f"{n}.position"]) for n in self.config.names}
+
+    @property
+    def fit(self) -> tuple[str, str]:
+        """(level, sentence): whether the model fits the data (:func:`castimate.solver.verdict.fit_verdict`,
+        from the solution and the residuals' lag-1 autocorrelation), as results.json's ``residuals.fit``."""
+        sol = self.solution
+        return fit_verdict(sol.success, sol.message, sol.chi2_per_dof, sol.dof,
+                           (self.serial or {}).get("lag1_autocorrelation"))
 
 
 @dataclass(frozen=True)

@@ -29,6 +29,7 @@ from ..prepare.detect import Detection, detect_static, explicit_segments
 from ..prepare.poses import PoseAverages, average_poses, pose_averages_from_means
 from ..problem.graph import Solution
 from ..solver.ipopt import Solver
+from ..solver.verdict import fit_verdict
 from ..prepare.plausibility import (Declared, check_accelerometer_units, check_channels, check_gyroscope_noise,
                                     check_gyroscope_units, check_temperatures)
 
@@ -391,6 +392,13 @@ class StaticOutcome:
     residual_acc: dict[str, np.ndarray]  # (P, 3) m/s^2, y - (T f + b)
     residual_gyro: dict[str, np.ndarray]  # (P, 3) rad/s
     consistency: Consistency | None
+
+    @property
+    def fit(self) -> tuple[str, str]:
+        """(level, sentence): whether the model fits the data (:func:`castimate.solver.verdict.fit_verdict`),
+        as results.json's ``residuals.fit``."""
+        sol = self.solution
+        return fit_verdict(sol.success, sol.message, sol.chi2_per_dof, sol.dof)
 
     @property
     def gravity_norm_error(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:

@@ -13,7 +13,6 @@ import numpy as np
 from ..io.readers import input_units
 from ..io.results import FORMAT
 from ..problem.effects import BOARD
-from ..solver.verdict import fit_verdict
 
 
 def _units(spec, **extra) -> dict:
@@ -84,7 +83,7 @@ def static_results(outcome) -> dict:
         "reference": cfg.reference,
         "units": _units(spec),
         "triads": triads,
-        "residuals": {"chi2": sol.chi2, "dof": sol.dof, "chi2_per_dof": sol.chi2_per_dof, "fit": _fit(sol),
+        "residuals": {"chi2": sol.chi2, "dof": sol.dof, "chi2_per_dof": sol.chi2_per_dof, "fit": _fit(outcome),
                       "rms": rms, "rms_unit": "m/s^2",
                       "gyro_rms": {n: np.sqrt((r ** 2).mean(axis=0)) for n, r in outcome.residual_gyro.items()}},
         "poses": {"count": outcome.averages.n_poses, "samples": outcome.averages.n,
@@ -158,17 +157,16 @@ def dynamic_results(outcome) -> dict:
         # the groups shared by every triad (problem.effects.BOARD: the chip model's sensing-element offsets)
         **({"array": {"parameters": board}} if (board := _parameters(lay, sol, BOARD, fisher)) else {}),
         "residuals": {"chi2": sol.chi2, "dof": sol.dof, "chi2_per_dof": sol.chi2_per_dof,
-                      "fit": _fit(sol, (serial or {}).get("lag1_autocorrelation")),
+                      "fit": _fit(outcome),
                       "rms": {n: rms(r) for n, r in outcome.residual_acc.items()}, "rms_unit": "m/s^2",
                       "gyro_rms": {n: rms(r) for n, r in outcome.residual_gyro.items()}},
         **_effects(outcome.problem.config),
     }
 
 
-def _fit(sol, lag1: dict | None = None) -> dict:
-    """Whether the model fits the data (:func:`castimate.solver.verdict.fit_verdict`): ``level`` ok, warn or
-    bad, and the sentence."""
-    level, sentence = fit_verdict(sol.success, sol.message, sol.chi2_per_dof, sol.dof, lag1)
+def _fit(outcome) -> dict:
+    """Whether the model fits the data (the outcome's ``fit``): ``level`` ok, warn or bad, and the sentence."""
+    level, sentence = outcome.fit
     return {"level": level, "verdict": sentence}
 
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..solver.verdict import fit_verdict
 
 DEG = 180 / np.pi
 
@@ -16,10 +15,9 @@ def _fmt(values, stds, unit) -> str:
     return f"[{', '.join(parts)}] {unit}"
 
 
-def _warning(sol, lag1=None) -> list[str]:
-    """The summary's line saying that the model does not fit (:func:`castimate.solver.verdict.fit_verdict`),
-    if it does not."""
-    level, sentence = fit_verdict(sol.success, sol.message, sol.chi2_per_dof, sol.dof, lag1)
+def _warning(outcome) -> list[str]:
+    """The summary's line saying that the model does not fit (the outcome's ``fit``), if it does not."""
+    level, sentence = outcome.fit
     return [f"  warning: {sentence}"] if level == "bad" else []
 
 
@@ -29,7 +27,7 @@ def static_summary(outcome) -> str:
     lines = [f"{outcome.spec.path.name}: {sol.message} in {sol.iterations} iterations, "
              f"{sol.wall_s * 1e3:.0f} ms solve + {outcome.solver.build_s * 1e3:.0f} ms build",
              f"  {outcome.averages.n_poses} poses, {len(outcome.config.triads)} triads, "
-             f"chi2/dof = {sol.chi2_per_dof:.3f} (dof {sol.dof})", *_warning(sol)]
+             f"chi2/dof = {sol.chi2_per_dof:.3f} (dof {sol.dof})", *_warning(outcome)]
     for name in outcome.config.names:
         r = outcome.residual_acc[name]
         lines.append(f"  {name}: residual RMS {np.sqrt((r ** 2).mean()) * 1e3:.2f} mm/s^2")
@@ -73,7 +71,7 @@ def dynamic_summary(outcome) -> str:
                 f"{k} {c['value']:.3g}±{c['std']:.2g} {c['unit']}" for k, c in comps.items() if c["value"]))
     if (outcome.motion_noise or {}).get("status"):
         lines.append(f"  motion-dependent noise: {outcome.motion_noise['status']}")
-    lines += _warning(sol, (outcome.serial or {}).get("lag1_autocorrelation"))
+    lines += _warning(outcome)
     lines.append("  position [mm] (body frame, origin at the reference triad)  estimate ± σ   | nominal")
     for n in outcome.config.names:
         r, s = outcome.positions[n]
