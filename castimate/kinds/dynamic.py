@@ -580,18 +580,13 @@ def calibrate_dynamic(spec: ProblemSpec, log: Log = quiet, max_restarts: int = 2
 
     if spec.solver.method == "bcd":
         problem, solver, sol, attempts = _solve_bcd(spec, config, data, log)
-        check_estimates(spec, sol.values, problem.config.names, sol.std)
-        check_mirrored(spec, sol.values, nominal, problem.config.names)
-        cal, gcal = problem.calibration(sol.values), problem.gyro_calibration(sol.values)
-        res_acc, res_gyro = measurement_residuals(problem, data, sol)
-        check_fitted_gyroscopes(spec, data, res_gyro)
-        return DynamicOutcome(spec, data, config, problem, solver, sol, attempts, sat, cal, gcal, res_acc, res_gyro,
-                              nominal)
-    problem, solver, sol, attempts, variance = solve_dynamic(config, data, nominal, spec.solver, spec.path,
-                                                             static_problem, log, max_restarts, start,
-                                                             fisher=not spec.noise.motion_noise)
-    data, sol, noise = fit_motion_noise(spec, problem, solver, sol, data, log)
-    sol, serial = serial_uncertainty(spec, problem, solver, sol, data, log)
+        variance = noise = serial = None
+    else:
+        problem, solver, sol, attempts, variance = solve_dynamic(config, data, nominal, spec.solver, spec.path,
+                                                                 static_problem, log, max_restarts, start,
+                                                                 fisher=not spec.noise.motion_noise)
+        data, sol, noise = fit_motion_noise(spec, problem, solver, sol, data, log)
+        sol, serial = serial_uncertainty(spec, problem, solver, sol, data, log)
     check_estimates(spec, sol.values, problem.config.names, sol.std)  # with the reported σ's
     check_mirrored(spec, sol.values, nominal, problem.config.names)
     cal, gcal = problem.calibration(sol.values), problem.gyro_calibration(sol.values)
