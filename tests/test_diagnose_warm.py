@@ -57,9 +57,13 @@ def test_warm_path_gives_the_reference_decisions_and_statistics(spec, age_diagno
                     assert abs(ca.rms - cb.rms) <= _cv_tol(cb), (ca.rms, cb.rms)
     assert abs(fast.after.chi2 - ref.after.chi2) <= _chi2_tol(ref.after.dof)
     # the warm refits start at the fit they extend: no attempt from the nominal poses
+    last = [f for r in fast.rounds for f in r.refits if f.accepted][-1]
     for r in fast.rounds:
         for f in r.refits:
             assert [a["start"] for a in f.model.outcome.attempts] == ["previous fit"]
+            # a refit rejected or replaced let go of its solver (Model.retire: its memory), the last added kept it
+            assert (f.model.outcome.solver is None) == (f is not last), (f.effect, f.accepted)
+    assert fast.before.outcome.solver is not None and fast.after.outcome.solver is last.model.outcome.solver
     doc = diagnosis_document(fast)
     assert doc["times"]["total"]["wall_s"] > 0 and "cross-validation" in doc["rounds"][0]["times"]
 

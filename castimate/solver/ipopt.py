@@ -10,6 +10,7 @@ import os
 import platform
 import sys
 import time
+import weakref
 
 import casadi as ca
 import numpy as np
@@ -165,7 +166,13 @@ class Solver:
                                ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
         jac_g = ca.Function("nlp_jac_g", [x, p], [c, ca.jacobian(c, x)], ["x", "p"], ["g", "jac_g_x"])
         nlp = {"x": x, "p": p, "f": cbs[0](x, p), "g": c}
-        self.stall = Stall(n, n_c, p.numel(), self._idle_decrement)
+        # the solver held weakly: a bound method would close a cycle (solver -> stall -> solver) that
+        # only the cyclic garbage collector frees, which runs seldom among CasADi's many long-lived
+        # objects: every solver built and dropped kept its compiled maps and elimination state until
+        # then (diagnose of MIMU4444 exp_1: its score tests' and cross-validation folds' solvers, 3.4 GB
+        # freed by one pass)
+        solver = weakref.ref(self)
+        self.stall = Stall(n, n_c, p.numel(), lambda x, lam_g: solver()._idle_decrement(x, lam_g))
         return ca.nlpsol("castimate", "ipopt", nlp, {**self.options.ipopt(), "hess_lag": hess_lag,
                                                      "grad_f": grad_f, "jac_g": jac_g,
                                                      "iteration_callback": self.stall})
