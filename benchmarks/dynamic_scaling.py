@@ -579,6 +579,36 @@ def run_worker(data_path: Path, method: str, tmp: Path, cap_s: float, mem_cap_mb
     return res
 
 
+#: the methods the targets time (castimate against its peers, and through the CLI with the motion
+#: eliminated): each runs ``--repeats`` times, each time in a fresh process, and is reported by its
+#: run of median total time, every run's total listed. On the shared 2-core machine single runs of
+#: the same method spread by 20-50 % (Schopp build + solve 0.24-0.37 s, scipy at 32 x 20 000 35.9-47.2 s)
+REPEATED = ("castimate", "castimate_threads", "scipy", "bcd")
+
+
+def run_total(r: dict) -> float:
+    """A run's total time: castimate build + solve, a peer's setup + solve, a CLI run's wall time;
+    infinite for a capped or failed run."""
+    if r.get("capped") or r.get("returncode", 0) != 0:
+        return float("inf")
+    if "wall_s" in r and "case" in r:
+        return r["wall_s"]
+    return r["build_s"] + r["solve_total_s"] if "build_s" in r else r["setup_s"] + r["solve_s"]
+
+
+def median_run(runs: list[dict]) -> dict:
+    """The run of median total time (the upper one of an even count), with every run's total in
+    ``totals_s`` in the order they ran."""
+    pick = dict(sorted(runs, key=run_total)[len(runs) // 2])
+    pick["totals_s"] = [run_total(r) for r in runs]
+    return pick
+
+
+def _runs(r: dict) -> str:
+    t = r.get("totals_s") or []
+    return "1 run" if len(t) < 2 else f"{len(t)} runs: {min(t):.3g}–{max(t):.3g} s"
+
+
 def machine() -> dict:
     import casadi as ca
     cpu = ""
@@ -651,7 +681,8 @@ METHOD_LABEL = {"castimate": "castimate (IPOPT exact Hessian, motion eliminated,
                 "castimate_polish": "castimate (Gauss-Newton, then exact-Hessian polish; castimate solve's path without gyroscopes)",
                 "scipy": "scipy trf (lsmr, sparse J)",
                 "bcd": "BCD (Carlsson Alg. 1)"}
-MAIN_COLUMNS = ["case", "method", "build/setup [s]", "solve [s]", "covariance [s]", "total [s]", "CPU [s]", "load",
+MAIN_COLUMNS = ["case", "method", "build/setup [s]", "solve [s]", "covariance [s]", "total [s]", "runs: totals",
+                "CPU [s]", "load",
                 "iter / nfev", "per iter [s]", "peak [MB]", "converged", "pos RMSE [µm]", "max|Δr| [µm]"]
 
 
@@ -677,24 +708,24 @@ def main_rows(results: list[dict]) -> list[list[str]]:
                              else (_f(r.get("build_dynamic_s", 0) + r.get("solver_build_s", 0))
                                    if "solver_build_s" in r else _f(r.get("setup_s"))),
                              f"CAPPED ({r['capped']}) in phase '{ph}'",
-                             "–", f">{r['elapsed_s']:.0f}", "–", _f(r.get("load"), ".1f"), "–", "–",
+                             "–", f">{r['elapsed_s']:.0f}", _runs(r), "–", _f(r.get("load"), ".1f"), "–", "–",
                              f"≥{r['peak_mb']:.0f}", "no", "–", "–"])
                 continue
             if m.startswith("castimate"):
                 rows.append([label, METHOD_LABEL[m], _f(r["build_s"]), _f(r["ipopt_s"]), _f(r["covariance_s"]),
-                             _f(r["build_s"] + r["solve_total_s"]), _f(r.get("cpu_s")), _f(r.get("load"), ".1f"),
+                             _f(r["build_s"] + r["solve_total_s"]), _runs(r), _f(r.get("cpu_s")), _f(r.get("load"), ".1f"),
                              str(r["iterations"]), _f(r["per_iteration_s"]),
                              f"{r['peak_mb']:.0f}", "yes" if r["success"] else f"NO ({r['message']})",
                              _f(r["position_rmse_um"]), _diff(c, m, r)])
             elif m == "scipy":
                 rows.append([label, METHOD_LABEL[m], _f(r["setup_s"]), _f(r["solve_s"]), "–",
-                             _f(r["setup_s"] + r["solve_s"]), _f(r.get("cpu_s")), _f(r.get("load"), ".1f"),
+                             _f(r["setup_s"] + r["solve_s"]), _runs(r), _f(r.get("cpu_s")), _f(r.get("load"), ".1f"),
                              f"{r['nfev']} / {r['njev']}", _f(r["per_nfev_s"]),
                              f"{r['peak_mb']:.0f}", f"status {r['status']}",
                              _f(r["position_rmse_um"]), _diff(c, m, r)])
             else:
                 rows.append([label, METHOD_LABEL[m], _f(r["setup_s"]), _f(r["solve_s"]), "–",
-                             _f(r["setup_s"] + r["solve_s"]), _f(r.get("cpu_s")), _f(r.get("load"), ".1f"),
+                             _f(r["setup_s"] + r["solve_s"]), _runs(r), _f(r.get("cpu_s")), _f(r.get("load"), ".1f"),
                              str(r["iterations"]), _f(r["per_iteration_s"]),
                              f"{r['peak_mb']:.0f}", "yes" if r["converged"] else f"no (last step {r['last_step_m']:.1e} m)",
                              _f(r["position_rmse_um"]), _diff(c, m, r)])
@@ -779,16 +810,16 @@ def targets(results: list[dict]) -> list[str]:
                 out.append(f"Schopp 5×675 build + solve ≤ 0.3 s, {who}: {_met(tot, cpu, 0.3)} "
                            f"({tot:.2f} s = build {r['build_s']:.2f} + IPOPT {r['ipopt_s']:.2f} in "
                            f"{r['iterations']} iterations + covariance {r['covariance_s']:.2f}; CPU {cpu:.2f} s; "
-                           f"load {r.get('load', float('nan')):.1f})")
+                           f"load {r.get('load', float('nan')):.1f}; {_runs(r)})")
             if c["case"] == "carlsson_20k":
                 line = (f"Carlsson 32×20k ≤ 10 s and ≤ 1 GB, {who}: time {_met(tot, cpu, 10)} "
-                        f"({tot:.1f} s, CPU {cpu:.1f} s, load {r.get('load', float('nan')):.1f}), memory "
+                        f"({tot:.1f} s, CPU {cpu:.1f} s, load {r.get('load', float('nan')):.1f}; {_runs(r)}), memory "
                         f"{'met' if r['peak_mb'] <= 1024 else 'NOT MET'} ({r['peak_mb']:.0f} MB)")
                 for other, need in (("bcd", 5), ("scipy", 10)):
                     o = runs.get(other)
                     if o and not o.get("capped"):
                         ot = o["setup_s"] + o["solve_s"]
-                        line += f"; {ot / tot:.1f} × faster than {other} (target ≥ {need})"
+                        line += f"; {ot / tot:.1f} × faster than {other} (target ≥ {need}; its {_runs(o)})"
                         if o.get("cpu_s"):
                             line += f", {o['cpu_s'] / cpu:.1f} × in CPU time"
                 out.append(line)
@@ -915,7 +946,7 @@ def _flat_positions(results: dict) -> dict[str, list[float]]:
     return found
 
 
-REAL_COLUMNS = ["case", "elimination", "CLI wall [s]", "CLI CPU [s]", "load", "solve [s]", "build [s]", "iterations",
+REAL_COLUMNS = ["case", "elimination", "CLI wall [s]", "runs: walls", "CLI CPU [s]", "load", "solve [s]", "build [s]", "iterations",
                 "peak RSS [MB]", "target [s]", "max|Δr| vs reference [µm]"]
 
 
@@ -931,7 +962,7 @@ def real_rows(real: list[dict]) -> list[list[str]]:
                 d = max(abs(a - b) for k in keys for a, b in zip(r["positions"][k], base["positions"][k]))
                 diff = _f(d * 1e6)
         rows.append([r["case"], r["elimination"], _f(r["wall_s"]) if not r.get("capped") else f"CAPPED ({r['capped']})",
-                     _f(r.get("cpu_s")), _f(r.get("load"), ".1f"), _f(r.get("solve_wall_s")), _f(r.get("build_s")), _f(r.get("iterations"), "d") if r.get("iterations")
+                     _runs(r), _f(r.get("cpu_s")), _f(r.get("load"), ".1f"), _f(r.get("solve_wall_s")), _f(r.get("build_s")), _f(r.get("iterations"), "d") if r.get("iterations")
                      is not None else "–", f"{r['peak_mb']:.0f}", _f(REAL[r["case"]][2]), diff])
     return rows
 
@@ -946,7 +977,7 @@ def real_targets(real: list[dict]) -> list[str]:
             out.append(f"{r['case']} through the CLI ≤ {target:g} s: NOT MET ({r.get('capped') or 'failed'})")
             continue
         out.append(f"{r['case']} through the CLI ≤ {target:g} s: {_met(r['wall_s'], r['cpu_s'], target)} "
-                   f"({r['wall_s']:.1f} s wall, {r['cpu_s']:.1f} s CPU, load {r['load']:.1f})")
+                   f"({r['wall_s']:.1f} s wall, {r['cpu_s']:.1f} s CPU, load {r['load']:.1f}; {_runs(r)})")
     return out
 
 
@@ -964,7 +995,10 @@ def markdown(results, info, args, total, real=()) -> str:
            "`Solver.solve` minus the nlpsol call (marginal covariance of the positions, unpacking); per iter = "
            "IPOPT time / iterations. CPU = the process's CPU time (`time.process_time`) over the same span as total "
            "(for scipy and BCD: setup + solve); load = the 1-minute load average when the method started. The machine "
-           "(2 cores) is shared: wall times grow with the load, CPU times hardly. "
+           "(2 cores) is shared: wall times grow with the load, CPU times hardly; "
+           f"so {', '.join(REPEATED)} run {args.repeats} times each, each time in a fresh process, and every "
+           "number of such a row is that of its run of median total time ('runs': the totals of all its runs; "
+           "the ratios to the peers are those of the medians). "
            "scipy: `least_squares(method='trf', tr_solver='lsmr', x_scale=1)`, "
            f"tolerances {LSQ_TOL:g}, lsmr atol = btol = {LSMR_TOL:g}, numpy residual with analytic sparse Jacobian; per iter = solve / nfev. "
            f"BCD: `castimate.bcd.bcd_positions`, tol {BCD_TOL:g} m, at most {BCD_MAX_ITER} iterations. "
@@ -982,7 +1016,8 @@ def markdown(results, info, args, total, real=()) -> str:
            "## Growth with the record length (Carlsson, 32 IMUs)", "",
            *md_table(GROWTH_COLUMNS, growth_rows(results)), "",
            "## Real data: MIMU4444 exp_1 through the CLI", "",
-           "`python -m castimate solve` in a fresh process per row (wall time from interpreter start to results "
+           f"`python -m castimate solve` in a fresh process per run, {args.repeats} runs with the motion eliminated "
+           "(the row: the run of median wall time), one of the reference (wall time from interpreter start to results "
            "written; CLI CPU = its user + system time, gcc included when a structure is new; solve = the last "
            "IPOPT solve, build = its Solver). The refit frees the g-sensitivity "
            "matrix of all 8 gyroscopes (72 more calibration parameters).", "",
@@ -1016,6 +1051,9 @@ def main(argv=None) -> int:
     ap.add_argument("--data-root", type=Path, default=REPO.parent / "shared" / "data",
                     help="the shared data directory, where the problem files' relative data paths do not resolve")
     ap.add_argument("--real-cap-s", type=float, default=300.0, help="stop a real-data solve after this many seconds")
+    ap.add_argument("--repeats", type=int, default=3,
+                    help=f"fresh-process runs of each timed method ({', '.join(REPEATED)}; the CLI rows with the "
+                         "motion eliminated), reported by the run of median total time")
     ap.add_argument("--methods", default=None,
                     help=f"comma-separated subset of the methods {', '.join(WORKERS)} (default: all that apply), "
                          "e.g. castimate,castimate_threads to skip the slow peers")
@@ -1056,8 +1094,8 @@ def main(argv=None) -> int:
             methods = [m for m in methods if args.methods is None or m in args.methods]
             runs = {}
             for method in methods:
-                r = run_worker(path, method, tmp, args.cap_s, args.mem_cap_gb * 1024)
-                runs[method] = r
+                r = runs[method] = median_run([run_worker(path, method, tmp, args.cap_s, args.mem_cap_gb * 1024)
+                                               for _ in range(args.repeats if method in REPEATED else 1)])
                 if r.get("capped"):
                     print(f"   {method}: CAPPED ({r['capped']}) after {r['elapsed_s']:.0f} s, peak >= "
                           f"{r['peak_mb']:.0f} MB, phase {(r.get('last_phase') or {}).get('phase')}"
@@ -1065,14 +1103,15 @@ def main(argv=None) -> int:
                 elif method.startswith("castimate"):
                     print(f"   {method}: build {r['build_s']:.2f} s (problem {r['build_dynamic_s']:.2f} + Solver "
                           f"{r['solver_build_s']:.2f}), IPOPT {r['ipopt_s']:.2f} s / {r['iterations']} it, "
-                          f"covariance {r['covariance_s']:.2f} s, peak {r['peak_mb']:.0f} MB, {r['message']}",
+                          f"covariance {r['covariance_s']:.2f} s, peak {r['peak_mb']:.0f} MB, {r['message']}"
+                          f"; {_runs(r)}",
                           flush=True)
                 elif method == "scipy":
                     print(f"   scipy trf: setup {r['setup_s']:.2f} s, solve {r['solve_s']:.2f} s, nfev {r['nfev']}, "
-                          f"status {r['status']}, peak {r['peak_mb']:.0f} MB", flush=True)
+                          f"status {r['status']}, peak {r['peak_mb']:.0f} MB; {_runs(r)}", flush=True)
                 else:
                     print(f"   BCD: {r['solve_s']:.2f} s, {r['iterations']} iterations, converged {r['converged']}, "
-                          f"peak {r['peak_mb']:.0f} MB", flush=True)
+                          f"peak {r['peak_mb']:.0f} MB; {_runs(r)}", flush=True)
             c = summarise(case, d, runs)
             for m, r in runs.items():
                 if m != c["reference"] and r.get("max_diff_um") is not None:
@@ -1085,9 +1124,10 @@ def main(argv=None) -> int:
             compile_bytecode()
         for case in real_cases:
             for elimination in ("motion", "none"):
-                r = run_real(case, elimination, args.data_root, tmp, args.real_cap_s)
+                r = median_run([run_real(case, elimination, args.data_root, tmp, args.real_cap_s)
+                                for _ in range(args.repeats if elimination == "motion" else 1)])
                 real.append(r)
-                print(f"== {case}, elimination {elimination}: CLI {r['wall_s']:.2f} s"
+                print(f"== {case}, elimination {elimination}: CLI {r['wall_s']:.2f} s ({_runs(r)})"
                       + (f" CAPPED ({r['capped']})" if r.get("capped") else
                          f", solve {_f(r.get('solve_wall_s'))} s, build {_f(r.get('build_s'))} s, "
                          f"{r.get('iterations')} iterations, {r.get('message')}")
