@@ -29,6 +29,8 @@ import os
 import shutil
 import subprocess
 import tempfile
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import casadi as ca
@@ -83,28 +85,79 @@ def optimisation(work: int | None) -> str:
     return "-O2" if work is None or work >= OPTIMISE_WORK else "-O0"
 
 
-def compile_functions(functions: list[ca.Function], work: int | None = None) -> list[ca.Function] | None:
+def compile_functions(functions: list[ca.Function], work: int | None = None, wait: bool = True):
     """Compiled equivalents of ``functions``, or None when no compiler is available or compilation
     fails. Names must be unique among them. ``work``: instructions of one evaluation (instances ×
-    SX instructions), which sets the optimisation level (:func:`optimisation`)."""
+    SX instructions), which sets the optimisation level (:func:`optimisation`).
+
+    With ``wait`` False a :class:`Pending` comes back at once and gcc runs on a worker thread
+    (:func:`_gcc_threads`, one per core), so that the libraries of a Solver's blocks compile side by
+    side; its ``result()`` is what ``wait`` returns. The C source is generated in the calling thread
+    either way, one thread at a time (CasADi's code generator is not run from two threads at once),
+    and only for a library the cache does not hold."""
     cc = compiler()
     if cc is None:
-        return None
+        return None if wait else Pending(lambda: None)
     flags = (optimisation(work), *FLAGS)
     lib = cache_dir() / f"{cache_key(functions, flags)}.so"
-    if not lib.exists():
-        try:
-            lib.parent.mkdir(parents=True, exist_ok=True)
-            with locked(lib.with_suffix(".lock")):
-                if not lib.exists():  # another process may have built it while this one waited
-                    with tempfile.TemporaryDirectory(dir=lib.parent) as tmp:
-                        src, out = Path(tmp) / "local.c", Path(tmp) / "local.so"
-                        src.write_text(source(functions))
-                        subprocess.run([cc, *flags, str(src), "-o", str(out), "-lm"], check=True, capture_output=True)
-                        os.replace(out, lib)  # atomic: a reader sees no library or the whole one
-        except (OSError, subprocess.CalledProcessError):
-            return None
-    return [ca.external(f.name(), str(lib)) for f in functions]
+    names = [f.name() for f in functions]
+    if lib.exists():
+        built = None
+    else:
+        with _CODEGEN:
+            text = source(functions)
+        built = _build(cc, flags, text, lib) if wait else _gcc_threads().submit(_build, cc, flags, text, lib)
+
+    def load():
+        ok = built is None or (built if isinstance(built, bool) else built.result())
+        return [ca.external(n, str(lib)) for n in names] if ok else None
+
+    return load() if wait else Pending(load)
+
+
+class Pending:
+    """A library on its way (:func:`compile_functions` with ``wait`` False): ``result()`` waits for
+    gcc the first time and returns the compiled functions (None if compiling failed), the same list
+    on every call, from any thread."""
+
+    def __init__(self, finish):
+        self._finish, self._result, self._lock = finish, None, threading.Lock()
+
+    def result(self) -> list[ca.Function] | None:
+        with self._lock:
+            if self._finish is not None:
+                self._result, self._finish = self._finish(), None
+            return self._result
+
+
+_CODEGEN = threading.Lock()
+_THREADS: list[ThreadPoolExecutor] = []
+
+
+def _gcc_threads() -> ThreadPoolExecutor:
+    """The worker threads that run gcc for :func:`compile_functions` (``wait`` False): as many as the
+    process may use cores; each waits on its gcc process, which takes the core."""
+    if not _THREADS:
+        _THREADS.append(ThreadPoolExecutor(max_workers=max(1, len(os.sched_getaffinity(0))),
+                                           thread_name_prefix="castimate-gcc"))
+    return _THREADS[0]
+
+
+def _build(cc: str, flags: tuple[str, ...], text: str, lib: Path) -> bool:
+    """gcc on the C source ``text`` into the library ``lib``, under its lock, unless another process
+    built it meanwhile; renamed into place when whole. False if compiling failed."""
+    try:
+        lib.parent.mkdir(parents=True, exist_ok=True)
+        with locked(lib.with_suffix(".lock")):
+            if not lib.exists():  # another process may have built it while this one waited
+                with tempfile.TemporaryDirectory(dir=lib.parent) as tmp:
+                    src, out = Path(tmp) / "local.c", Path(tmp) / "local.so"
+                    src.write_text(text)
+                    subprocess.run([cc, *flags, str(src), "-o", str(out), "-lm"], check=True, capture_output=True)
+                    os.replace(out, lib)  # atomic: a reader sees no library or the whole one
+        return True
+    except (OSError, subprocess.CalledProcessError):
+        return False
 
 
 def source(functions: list[ca.Function]) -> str:

@@ -81,3 +81,43 @@ def test_the_key_is_the_same_in_another_process():
             "print(jit.cache_key([f]))")
     out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True).stdout.strip()
     assert out == jit.cache_key([_function()])
+
+
+def test_libraries_compile_side_by_side_on_worker_threads(cache, monkeypatch):
+    """compile_functions(wait=False): the C source is written in the caller's thread, gcc runs on a
+    worker thread for each library at once, and result() gives the same functions as waiting would
+    (the same list on every call)."""
+    tmp, calls = cache
+    threads, run = [], jit.subprocess.run
+
+    def where(*a, **k):
+        threads.append(jit.threading.current_thread().name)
+        return run(*a, **k)
+
+    monkeypatch.setattr(jit.subprocess, "run", where)
+    a, b = _function(0.25), _function(0.5)
+    pending = [jit.compile_functions([f], wait=False) for f in (a, b)]
+    assert all(isinstance(p, jit.Pending) for p in pending)
+    got = [p.result() for p in pending]
+    assert got[0] is pending[0].result()  # waited once
+    assert len(threads) == 2 and all(t.startswith("castimate-gcc") for t in threads), threads
+    x = np.array([[0.3, -0.7], [1.1, 2.5]])
+    for f, g in zip((a, b), got):
+        assert float(g[0](x)) == float(f(x))
+    # cached now: nothing more compiled, and the same functions waiting or not
+    again = jit.compile_functions([_function(0.25)], wait=False).result()
+    assert len(threads) == 2 and float(again[0](x)) == float(a(x))
+
+
+def test_a_failed_compile_leaves_the_functions_uncompiled(cache, monkeypatch):
+    """gcc failing (here: it exits with an error) gives None, waiting or not, and no library: the
+    callers keep CasADi's virtual machine."""
+    tmp, _ = cache
+
+    def failing(cmd, *a, **k):
+        raise subprocess.CalledProcessError(1, cmd)
+
+    monkeypatch.setattr(jit.subprocess, "run", failing)
+    assert jit.compile_functions([_function(0.75)]) is None
+    assert jit.compile_functions([_function(0.75)], wait=False).result() is None
+    assert not list(tmp.glob("*.so"))

@@ -91,11 +91,24 @@ class _Compiled:
         self.work = evaluation_work(instances, self.symbolic["rgh"])  # gcc's optimisation level (castimate.jit)
         names = [name for name in LOCAL if name in which]
         chosen = [self.symbolic[name] for name in names]
-        compiled = dict(zip(names, (compile_functions(chosen, self.work) if self.compiled and chosen else None)
-                            or chosen))
-        self.res, self.jac, self.rgh, self.gn = (compiled.get(name, self.symbolic[name]) for name in LOCAL)
+        # gcc on a worker thread while the Solver's other blocks are built (the first use waits)
+        self._library = (names, chosen, compile_functions(chosen, self.work, wait=False)
+                         if self.compiled and chosen else None)
+        self._fns = None
         self.nz, self.nd, self.m, self.n_cal = nz, nd, fn.size1_out(0), n_cal
         self._buffers: dict = {}
+
+    def _get(self, name: str) -> ca.Function:
+        if self._fns is None:
+            names, chosen, pending = self._library
+            self._fns = dict(zip(names, (pending.result() if pending is not None else None) or chosen))
+        return self._fns.get(name, self.symbolic[name])
+
+    # the local functions, compiled where chosen (``which``)
+    res = property(lambda self: self._get("res"))
+    jac = property(lambda self: self._get("jac"))
+    rgh = property(lambda self: self._get("rgh"))
+    gn = property(lambda self: self._get("gn"))
 
     def __call__(self, fn: ca.Function, args: list[np.ndarray], outs: list[np.ndarray]):
         """Evaluate ``fn`` on n instances in place: ``args`` and ``outs`` are C-contiguous (n, size)

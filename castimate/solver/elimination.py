@@ -398,17 +398,37 @@ class _StageFunctions:
                       + [("h", M, True, ("B", k)) for k, M in inner_plan.hss.items()]
                       + [("hgn", M, True, ("Bgn", k)) for k, M in inner_plan.hss.items()]),
         }
-        self.fns, self.layout = self._functions(specs, f, inner_fn, K, nc, nd, widths, self.shared, jit)
+        names, functions, self.layout = self._functions(specs, f, inner_fn, K, nc, nd, widths, self.shared)
+        # compiled while the Solver's other blocks are built (gcc on worker threads: :attr:`fns` waits)
+        self._library = (names, functions, compile_functions(functions, f.work, wait=False) if jit else None)
+        self._fns = None
         # without the shared part, for data whose declared-shared columns are not (built when needed)
-        self._plain_args, self._plain_fns = (specs, f, inner_fn, K, nc, nd, widths, (), jit), None
+        self._plain_args, self._plain_fns, self._jit, self._work = (specs, f, inner_fn, K, nc, nd, widths, ()), None, jit, f.work
         self._maps: dict = {}  # (mode, stage groups, inputs) -> the map, built once for every thread
         self._buffers: dict = {}  # the same and the thread -> a buffer of the map (arguments and work: one per thread)
         self._lock = threading.Lock()  # the workers' first calls build the maps one after the other
         self._flat: dict = {}  # (mode, segment, stage groups) -> flat indices of a scattered target in its slab
 
+    @property
+    def fns(self) -> dict[str, ca.Function]:
+        """The stage functions of every mode (and their shared parts) by name, compiled to C where
+        the block runs over enough instances: the first access waits for gcc."""
+        if self._fns is None:
+            names, functions, pending = self._library
+            self._fns = dict(zip(names, (pending.result() if pending is not None else None) or functions))
+        return self._fns
+
+    def _plain(self) -> dict[str, ca.Function]:
+        """:attr:`fns` without the shared part (built the first time they are needed)."""
+        if self._plain_fns is None:
+            names, functions, _ = self._functions(*self._plain_args)
+            self._plain_fns = dict(zip(names, (compile_functions(functions, self._work) if self._jit else None)
+                                       or functions))
+        return self._plain_fns
+
     @classmethod
-    def _functions(cls, specs, f, inner_fn, K, nc, nd, widths, shared, jit):
-        """The stage functions of every mode (and their shared parts), compiled, and their layouts."""
+    def _functions(cls, specs, f, inner_fn, K, nc, nd, widths, shared):
+        """The stage functions of every mode (and their shared parts), their names and their layouts."""
         layouts, functions, names_ = {}, [], []
         for mode, (fn, names, width, red, tgt) in specs.items():
             split = _shared_split(fn, shared) if shared else None
@@ -437,8 +457,7 @@ class _StageFunctions:
             functions.append(pre)
             names_.append("vec_shared")
         layouts["vec"] = (True, [], [], 1, [K * f.m])
-        compiled = (compile_functions(functions, f.work) if jit else None) or functions
-        return dict(zip(names_, compiled)), layouts
+        return names_, functions, layouts
 
     @staticmethod
     def _pre(name, pre, K, nc, nd):
@@ -471,8 +490,7 @@ class _StageFunctions:
             same = all((S[j: j + CHECK_STAGES][:, :, cols] == first).all() for j in range(0, J, CHECK_STAGES))
             self._checked = (key, weakref.ref(owner), bool(same))
         if not self._checked[2]:  # not shared in these data: the functions without the shared part
-            if self._plain_fns is None:
-                self._plain_fns = self._functions(*self._plain_args)[0]
+            self._plain()
             return None
         return np.asarray(pre(np.ascontiguousarray(zc).ravel(), np.ascontiguousarray(D[:K]).ravel())).ravel()
 
@@ -543,9 +561,7 @@ class _StageFunctions:
         key = (mode, nJ, not plain, threading.get_ident())
         if key not in self._buffers:
             with self._lock:
-                if plain and self._plain_fns is None:  # (shared_values)
-                    self._plain_fns = self._functions(*self._plain_args)[0]
-                fn = (self._plain_fns if plain else self.fns)[mode]
+                fn = (self._plain() if plain else self.fns)[mode]  # (shared_values)
                 mapped = self._maps.get(key[:3])
                 if mapped is None:
                     # CasADi's MapSum: zc and the shared data are one column for all stage groups, and
@@ -953,6 +969,8 @@ class Projection:
                     u.inner = (((compile_functions([fn], f.work) if many else None) or [fn])[0], inner_plan)
                 self.units.append(u)
         self.stage_fns = [u.stage_fns for u in self.units if u.stage_fns is not None]
+        for sf in self.stage_fns:  # built once every library is: gcc compiled them side by side
+            sf.fns  # noqa: B018
         self._written = {mode: self._direct(mode) for mode in ("res", "grad", "full", "info", "inner")}
         self.prior = layout.priors()
         self.data = None
