@@ -29,7 +29,7 @@ def _same_with_and_without(monkeypatch, switch, P, x, pf):
     """Every mode's assembly at x with _StageFunctions' ``switch`` on (into reused arrays filled
     with NaN first) equals the one with it off (fresh arrays), bit for bit, on 2 and 1 threads."""
     th, Xs = P.split(x)
-    for mode in ("full", "grad", "info", "inner", "res"):
+    for mode in ("full", "grad", "info", "inner"):
         for threads in (2, 1):
             P.threads = threads
             monkeypatch.setattr(elimination._StageFunctions, switch, True)  # noqa: SLF001

@@ -40,7 +40,7 @@ def test_assembly_on_threads_is_identical(monkeypatch, process_model):
         return call(self, *a, **k)
 
     monkeypatch.setattr(elimination._StageFunctions, "__call__", spy)
-    for mode in ("full", "grad", "info", "inner", "res"):
+    for mode in ("full", "grad", "info", "inner"):
         P.threads = 3
         a = P.assemble(th, Xs, pf, None, mode)
         P.threads = 1

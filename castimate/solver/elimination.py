@@ -388,7 +388,6 @@ class _StageFunctions:
         hsc = [("h", M, False, ("Hsc", d)) for d, M in plan.hsc.items()]
         red_full = [("g", "gc", plan.gc)] * (plan.gc is not None) + [("h", "hcc", plan.hcc)] * (plan.hcc is not None)
         specs = {
-            "res": (f.symbolic["res"], ("r",), {"r": 1}, [], []),
             "full": (f.symbolic["rgh"], ("r", "g", "h"), {"r": 1, "g": na, "h": P}, red_full, gs + hss + hsc),
             "info": (f.symbolic["gn"], ("h",), {"h": P}, [x for x in red_full if x[1] == "hcc"], hss + hsc),
             "grad": (_outputs(f.symbolic["rgh"], 2), ("r", "g"), {"r": 1, "g": na}, [x for x in red_full if x[1] == "gc"],
@@ -971,7 +970,7 @@ class Projection:
         self.stage_fns = [u.stage_fns for u in self.units if u.stage_fns is not None]
         for sf in self.stage_fns:  # built once every library is: gcc compiled them side by side
             sf.fns  # noqa: B018
-        self._written = {mode: self._direct(mode) for mode in ("res", "grad", "full", "info", "inner")}
+        self._written = {mode: self._direct(mode) for mode in ("grad", "full", "info", "inner")}
         self.prior = layout.priors()
         self.data = None
         self._cache, self._anchor, self._factors, self._pending, self._lazy = None, None, None, None, None
@@ -1098,7 +1097,8 @@ class Projection:
         return r
 
     def assemble(self, theta, Xs, pf, data, mode: str, reuse: bool = False) -> _Parts:
-        """mode: "res" (objective), "inner" (stage derivatives), "full" (all derivatives), "info" (J^T J).
+        """mode: "grad" (objective and gradient), "inner" (stage derivatives), "full" (all
+        derivatives), "info" (J^T J).
         ``reuse``: into the arrays of the previous reusing call (which must no longer be needed)."""
         c = self.c
         slot = "coupled" if mode in ("full", "info") else mode  # the same arrays
@@ -1135,7 +1135,7 @@ class Projection:
                 if mode == "inner":
                     fn, plan = u.inner
                 else:
-                    fn, plan = {"res": f.res, "full": f.rgh, "grad": f.rgh, "info": f.gn}[mode], u.plan
+                    fn, plan = {"full": f.rgh, "grad": f.rgh, "info": f.gn}[mode], u.plan
                 step = max(1, CHUNK // K)
             nc = f.n_cal
             if st is None:  # the whole block at once: its entries go through one map
@@ -1164,9 +1164,6 @@ class Projection:
 
     def _scatter(self, parts, fn, outs, plan, mode, j0, j1, base, fi):
         nJ = j1 - j0
-        if mode == "res":
-            parts.f += 0.5 * float(np.einsum("ij,ij->", outs[0], outs[0]))
-            return
         if mode == "info":
             g, h = None, outs[0]
         else:
