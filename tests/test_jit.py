@@ -121,3 +121,43 @@ def test_a_failed_compile_leaves_the_functions_uncompiled(cache, monkeypatch):
     assert jit.compile_functions([_function(0.75)]) is None
     assert jit.compile_functions([_function(0.75)], wait=False).result() is None
     assert not list(tmp.glob("*.so"))
+
+
+def test_a_solvers_libraries_compile_on_the_gcc_threads_to_the_same_numbers(cache, monkeypatch):
+    """A Solver built on an empty cache compiles its blocks' libraries on the castimate-gcc threads
+    (side by side) and waits for them: its stage functions are the compiled ones, and they assemble
+    the same numbers as CasADi's virtual machine (jit off), bit for bit."""
+    from test_assembly import dynamic_case
+
+    from castimate.problem.graph import SolverOptions
+    from castimate.solver.ipopt import Solver
+
+    tmp, _ = cache
+    threads, run = [], jit.subprocess.run
+
+    def where(*a, **k):
+        threads.append(jit.threading.current_thread().name)
+        return run(*a, **k)
+
+    monkeypatch.setattr(jit.subprocess, "run", where)
+    prob = dynamic_case(60, True)
+    P = Solver(prob.lsq, SolverOptions(jit=True)).projection
+    Q = Solver(prob.lsq, SolverOptions(jit=False)).projection
+    assert len(threads) >= 2 and all(t.startswith("castimate-gcc") for t in threads), threads
+    assert len(list(tmp.glob("*.so"))) == len(threads)
+    compiled = [sf.fns["full"] for sf in P.stage_fns]
+    assert compiled and all(f.class_name() == "External" for f in compiled)
+    assert all(sf.fns["full"].class_name() != "External" for sf in Q.stage_fns)
+    lay = prob.lsq.layout
+    x = lay.x0() * (1 + 0.01 * np.random.default_rng(4).standard_normal(lay.n_x))
+    th, Xs = P.split(x)
+    for mode in ("full", "grad", "info", "inner"):
+        a, b = P.assemble(th, Xs, lay.p0(), None, mode), Q.assemble(th, Xs, lay.p0(), None, mode)
+        assert a.f == b.f
+        for name in ("gc", "hcc"):
+            if getattr(a, name) is not None:
+                np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+        arrays = a.arrays()
+        assert arrays.keys() == b.arrays().keys()
+        for key, v in b.arrays().items():
+            np.testing.assert_array_equal(arrays[key], v)
