@@ -44,7 +44,7 @@ the case as capped, with the phase it was in. All methods start from the same po
 positions and orientations, ω from the gyroscopes (zero without them), ω̇ its derivative, s the
 reference triad's reading (``castimate.problem.dynamic.initial_motion``).
 
-Run: ``python benchmarks/dynamic_scaling.py`` (about 15 minutes; the real-data reference refit is
+Run: ``python benchmarks/dynamic_scaling.py`` (about 13 minutes; the real-data reference refit is
 capped at ``--real-cap-s``). Writes
 ``benchmarks/results/dynamic_scaling.json`` and ``benchmarks/results/dynamic_scaling.md``.
 The numpy residual below is an independent re-implementation for the comparison, not part of

@@ -11,7 +11,9 @@ cached one is loaded without generating its C source again. Functions whose eval
 the virtual machine anyway (:func:`worth_compiling`: e.g. one triad's few static poses) are not
 compiled: the first solve of MIMU4444 exp_1 static compiles 2 libraries instead of 6 (4.4 → 3.2 s
 CPU; 1.5-1.9 s once they are cached). Without a C compiler, or if compiling fails, the functions stay on the
-virtual machine (same results, slower).
+virtual machine (same results, slower). A Solver's libraries (one per block, and the assembly's)
+compile side by side: gcc runs on worker threads, one per core, while the Solver's other blocks are
+built (``compile_functions(wait=False)``), and the Solver waits for them at the end of its build.
 
 Several processes share the cache (``castimate batch`` and ``castimate montecarlo`` run Dask
 workers that build the same structures at the same moment): a library is compiled under an
