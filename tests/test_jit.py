@@ -22,14 +22,14 @@ def _function(c: float = C, sparsity: ca.Sparsity | None = None) -> ca.Function:
 
 @pytest.fixture
 def cache(tmp_path, monkeypatch):
-    """An empty cache directory, and the compiler calls made into it."""
+    """An empty cache directory, and the compiler calls made into it (the name of the thread each ran on)."""
     if jit.compiler() is None:
         pytest.skip("no C compiler")
     monkeypatch.setenv("CASTIMATE_CACHE_DIR", str(tmp_path))
     calls, run = [], subprocess.run
 
     def counting(*a, **k):
-        calls.append(a)
+        calls.append(jit.threading.current_thread().name)
         return run(*a, **k)
 
     monkeypatch.setattr(jit.subprocess, "run", counting)
@@ -83,18 +83,11 @@ def test_the_key_is_the_same_in_another_process():
     assert out == jit.cache_key([_function()])
 
 
-def test_libraries_compile_side_by_side_on_worker_threads(cache, monkeypatch):
+def test_libraries_compile_side_by_side_on_worker_threads(cache):
     """compile_functions(wait=False): the C source is written in the caller's thread, gcc runs on a
     worker thread for each library at once, and result() gives the same functions as waiting would
     (the same list on every call)."""
-    tmp, calls = cache
-    threads, run = [], jit.subprocess.run
-
-    def where(*a, **k):
-        threads.append(jit.threading.current_thread().name)
-        return run(*a, **k)
-
-    monkeypatch.setattr(jit.subprocess, "run", where)
+    tmp, threads = cache
     a, b = _function(0.25), _function(0.5)
     pending = [jit.compile_functions([f], wait=False) for f in (a, b)]
     assert all(isinstance(p, jit.Pending) for p in pending)
@@ -123,7 +116,7 @@ def test_a_failed_compile_leaves_the_functions_uncompiled(cache, monkeypatch):
     assert not list(tmp.glob("*.so"))
 
 
-def test_a_solvers_libraries_compile_on_the_gcc_threads_to_the_same_numbers(cache, monkeypatch):
+def test_a_solvers_libraries_compile_on_the_gcc_threads_to_the_same_numbers(cache):
     """A Solver built on an empty cache compiles its blocks' libraries on the castimate-gcc threads
     (side by side) and waits for them: its stage functions are the compiled ones, and they assemble
     the same numbers as CasADi's virtual machine (jit off), bit for bit."""
@@ -132,14 +125,7 @@ def test_a_solvers_libraries_compile_on_the_gcc_threads_to_the_same_numbers(cach
     from castimate.problem.graph import SolverOptions
     from castimate.solver.ipopt import Solver
 
-    tmp, _ = cache
-    threads, run = [], jit.subprocess.run
-
-    def where(*a, **k):
-        threads.append(jit.threading.current_thread().name)
-        return run(*a, **k)
-
-    monkeypatch.setattr(jit.subprocess, "run", where)
+    tmp, threads = cache
     prob = dynamic_case(60, True)
     P = Solver(prob.lsq, SolverOptions(jit=True)).projection
     Q = Solver(prob.lsq, SolverOptions(jit=False)).projection
