@@ -117,6 +117,13 @@ def compile_functions(functions: list[ca.Function], work: int | None = None, wai
     return load() if wait else Pending(load)
 
 
+def compiled(functions: list[ca.Function], work: int | None, enabled: bool) -> "Pending":
+    """The functions to call, as a :class:`Pending` (gcc on a worker thread): ``functions`` compiled where
+    ``enabled`` and compiling succeeds (:func:`compile_functions`), else ``functions`` themselves."""
+    pending = compile_functions(functions, work, wait=False) if enabled and functions else None
+    return Pending(lambda: (pending.result() if pending is not None else None) or functions)
+
+
 class Pending:
     """A library on its way (:func:`compile_functions` with ``wait`` False): ``result()`` waits for
     gcc the first time and returns the compiled functions (None if compiling failed), the same list

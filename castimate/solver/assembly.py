@@ -10,7 +10,7 @@ import casadi as ca
 import numpy as np
 import scipy.sparse as sp
 
-from ..jit import compile_functions, evaluation_work, worth_compiling
+from ..jit import compiled, evaluation_work, worth_compiling
 from ..problem.parameters import Layout
 from ..problem.graph import FactorBlock
 
@@ -92,16 +92,14 @@ class _Compiled:
         names = [name for name in LOCAL if name in which]
         chosen = [self.symbolic[name] for name in names]
         # gcc on a worker thread while the Solver's other blocks are built (the first use waits)
-        self._library = (names, chosen, compile_functions(chosen, self.work, wait=False)
-                         if self.compiled and chosen else None)
-        self._fns = None
+        self._library, self._fns = (names, compiled(chosen, self.work, self.compiled)), None
         self.nz, self.nd, self.m, self.n_cal = nz, nd, fn.size1_out(0), n_cal
         self._buffers: dict = {}
 
     def _get(self, name: str) -> ca.Function:
         if self._fns is None:
-            names, chosen, pending = self._library
-            self._fns = dict(zip(names, (pending.result() if pending is not None else None) or chosen))
+            names, pending = self._library
+            self._fns = dict(zip(names, pending.result()))
         return self._fns.get(name, self.symbolic[name])
 
     # the local functions, compiled where chosen (``which``)

@@ -53,7 +53,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 from scipy.linalg import blas, lapack
 
-from ..jit import compile_functions
+from ..jit import compiled
 from ..problem.parameters import Layout
 from .assembly import CHUNK, LOCAL, Block, EvaluationError, NotStaged, StagedBlock, entries_at, exact_hessian
 from .threads import map_threads, pool
@@ -399,8 +399,7 @@ class _StageFunctions:
         }
         names, functions, self.layout = self._functions(specs, f, inner_fn, K, nc, nd, widths, self.shared)
         # compiled while the Solver's other blocks are built (gcc on worker threads: :attr:`fns` waits)
-        self._library = (names, functions, compile_functions(functions, f.work, wait=False) if jit else None)
-        self._fns = None
+        self._library, self._fns = (names, compiled(functions, f.work, jit)), None
         # without the shared part, for data whose declared-shared columns are not (built when needed)
         self._plain_args, self._plain_fns, self._jit, self._work = (specs, f, inner_fn, K, nc, nd, widths, ()), None, jit, f.work
         self._maps: dict = {}  # (mode, stage groups, inputs) -> the map, built once for every thread
@@ -413,16 +412,15 @@ class _StageFunctions:
         """The stage functions of every mode (and their shared parts) by name, compiled to C where
         the block runs over enough instances: the first access waits for gcc."""
         if self._fns is None:
-            names, functions, pending = self._library
-            self._fns = dict(zip(names, (pending.result() if pending is not None else None) or functions))
+            names, pending = self._library
+            self._fns = dict(zip(names, pending.result()))
         return self._fns
 
     def _plain(self) -> dict[str, ca.Function]:
         """:attr:`fns` without the shared part (built the first time they are needed)."""
         if self._plain_fns is None:
             names, functions, _ = self._functions(*self._plain_args)
-            self._plain_fns = dict(zip(names, (compile_functions(functions, self._work) if self._jit else None)
-                                       or functions))
+            self._plain_fns = dict(zip(names, compiled(functions, self._work, self._jit).result()))
         return self._plain_fns
 
     @classmethod
@@ -965,7 +963,7 @@ class Projection:
                     u.stage_fns = _StageFunctions(f, fn, u.plan, inner_plan, sb, fam.m, c, many,
                                                   blk.block.shared_data)
                 else:
-                    u.inner = (((compile_functions([fn], f.work) if many else None) or [fn])[0], inner_plan)
+                    u.inner = (compiled([fn], f.work, many).result()[0], inner_plan)
                 self.units.append(u)
         self.stage_fns = [u.stage_fns for u in self.units if u.stage_fns is not None]
         for sf in self.stage_fns:  # built once every library is: gcc compiled them side by side
