@@ -370,6 +370,30 @@ def test_hessian_left_pending_equals_the_eager_one(kind):
 
 
 @pytest.mark.parametrize("kind", ["dynamic_no_process_model", "static_quaternion"])
+def test_gradient_of_every_variable_comes_from_the_gradient_assembly(kind):
+    """Projection.gradient (the Newton decrement's, e.g. of a score test) assembles the objective
+    and the gradient alone: bit for bit the gradient of a full assembly, which forms the Hessian
+    too, and the full NLP's (elimination none) to round-off."""
+    prob = CASES[kind]()
+    solver, ref = Solver(prob.lsq, SolverOptions()), Solver(prob.lsq, SolverOptions(elimination="none"))
+    P = solver.projection
+    x = prob.lsq.layout.x0() + 1e-3 * np.random.default_rng(5).standard_normal(solver.n_x)
+    pf, _ = solver.fixed_and_data(None, None)
+    modes = []
+    assemble = P.assemble
+    P.assemble = lambda *a, **k: modes.append(a[4]) or assemble(*a, **k)
+    g = P.gradient(x, pf, None)
+    assert modes == ["grad"]
+    th, Xs = P.split(x)
+    full = assemble(th, Xs, pf, None, "full")
+    np.testing.assert_array_equal(g[P.cal], full.gc)
+    for fam, G in zip(P.fams, full.G):
+        np.testing.assert_array_equal(g[fam.X], G)
+    g_ref = ref.assembly.derivatives(ref.nlp_order(x), pf, None)[1][ref.assembly.ipos]
+    assert relative(g, g_ref) < 1e-12
+
+
+@pytest.mark.parametrize("kind", ["dynamic_no_process_model", "static_quaternion"])
 @pytest.mark.parametrize("elimination", ["motion", "none"])
 def test_newton_decrement_leaves_the_marginal_information_of_its_point(kind, elimination):
     """The score test asks for the decrement and the identifiability check at one point: the

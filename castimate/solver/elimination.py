@@ -1542,9 +1542,10 @@ class Projection:
         return self.x_full(theta, self._cache["X"])
 
     def gradient(self, x, pf, data) -> np.ndarray:
-        """Gradient of the objective w.r.t. every variable (layout order, scaled) at x."""
+        """Gradient of the objective w.r.t. every variable (layout order, scaled) at x: the "grad"
+        assembly, without the Hessian entries a "full" one would form and drop."""
         th, Xs = self.split(x)
-        parts = self.assemble(th, Xs, pf, data, "full")
+        parts = self.assemble(th, Xs, pf, data, "grad")
         g = np.empty(self.n)
         g[self.cal] = parts.gc
         for f, G in zip(self.fams, parts.G):
