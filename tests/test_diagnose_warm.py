@@ -104,6 +104,31 @@ def test_an_unconverged_cross_validation_fold_is_reported(spec, monkeypatch):
     assert len(r.cv_after.failed) == 5
 
 
+def test_a_score_test_compiles_nothing_and_gives_the_compiled_statistic(spec, tmp_path, monkeypatch):
+    """A score test's solver runs on CasADi's virtual machine (it is evaluated a few times, which
+    would not repay gcc): no library is compiled for it, and its statistic is the one of the same
+    solver compiled, bit for bit."""
+    from dataclasses import replace
+
+    from castimate import jit
+    from castimate.solver.ipopt import Solver
+
+    if jit.compiler() is None:
+        pytest.skip("no C compiler")
+    monkeypatch.setenv("CASTIMATE_CACHE_DIR", str(tmp_path))
+    session = Session(spec)
+    model = session.fit()
+    calls, run = [], jit.subprocess.run
+    monkeypatch.setattr(jit.subprocess, "run", lambda *a, **k: calls.append(a) or run(*a, **k))
+    test = score_test(session, model, BY_KEY[EFFECT])
+    assert not calls and test.k > 0 and test.lm > 0
+    vm = session.augmented(model, model.effects + (EFFECT,))
+    compiled = Solver(vm.problem, replace(vm.options, jit=True))
+    assert calls  # the augmented model's libraries were new to the cache: compiled now
+    x = vm.problem.layout.x0(model.outcome.solution.values)
+    assert compiled.newton_decrement(x, np.zeros(compiled.n_constraints)) == test.lm
+
+
 def test_cross_validation_folds_compute_no_uncertainty(spec, monkeypatch):
     """The folds use their fits' estimates only: no Fisher or HAC σ's are computed for them, and the
     estimates are those of the solve with σ's (the same iterations; only what follows them is skipped)."""

@@ -147,12 +147,17 @@ class Session:
         return model if outcome is model.outcome else Model(model.effects, outcome, model.cv)
 
     def augmented(self, model: Model, effects) -> Solver:
-        """The Gauss-Newton solver of the model with ``effects`` added (same session regressors)."""
+        """The Gauss-Newton solver of the model with ``effects`` added (same session regressors),
+        on CasADi's virtual machine: a score test evaluates it twice (the gradient, then the
+        information for the Newton decrement and the identifiability check), which does not repay
+        gcc. The same numbers bit for bit as compiled (:mod:`castimate.jit`). On MIMU4444 exp_1
+        dynamic the first round's 10 score tests took 12.8 s so, 11.2 s compiled from the cache and
+        29.9 s compiling their libraries."""
         if CLOCK_BEAT in effects:
             self.find_clocks(model)
         s = with_effects(self.spec, effects)
         problem = self.kind.build(self.kind.settled(self.kind.configure(s, self.data), model.outcome), self.data)
-        return Solver(problem.lsq, replace(s.solver, hessian="gauss_newton"))
+        return Solver(problem.lsq, replace(s.solver, hessian="gauss_newton", jit=False))
 
     def has_temperature(self) -> bool:
         return self.kind.has_temperature(self.data)
