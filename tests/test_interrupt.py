@@ -50,7 +50,17 @@ def test_interrupt_while_writing_leaves_the_old_outputs(solved, monkeypatch):
     assert not [p for p in out.parent.iterdir() if p.name.startswith(".castimate-stage")]
 
 
-def test_interrupt_between_the_moves_is_held_back(solved, tmp_path, monkeypatch):
+@pytest.fixture
+def default_sigint():
+    """Python's own SIGINT handler for the test's duration: a process started in the background of a
+    non-interactive shell (``pytest ... &``) inherits SIGINT ignored, and the command then rightly
+    ignores it too, which leaves nothing to test."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
+def test_interrupt_between_the_moves_is_held_back(solved, tmp_path, monkeypatch, default_sigint):
     """SIGINT after the first of the two renames: before, KeyboardInterrupt struck there and left a new
     results.json beside the old details.npz; now both are moved, then the command stops (exit 130)."""
     import castimate.io.atomic as atomic
