@@ -40,7 +40,7 @@ from .io.readers import input_units, read_recording, write_csv, write_npz
 from .io.recording import Recording
 from .io.results import read_results
 from .io.units import parse_units
-from .jit import compile_functions
+from .jit import compiled
 from .prepare.plausibility import (
     G0,
     MAX_RATE,
@@ -326,8 +326,7 @@ def _evaluate(layout: TriadLayout, acc, gyro, tau, dT, p):
     fn = triad_compensation(layout)
     if len(acc) > 1000:
         if layout not in _COMPILED:
-            compiled = compile_functions([fn])
-            _COMPILED[layout] = compiled[0] if compiled else fn
+            _COMPILED[layout] = compiled({"compensation": fn}, None, True).result()["compensation"]
         fn = _COMPILED[layout]
     f, w = fn(acc.T, gyro.T, tau[None, :], dT[None, :], p)
     return f.full().T, w.full().T

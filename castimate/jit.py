@@ -117,16 +117,18 @@ def compile_functions(functions: list[ca.Function], work: int | None = None, wai
     return load() if wait else Pending(load)
 
 
-def compiled(functions: list[ca.Function], work: int | None, enabled: bool) -> "Pending":
-    """The functions to call, as a :class:`Pending` (gcc on a worker thread): ``functions`` compiled where
-    ``enabled`` and compiling succeeds (:func:`compile_functions`), else ``functions`` themselves."""
-    pending = compile_functions(functions, work, wait=False) if enabled and functions else None
-    return Pending(lambda: (pending.result() if pending is not None else None) or functions)
+def compiled(functions: dict[str, ca.Function], work: int | None, enabled: bool) -> "Pending":
+    """The functions to call, by the same keys, as a :class:`Pending` (gcc on a worker thread):
+    ``functions`` compiled where ``enabled`` and compiling succeeds (:func:`compile_functions`), else
+    the functions themselves."""
+    keys, fns = list(functions), list(functions.values())
+    pending = compile_functions(fns, work, wait=False) if enabled and fns else None
+    return Pending(lambda: dict(zip(keys, (pending.result() if pending is not None else None) or fns)))
 
 
 class Pending:
-    """A library on its way (:func:`compile_functions` with ``wait`` False): ``result()`` waits for
-    gcc the first time and returns the compiled functions (None if compiling failed), the same list
+    """A library on its way (:func:`compile_functions` with ``wait`` False, :func:`compiled`):
+    ``result()`` waits for gcc the first time and returns what ``finish`` makes of it, the same object
     on every call, from any thread."""
 
     def __init__(self, finish):

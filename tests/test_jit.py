@@ -114,7 +114,7 @@ def test_a_failed_compile_leaves_the_functions_uncompiled(cache, monkeypatch):
     assert jit.compile_functions([_function(0.75)]) is None
     assert jit.compile_functions([_function(0.75)], wait=False).result() is None
     f = _function(0.75)  # what the solvers call: the functions themselves, compiling failed or not enabled
-    assert jit.compiled([f], None, True).result()[0] is f and jit.compiled([f], None, False).result()[0] is f
+    assert jit.compiled({"f": f}, None, True).result()["f"] is f and jit.compiled({"f": f}, None, False).result()["f"] is f
     assert not list(tmp.glob("*.so"))
 
 

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field, replace
 import casadi as ca
 import numpy as np
 
-from ..jit import compile_functions
+from ..jit import compiled
 from ..models import motion as mot
 from ..models import triad as tri
 from .graph import FactorBlock, LeastSquaresProblem
@@ -222,7 +222,7 @@ def _rate_function(jit: bool) -> ca.Function:
     """:func:`accelerometer_rate`, built once, with ``jit`` compiled to C (:mod:`castimate.jit`, the
     same results; 1.5 x faster over MIMU4444 exp_1's samples) where a compiler is at hand."""
     f = accelerometer_rate()
-    return ((compile_functions([f]) if jit else None) or [f])[0]
+    return compiled({"rate": f}, None, jit).result()["rate"]
 
 
 def accelerometer_rate_of_rate() -> ca.Function:

@@ -89,18 +89,14 @@ class _Compiled:
         # compiled to C when they run over enough instances (``jit``), else on CasADi's virtual machine
         self.compiled = jit and worth_compiling(instances, self.symbolic["rgh"])
         self.work = evaluation_work(instances, self.symbolic["rgh"])  # gcc's optimisation level (castimate.jit)
-        names = [name for name in LOCAL if name in which]
-        chosen = [self.symbolic[name] for name in names]
         # gcc on a worker thread while the Solver's other blocks are built (the first use waits)
-        self._library, self._fns = (names, compiled(chosen, self.work, self.compiled)), None
+        self._library = compiled({name: self.symbolic[name] for name in LOCAL if name in which}, self.work,
+                                 self.compiled)
         self.nz, self.nd, self.m, self.n_cal = nz, nd, fn.size1_out(0), n_cal
         self._buffers: dict = {}
 
     def _get(self, name: str) -> ca.Function:
-        if self._fns is None:
-            names, pending = self._library
-            self._fns = dict(zip(names, pending.result()))
-        return self._fns.get(name, self.symbolic[name])
+        return self._library.result().get(name, self.symbolic[name])
 
     # the local functions, compiled where chosen (``which``)
     res = property(lambda self: self._get("res"))

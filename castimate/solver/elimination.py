@@ -397,9 +397,9 @@ class _StageFunctions:
                       + [("h", M, True, ("B", k)) for k, M in inner_plan.hss.items()]
                       + [("hgn", M, True, ("Bgn", k)) for k, M in inner_plan.hss.items()]),
         }
-        names, functions, self.layout = self._functions(specs, f, inner_fn, K, nc, nd, widths, self.shared)
+        functions, self.layout = self._functions(specs, f, inner_fn, K, nc, nd, widths, self.shared)
         # compiled while the Solver's other blocks are built (gcc on worker threads: :attr:`fns` waits)
-        self._library, self._fns = (names, compiled(functions, f.work, jit)), None
+        self._library = compiled(functions, f.work, jit)
         # without the shared part, for data whose declared-shared columns are not (built when needed)
         self._plain_args, self._plain_fns, self._jit, self._work = (specs, f, inner_fn, K, nc, nd, widths, ()), None, jit, f.work
         self._maps: dict = {}  # (mode, stage groups, inputs) -> the map, built once for every thread
@@ -411,28 +411,25 @@ class _StageFunctions:
     def fns(self) -> dict[str, ca.Function]:
         """The stage functions of every mode (and their shared parts) by name, compiled to C where
         the block runs over enough instances: the first access waits for gcc."""
-        if self._fns is None:
-            names, pending = self._library
-            self._fns = dict(zip(names, pending.result()))
-        return self._fns
+        return self._library.result()
 
     def _plain(self) -> dict[str, ca.Function]:
         """:attr:`fns` without the shared part (built the first time they are needed)."""
         if self._plain_fns is None:
-            names, functions, _ = self._functions(*self._plain_args)
-            self._plain_fns = dict(zip(names, compiled(functions, self._work, self._jit).result()))
+            self._plain_fns = compiled(self._functions(*self._plain_args)[0], self._work, self._jit).result()
         return self._plain_fns
 
     @classmethod
     def _functions(cls, specs, f, inner_fn, K, nc, nd, widths, shared):
-        """The stage functions of every mode (and their shared parts), their names and their layouts."""
-        layouts, functions, names_ = {}, [], []
+        """The stage functions of every mode (and their shared parts) by name, and their layouts."""
+        layouts, functions = {}, {}
         for mode, (fn, names, width, red, tgt) in specs.items():
             split = _shared_split(fn, shared) if shared else None
             F, pre, layout = cls._build(f"{fn.name()}_{mode}_stages", fn, names, width, red, tgt, K, nc, nd, widths,
                                         split)
-            functions += [F] + ([pre] if pre is not None else [])
-            names_ += [mode] + ([f"{mode}_shared"] if pre is not None else [])
+            functions[mode] = F
+            if pre is not None:
+                functions[f"{mode}_shared"] = pre
             layouts[mode] = layout
         # the residuals themselves, instance by instance (K m per stage group, the block's order)
         zc, zs, d = ca.MX.sym("zc", K * nc), ca.MX.sym("zs", inner_fn.size1_in(1)), ca.MX.sym("d", K * nd)
@@ -448,13 +445,11 @@ class _StageFunctions:
             ins.append(pk)
             pre = cls._pre(f"{f.symbolic['res'].name()}_vec_stages", split[0], K, nc, nd)
         r = ca.vec(r)
-        functions.append(ca.Function(f"{f.symbolic['res'].name()}_vec_stages", ins, [0.5 * ca.sumsqr(r), r]))
-        names_.append("vec")
+        functions["vec"] = ca.Function(f"{f.symbolic['res'].name()}_vec_stages", ins, [0.5 * ca.sumsqr(r), r])
         if pre is not None:
-            functions.append(pre)
-            names_.append("vec_shared")
+            functions["vec_shared"] = pre
         layouts["vec"] = (True, [], [], 1, [K * f.m])
-        return names_, functions, layouts
+        return functions, layouts
 
     @staticmethod
     def _pre(name, pre, K, nc, nd):
@@ -963,7 +958,7 @@ class Projection:
                     u.stage_fns = _StageFunctions(f, fn, u.plan, inner_plan, sb, fam.m, c, many,
                                                   blk.block.shared_data)
                 else:
-                    u.inner = (compiled([fn], f.work, many).result()[0], inner_plan)
+                    u.inner = (compiled({"inner": fn}, f.work, many).result()["inner"], inner_plan)
                 self.units.append(u)
         self.stage_fns = [u.stage_fns for u in self.units if u.stage_fns is not None]
         for sf in self.stage_fns:  # built once every library is: gcc compiled them side by side
