@@ -34,7 +34,9 @@ Cases:
 - real data (``--real``): the MIMU4444 exp_1 problem files through ``python -m castimate solve``,
   with both elimination settings: the dynamic phase (target ≤ 3 s), the joint static + dynamic
   problem (≤ 10 s) and the dynamic refit with the g-sensitivity of all 8 gyroscopes free (72 more
-  calibration parameters, ≤ 20 s).
+  calibration parameters, ≤ 20 s). The first two also as their one white-noise solve (``_white``:
+  no motion-dependent noise model, whose weighted refits and leverages the bundled files add, and
+  the Fisher σ's, not the HAC ones).
 
 The motion is ``euler_consistent(smooth_random_motion(...))``; the geometry is the same for the
 three Carlsson sizes (only the record length changes). Every (case, method) runs in a fresh
@@ -848,6 +850,8 @@ REAL = {
     "mimu4444_dynamic_white": ("mimu4444_exp1_dynamic.yaml", {"noise": {"motion_dependent": "none"},
                                                               "uncertainty": {"residual_correlation": "none"}}, 3.0),
     "mimu4444_joint": ("mimu4444_exp1_joint.yaml", {}, 10.0),
+    "mimu4444_joint_white": ("mimu4444_exp1_joint.yaml", {"noise": {"motion_dependent": "none"},
+                                                          "uncertainty": {"residual_correlation": "none"}}, 10.0),
     # 72 more calibration parameters: the g-sensitivity matrix of all 8 gyroscopes
     "mimu4444_refit": ("mimu4444_exp1_dynamic.yaml", {"model": {"gyroscope": {"g_sensitivity": "free"}}}, 20.0),
 }
