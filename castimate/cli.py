@@ -189,8 +189,12 @@ def cmd_batch(args) -> int:
     per_recording = ("results.json", "diagnose.json") if args.diagnose else ("results.json", "details.npz")
     # the files every recording's problem reads (the template, its model.intrinsics) are inputs too
     inputs = (*template.problem(recordings[0]).inputs, *recordings)
+    # what an earlier batch into DIR left for a recording (either mode's files, castimate report's page)
+    # goes unless written anew: a recording that fails now keeps no results.json beside a summary saying so
+    stale = tuple(f"{n}/{f}" for n in recording_names(recordings)
+                  for f in ("results.json", "details.npz", "diagnose.json", "report.html"))
     with StagedOutput(out, names=names + tuple(f"{n}/{f}" for n in recording_names(recordings) for f in per_recording),
-                      inputs=inputs) as stage:
+                      inputs=inputs, stale=stale) as stage:
         with dask_client(args.scheduler, args.workers) as client:
             summary = run_batch(client, args.template, args.recordings, _progress(args), args.outlier_threshold, args.diagnose)
         for name, r in zip(summary.names, summary.results):

@@ -163,6 +163,27 @@ def test_batch_isolates_a_failure_and_flags_the_odd_board(client, tmp_path, caps
     assert "board_b" in (out / "summary.html").read_text()
 
 
+def test_a_batch_into_its_earlier_output_keeps_nothing_old_of_a_recording(client, tmp_path, capsys):
+    """A second batch into the same DIR: a recording that failed this time kept the first batch's
+    results.json and details.npz beside a summary saying it failed, and a report.html of the first
+    results stayed beside the new ones. Now only what this batch wrote is there."""
+    sc = write(tmp_path / "s.yaml", STATIC)
+    for k in range(2):
+        simulate_scenario(sc, tmp_path / f"board_{k}", noise_seed=k)
+    out = tmp_path / "out"
+    argv = ["batch", str(tmp_path / "board_0" / "problem.yaml"), str(tmp_path / "board_*" / "data.csv"), "-o", str(out),
+            "--scheduler", client.scheduler.address, "-q"]
+    assert main(argv) == 0
+    (out / "board_0" / "report.html").write_text("a report of the first batch")
+    (tmp_path / "board_1" / "data.csv").write_text("t,imu1.ax\nnot a number,1\n")
+    assert main(argv) == 4
+    capsys.readouterr()
+    rows = {r["name"]: r["status"] for r in json.loads((out / "summary.json").read_text())["recordings"]}
+    assert rows == {"board_0": "ok", "board_1": "failed"}
+    assert sorted(p.name for p in (out / "board_0").iterdir()) == ["details.npz", "results.json"]
+    assert not list((out / "board_1").glob("*"))
+
+
 def test_plan_agrees_with_montecarlo_static(client, tmp_path):
     """RMSE over the plan's bound within its sampling error (N = 60 runs, 33 parameters)."""
     plan = write(tmp_path / "p.yaml", {**STATIC, "plan": {"durations": [2.0]}})  # 200 samples per pose at 100 Hz

@@ -142,8 +142,8 @@ class StagedOutput:
     command leaves no partial output. A move that fails (a disk error between two renames) undoes
     the others and puts the previous outputs back (:class:`_Publication`). ``stale``: files of the
     target directory that describe its previous outputs (``castimate report``'s report.html beside
-    results.json), removed together with the moves so that none is left beside new outputs it does
-    not describe.
+    results.json; a batch's per-recording files), removed together with the moves unless this run
+    writes them anew, so that none is left beside new outputs it does not describe.
     """
 
     def __init__(self, target: str | os.PathLike, directory: bool = True, names: tuple[str, ...] = (),
@@ -174,7 +174,9 @@ class StagedOutput:
         moves = [(p, (self.target / p.relative_to(self.stage)) if self.directory else self.target) for p in staged]
         check_output(self.target, self.directory, tuple(str(d.relative_to(self.target)) for _, d in moves)
                      if self.directory else (), self.inputs, self.option)
-        stale = [self.target / name for name in self.stale if os.path.lexists(self.target / name)]
+        placed = {dest for _, dest in moves}
+        stale = [self.target / name for name in self.stale
+                 if os.path.lexists(self.target / name) and self.target / name not in placed]
         publication = _Publication(self.stage)
         try:
             with interrupts_deferred():  # a Ctrl-C between two renames would pair new and old files
