@@ -107,7 +107,8 @@ def solve(problem: Problem, log: Log | None = None):
 
 def write(outcome, directory: str | Path) -> Path:
     """Write what ``castimate solve`` writes for an outcome of :func:`solve`: ``results.json``
-    and ``details.npz`` (``castimate report DIR`` renders them). Returns the results.json path.
+    and ``details.npz`` (``castimate report DIR`` renders them; a ``report.html`` of earlier results
+    there goes, as with the command). Returns the results.json path.
 
     >>> import castimate, json, tempfile
     >>> outcome = castimate.solve("problems/xsens_imutk.yaml")
@@ -126,7 +127,7 @@ def write(outcome, directory: str | Path) -> Path:
                         f"{type(outcome).__name__}")
     directory = as_path(directory, "castimate.write", "directory", "a directory path")
     with StagedOutput(directory, names=("results.json", "details.npz"), inputs=outcome.spec.inputs,
-                      option="directory") as stage:
+                      option="directory", stale=("report.html",)) as stage:
         write_outputs(stage, outcome)
     return directory / "results.json"
 

@@ -217,7 +217,8 @@ def test_empty_paths_are_refused():
 
 def test_write_is_staged_and_spares_inputs(tmp_path, monkeypatch):
     """castimate.write refuses an output slot that is a directory or an input, and a failure while
-    writing leaves nothing behind."""
+    writing leaves nothing behind. A report.html of earlier results goes, as with castimate solve (it
+    stayed beside the new results.json it does not describe)."""
     from castimate import output
     from castimate.cli import main
 
@@ -231,6 +232,10 @@ def test_write_is_staged_and_spares_inputs(tmp_path, monkeypatch):
     with pytest.raises(castimate.InputError, match="results.json: directory: is a directory"):
         castimate.write(outcome, tmp_path / "out")
     assert sorted(os.listdir(tmp_path / "out")) == ["results.json"]
+    (tmp_path / "earlier").mkdir()
+    (tmp_path / "earlier" / "report.html").write_text("a report of earlier results")
+    castimate.write(outcome, tmp_path / "earlier")
+    assert sorted(os.listdir(tmp_path / "earlier")) == ["details.npz", "results.json"]
 
     def fail(*a, **k):
         raise castimate.InputError("x", "", "disk full")
