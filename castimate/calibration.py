@@ -29,6 +29,7 @@ Example (a calibration with a temperature-dependent bias, written by hand)::
 from __future__ import annotations
 
 import hashlib
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -55,7 +56,7 @@ from .prepare.plausibility import (
 from .problem.compensation import TriadLayout, triad_compensation
 from .problem.effects import BY_KEY, RETIRED, TEMPERATURE, TIME, included
 from .problem.triads import Regressors
-from .validation import as_path, within_range
+from .validation import as_path, input_file, within_range
 
 EXTENSIONS = {".csv": "csv", ".npz": "npz", ".bin": "mimu"}
 
@@ -378,6 +379,10 @@ def apply_calibration(results_path, data_path, out_path, fmt: str | None = None,
     if gyro_path is not None and fmt != "imutk":
         raise InputError(gyro_path, "--gyro", f"a separate gyroscope file belongs to the imutk format; the data "
                                               f"{data_path.name} are {fmt}, with their gyroscope in the same file")
+    if gyro_path is not None and os.path.samestat(input_file(gyro_path, "gyroscope file"),
+                                                  input_file(data_path, "data file")):
+        raise InputError(gyro_path, "--gyro", f"is DATA itself ({data_path.name}); expected the gyroscope table, the "
+                                              "second file of an imu_tk session (its gravity would be read as rates)")
     if gyro_path is None and fmt == "imutk":
         gyro_path = imutk_gyro_file(data_path)
         if gyro_path is not None:

@@ -315,13 +315,15 @@ def _data(c: Check, d, base: Path) -> DataSpec:
                               "saturation", "static", "rate", "sections", "turn_angle_deg"), required=("path", "format"))
     fmt = c.choice(d["format"], "data.format", FORMATS)
     p = (base / _path_text(c, d["path"], "data.path", "a file path")).resolve()
-    input_file(p, "data file", c.source, "data.path")
+    st = input_file(p, "data file", c.source, "data.path")
     gp = None
     if "gyro_path" in d:
         if fmt != "imutk":
             c.fail("data.gyro_path", f"only the imutk format has a separate gyroscope file, format is {fmt}")
         gp = (base / _path_text(c, d["gyro_path"], "data.gyro_path", "a file path")).resolve()
-        input_file(gp, "data file", c.source, "data.gyro_path")
+        if os.path.samestat(input_file(gp, "data file", c.source, "data.gyro_path"), st):  # its gravity fitted as rates
+            c.fail("data.gyro_path", f"is data.path itself ({p.name}); expected the gyroscope table, the second file "
+                                     "of an imu_tk session")
     units = c.mapping(d.get("units"), "data.units", ("accelerometer", "gyroscope"))
     acc_u = parse_units(units["accelerometer"], c.source, "data.units.accelerometer", "accelerometer") \
         if "accelerometer" in units else None

@@ -719,6 +719,24 @@ def imutk_acc_scale_wrong_by_g(base, tmp):
 
 
 @case("silent")
+def imutk_gyro_path_is_the_accelerometer_table(base, tmp):
+    """data.gyro_path naming the accelerometer table itself: its gravity was fitted as angular rates
+    (on the Xsens session a gyroscope bias of 0.10-0.12 rad/s) and the solve succeeded."""
+    doc = yaml.safe_load((base / "imutk.yaml").read_text())
+    doc["data"]["path"] = doc["data"]["gyro_path"] = str(base / "acc.mat")
+    p = write_yaml(tmp / "problem.yaml", doc)
+    return Spec(["solve", str(p), "-o", str(tmp / "out"), "-q"], 2, ("data.gyro_path", "is data.path itself (acc.mat)"))
+
+
+@case("silent")
+def apply_gyro_is_the_data_file(base, tmp):
+    """apply --gyro naming DATA itself: the accelerometer table was read as the gyroscope's too and
+    written as calibrated rates."""
+    return Spec(["apply", str(base / "imutk_solved" / "results.json"), str(base / "acc.mat"), "--format", "imutk",
+                 "--gyro", str(base / "acc.mat"), "-o", str(tmp / "out.csv")], 2, ("--gyro", "is DATA itself (acc.mat)"))
+
+
+@case("silent")
 def mimu_acc_units_declared_si(base, tmp):
     doc = yaml.safe_load((base / "mimu.yaml").read_text())
     doc["data"]["path"] = str(base / "mimu.bin")
