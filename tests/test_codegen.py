@@ -95,6 +95,23 @@ def test_triad_without_gyroscope_outputs_zero_rate(tmp_path):
     assert rc == 0, out
 
 
+def test_a_calibration_of_data_in_g_generates_and_checks(tmp_path):
+    """Data declared in g (a CSV with data.units.accelerometer: g, recorded as a scale of 9.80665):
+    the test vectors' raw readings were rounded to whole g as if they were counts, and codegen failed
+    with its own Calibration.apply's 'expected m/s^2 ... (0.249 g)'. Counts are rounded only where one
+    input unit is a fine step."""
+    doc = json.loads(MIMU.read_text())
+    in_g = {"unit": "counts", "scale": [9.80665] * 3, "offset": [0.0] * 3, "scale_unit": "m/s^2"}
+    doc["units"]["input"]["accelerometer"] = doc["units"]["data_accelerometer"] = in_g
+    src = tmp_path / "results.json"
+    src.write_text(json.dumps(doc))
+    generate_c(src, tmp_path / "c")
+    raw, _, _, expected = make_vectors(load_calibration(src))
+    assert np.any(raw[5:, :3] != np.round(raw[5:, :3])) and np.all(raw[5:, 3:6] == np.round(raw[5:, 3:6]))
+    rc, out = make_check(tmp_path / "c")
+    assert rc == 0, out
+
+
 def test_make_check_fails_on_a_mismatch(tmp_path):
     d = tmp_path / "c"
     generate_c(XSENS, d)

@@ -573,8 +573,10 @@ def _samples(cal: Calibration) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             r[6 * i + 3:6 * i + 6] = rng.uniform(-6.0, 6.0, 3) / gyro_u.scale + gyro_u.offset
         rows.append(r)
     raw = np.array(rows)
-    for u, cols in ((acc_u, [0, 1, 2]), (gyro_u, [3, 4, 5])):  # counts are integers: keep them so
-        if not u.is_identity:
+    # counts are integers: keep them so, where one input unit is a fine step (1 % of the samples' g or
+    # 6 rad/s), not readings in g (rounded to whole g they were refused by Calibration.apply as not m/s^2)
+    for u, cols, size in ((acc_u, [0, 1, 2], 9.81), (gyro_u, [3, 4, 5], 6.0)):
+        if not u.is_identity and np.abs(u.scale).max() <= 0.01 * size:
             idx = np.array([6 * i + c for i in range(m) for c in cols])
             raw[5:, idx] = np.round(raw[5:, idx])
     N = len(raw)
