@@ -112,6 +112,21 @@ def test_a_calibration_of_data_in_g_generates_and_checks(tmp_path):
     assert rc == 0, out
 
 
+def test_the_float_variant_keeps_a_unix_time_clock(tmp_path):
+    """A calibration with a drift, of data stamped in Unix time (t_mid 1.7e9 s): the float variant took t
+    as a float (steps of 128 s there) and failed its own make check (3.1e-3 relative, 299 of 305
+    samples). t is a double now, and the time from the session's middle is formed in double."""
+    doc = json.loads((ROOT / "reports" / "sim_effect_accelerometer_bias_drift_diagnose" / "results.json").read_text())
+    doc["effects"]["regressors"]["time"]["t_mid_s"] += 1.7e9
+    src = tmp_path / "results.json"
+    src.write_text(json.dumps(doc))
+    generate_c(src, tmp_path / "c")
+    rc, out = make_check(tmp_path / "c")
+    assert rc == 0, out
+    assert max_differences(out, "castimate_compensatef")[1] < 1e-5, out
+    assert "int castimate_compensatef(const float *raw, double t," in (tmp_path / "c" / "castimate_compensation.h").read_text()
+
+
 def test_make_check_fails_on_a_mismatch(tmp_path):
     d = tmp_path / "c"
     generate_c(XSENS, d)

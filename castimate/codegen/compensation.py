@@ -75,16 +75,17 @@ def _units(cal: Calibration, quantity: str) -> UnitConversion:
     return cal.input.get(quantity) or si_units(quantity)
 
 
-def array_function(cal: Calibration, name: str, parameters: bool) -> ca.Function:
+def array_function(cal: Calibration, name: str, parameters: bool, t_from_mid: bool = False) -> ca.Function:
     """``(raw (6M), t, temp (M)) -> out (6M)``, or ``(p, raw, t, temp)`` with ``parameters``: the
-    whole array's compensation from raw input units, in the C array layout."""
+    whole array's compensation from raw input units, in the C array layout. ``t_from_mid``: t is the
+    time from the session's middle, t - t_mid (the float variant, whose caller forms it in double)."""
     m = len(cal.names)
     raw, t, temp = ca.SX.sym("raw", 6 * m), ca.SX.sym("t"), ca.SX.sym("temp", m)
     sizes = [cal.layouts[n].size for n in cal.names]
     p = ca.SX.sym("p", sum(sizes)) if parameters else ca.DM(np.concatenate([cal.params[n] for n in cal.names]))
     acc_u, gyro_u, temp_u = (_units(cal, q) for q in ("accelerometer", "gyroscope", "temperature"))
     reg = cal.regressors
-    tau = (t - reg.t_mid) / reg.t_half
+    tau = (t if t_from_mid else t - reg.t_mid) / reg.t_half
     out, start = [], 0
     for i, (n, size) in enumerate(zip(cal.names, sizes)):
         acc = (raw[6 * i:6 * i + 3] - acc_u.offset) * acc_u.scale
@@ -101,7 +102,7 @@ def array_function(cal: Calibration, name: str, parameters: bool) -> ca.Function
 def _casadi_sources(cal: Calibration) -> tuple[str, str, str, str]:
     """CasADi's generated C files and headers: double (const and param), float (const)."""
     c, h = casadi_sources([array_function(cal, CG_CONST, False), array_function(cal, CG_PARAM, True)], CG_C)
-    cf, hf = casadi_sources([array_function(cal, CGF_CONST, False)], CGF_C, casadi_real="float",
+    cf, hf = casadi_sources([array_function(cal, CGF_CONST, False, t_from_mid=True)], CGF_C, casadi_real="float",
                             prefix="castimate_cgf_")
     return c, h, cf, hf
 
@@ -227,8 +228,11 @@ int castimate_compensate(const double *raw, double t, const double *temp, double
  */
 int castimate_compensate_p(const double *params, const double *raw, double t, const double *temp, double *out);
 
-/** castimate_compensate in single precision (MCUs with a single-precision FPU). */
-int castimate_compensatef(const float *raw, float t, const float *temp, float *out);
+/**
+ * castimate_compensate in single precision (MCUs with a single-precision FPU); t stays a double (the
+ * time from the session's middle is formed in double: a float cannot hold a clock such as Unix time).
+ */
+int castimate_compensatef(const float *raw, double t, const float *temp, float *out);
 
 #ifdef __cplusplus
 }} /* extern "C" */
@@ -295,9 +299,11 @@ def _float_source(cal: Calibration) -> str:
 #include "castimate_compensation.h"
 #include "castimate_cgf.h"
 
-int castimate_compensatef(const float *raw, float t, const float *temp, float *out)
+int castimate_compensatef(const float *raw, double t, const float *temp, float *out)
 {{
-{_call(CGF_CONST, "casadi_real", ["raw", "&t", "temp"])}
+    /* t - t_mid in double, then float: t itself in float (24 bits) is off by up to 64 s at Unix time */
+    const float t_from_mid = (float)(t - {c_double(cal.regressors.t_mid)});
+{_call(CGF_CONST, "casadi_real", ["raw", "&t_from_mid", "temp"])}
 }}
 """
 
@@ -391,7 +397,7 @@ int main(int argc, char **argv)
         compare(&v[0], s, got, want);
         if (castimate_compensate_p(castimate_params_default, raw, t, temp, got) != 0) goto failed;
         compare(&v[1], s, got, want);
-        if (castimate_compensatef(rawf, (float)t, tempf, outf) != 0) goto failed;
+        if (castimate_compensatef(rawf, t, tempf, outf) != 0) goto failed;
         for (i = 0; i < CASTIMATE_N_OUT; ++i) got[i] = outf[i];
         compare(&v[2], s, got, want);
     }
@@ -500,7 +506,8 @@ To use it elsewhere, compile `castimate_compensation.c` and `castimate_cg.c` (do
 - `castimate_compensate(raw, t, temp, out)`: double, the estimates baked in as constants.
 - `castimate_compensate_p(params, raw, t, temp, out)`: double, the parameters from an array of
   `CASTIMATE_N_PARAMS` doubles (layout in the header); `castimate_params_default` holds the estimates.
-- `castimate_compensatef(raw, t, temp, out)`: single precision.
+- `castimate_compensatef(raw, t, temp, out)`: single precision (raw, temp and out float; t a double, so
+  that a clock such as Unix time keeps its precision).
 - All return 0 on success. No allocation, no global state.
 
 ## Input
