@@ -17,3 +17,8 @@ def __getattr__(name: str):
 
         return getattr(api, name)
     raise AttributeError(f"module 'castimate' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    """The module's names and the lazy API's (tab completion lists castimate.solve before its first use)."""
+    return sorted({*globals(), *__all__})

@@ -44,4 +44,5 @@ def test_the_package_exposes_the_api_lazily():
     assert castimate.solve is castimate.api.solve and Solver.__module__ == "castimate.solver.ipopt"
     assert elimination.__name__ == "castimate.solver.elimination"
     assert castimate.write is castimate.api.write
+    assert set(castimate.__all__) <= set(dir(castimate))  # tab completion lists the lazy API (it listed none)
     assert "OPENBLAS_NUM_THREADS" in os.environ  # set by conftest, as the CLI does, before numpy loads
