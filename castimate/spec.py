@@ -245,6 +245,12 @@ def load_problem(path: str | Path) -> ProblemSpec:
     """Read and validate a problem file."""
     path = Path(path)
     raw = load_yaml(path, "problem file")
+    written = raw.get("format") if isinstance(raw, dict) else None
+    if isinstance(written, str) and written.startswith("castimate."):  # its triads and poses told "a scenario file"
+        raise InputError(path, "format", f"expected a problem file (YAML with kind, data and array), found a {written} "
+                                         "document that castimate wrote" + (
+                                             f"; to calibrate data with it: castimate apply {path} DATA -o OUT.csv"
+                                             if written.startswith("castimate.results/") else ""))
     if isinstance(raw, dict) and "data" not in raw and "array" not in raw and SCENARIO_HINT_KEYS & set(raw):
         raise InputError(path, "", "this is a scenario file for `castimate simulate` (it has "
                                    f"{', '.join(sorted(map(str, SCENARIO_HINT_KEYS & set(raw))))} and no data or array); "

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,6 +21,7 @@ import castimate
 from castimate.calibration import Calibration
 
 N = 10
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def _triad(T=None, gyro=True):
@@ -156,6 +158,10 @@ def test_bad_files_to_the_api(tmp_path):
                         (lambda: castimate.load(tmp_path), "directory"),
                         (lambda: Calibration.read(tmp_path / "d.json"), "directory"),
                         (lambda: Calibration.read(tmp_path / "bad.json"), "not valid JSON"),
+                        # a results.json (its triads and poses) was called a scenario file, to be simulated
+                        (lambda: castimate.load(ROOT / "reports" / "xsens_imutk" / "results.json"),
+                         r"results.json: format: expected a problem file \(YAML with kind, data and array\), found a "
+                         r"castimate.results/1 document that castimate wrote; to calibrate data with it: castimate apply "),
                         (lambda: castimate.load({"kind": "static_array", "data": {"path": 5, "format": "csv"},
                                                  "array": {"reference": "a", "triads": [{"name": "a"}]}}),
                          "data.path: expected a file path")):
