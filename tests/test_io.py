@@ -343,6 +343,34 @@ class TestNpz:
         with pytest.raises(InputError, match=rx(p, "a.acc", "numeric")):
             read_npz(p)
 
+    @pytest.mark.parametrize("damage, found", [
+        ("crc", "found unreadable data (Bad CRC-32"),
+        ("deflate", "found unreadable data (Error -3 while decompressing"),
+        ("no_header", "found 7 bytes without the .npy header"),
+    ])
+    def test_error_damaged_member(self, tmp_path, damage, found):
+        """np.load reads only the archive's directory: a damaged member fails when it is read, and
+        that was an internal error (BadZipFile, zlib.error, or AttributeError on the raw bytes numpy
+        returns for a member without the .npy header)."""
+        p = tmp_path / "d.npz"
+        arrays = {"t": np.arange(100.0), "a.acc": np.random.default_rng(1).standard_normal((100, 3))}
+        if damage == "no_header":
+            import zipfile
+            with zipfile.ZipFile(p, "w") as z:
+                z.writestr("t.npy", b"garbage")
+        else:  # flip bytes of a.acc: its last value (stored: the CRC-32 fails), its start (deflated: the stream)
+            (np.savez if damage == "crc" else np.savez_compressed)(p, **arrays)
+            raw = bytearray(p.read_bytes())
+            with np.load(p) as z:
+                info = z.zip.getinfo("a.acc.npy")
+            start = info.header_offset + 30 + len(info.filename) + len(info.extra)
+            lo = start + info.compress_size - 4 if damage == "crc" else start
+            for i in range(lo, lo + (4 if damage == "crc" else 40)):
+                raw[i] ^= 0x5A
+            p.write_bytes(bytes(raw))
+        with pytest.raises(InputError, match=rx(p, "t" if damage == "no_header" else "a.acc", found)):
+            read_npz(p)
+
     def test_error_not_npz(self, tmp_path):
         p = tmp_path / "x.npz"
         p.write_text("t,a.ax\n")

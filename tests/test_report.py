@@ -280,6 +280,40 @@ def test_dynamic_report_quaternion_orientation(dynamic_solved):
     assert not any("<th>w</th>" in "".join(head) for _, head, _, _ in other)
 
 
+@pytest.mark.parametrize("damage, found", [
+    ("npy", ": expected an .npz archive of named arrays, found a single .npy array"),
+    ("no_header", ": acc_mean: expected an array, found 7 bytes without the .npy header"),
+    ("deflate", ": acc_mean: expected an array, found unreadable data (Error -3 while decompressing data"),
+])
+def test_report_damaged_details(solved, tmp_path, capsys, damage, found):
+    """A details.npz that is one .npy array, or whose member is damaged, was an internal error (exit 1)."""
+    import zipfile
+
+    (tmp_path / "results.json").write_text((solved / "results.json").read_text())
+    p = tmp_path / "details.npz"
+    with np.load(solved / "details.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    if damage == "npy":
+        with open(p, "wb") as fh:
+            np.save(fh, arrays["acc_mean"])
+    elif damage == "no_header":  # the other members intact
+        np.savez(p, **{k: v for k, v in arrays.items() if k != "acc_mean"})
+        with zipfile.ZipFile(p, "a") as z:
+            z.writestr("acc_mean.npy", b"garbage")
+    else:
+        np.savez_compressed(p, **arrays)
+        raw = bytearray(p.read_bytes())
+        with np.load(p) as z:
+            info = z.zip.getinfo("acc_mean.npy")
+        start = info.header_offset + 30 + len(info.filename) + len(info.extra)
+        raw[start:start + 40] = bytes(b ^ 0x5A for b in raw[start:start + 40])
+        p.write_bytes(bytes(raw))
+    assert main(["report", str(tmp_path)]) == EXIT_INVALID_INPUT
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{p}{found}" in err, err
+    assert not (tmp_path / "report.html").exists()
+
+
 def test_dynamic_report_missing_array(dynamic_solved, tmp_path, capsys):
     (tmp_path / "results.json").write_text((dynamic_solved / "results.json").read_text())
     with np.load(dynamic_solved / "details.npz") as z:

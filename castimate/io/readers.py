@@ -13,6 +13,7 @@ import io
 import os
 import re
 import zipfile
+import zlib
 from collections.abc import Callable
 from typing import IO
 
@@ -331,10 +332,7 @@ def read_npz(
             raise InputError(source, "t", "missing time array 't'")
 
         def load(key: str) -> np.ndarray:
-            try:
-                arr = archive[key]
-            except ValueError as exc:  # object arrays need pickle, which we refuse
-                raise InputError(source, key, f"expected a numeric array, found unreadable data ({exc})") from None
+            arr = npz_member(archive, key, source, "a numeric array")
             if not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)) or arr.dtype == bool:
                 raise InputError(source, key, f"expected a numeric (integer or float) array, found dtype {arr.dtype}")
             return arr.astype(np.float64)
@@ -380,6 +378,24 @@ def read_npz(
         raise InputError(source, "", "expected at least one '<triad>.acc' array, found only 't'")
     return Recording(t=times.t, acc=acc, gyro=gyro, temp=temp, source=source, notes=times.notes,
                      rails=declared_rails(acc_conv, gyro_conv, acc, gyro), time_base=times)
+
+
+def npz_member(archive: np.lib.npyio.NpzFile, key: str, source: object, expected: str = "an array") -> np.ndarray:
+    """One array of an open .npz archive; a damaged member is an InputError naming the key and saying
+    what was ``expected``.
+
+    np.load reads only the archive's directory: a member's damage shows when it is read, as a
+    ValueError (an object array, which needs pickle, or a bad .npy header), zipfile.BadZipFile (bad
+    CRC-32), zlib.error (a corrupt compressed stream) or EOFError / OSError (a truncated one). A
+    member without the .npy header comes back as its raw bytes.
+    """
+    try:
+        arr = archive[key]
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+        raise InputError(source, key, f"expected {expected}, found unreadable data ({exc})") from None
+    if not isinstance(arr, np.ndarray):
+        raise InputError(source, key, f"expected {expected}, found {len(arr)} bytes without the .npy header")
+    return arr
 
 
 def write_npz(path: str | os.PathLike, recording: Recording) -> None:

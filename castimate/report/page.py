@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ..io.readers import npz_member
 from ..io.results import check_results, load_results_json
 from ..output.details import DETAILS_SHAPES, check_details, check_pairing
 from ..solver import verdict
@@ -81,10 +82,13 @@ def load_details(directory: Path, required: tuple[str, ...], results: dict) -> d
     path = directory / "details.npz"
     input_file(path, "details file")
     try:
-        with np.load(path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
+        z = np.load(path, allow_pickle=False)
     except (OSError, ValueError, zipfile.BadZipFile) as e:
         raise InputError(path, "", f"not a readable .npz file ({e})") from None
+    if not isinstance(z, np.lib.npyio.NpzFile):
+        raise InputError(path, "", "expected an .npz archive of named arrays, found a single .npy array")
+    with z:
+        arrays = {k: npz_member(z, k, path) for k in z.files}
     arrays = check_details(arrays, results["kind"], list(results["triads"]), path, required)
     check_pairing(arrays, results, path)
     return arrays
