@@ -9,6 +9,7 @@ read only regular files (not a directory, a device or a FIFO) of a bounded size,
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import stat
@@ -301,3 +302,66 @@ def load_yaml(path: str | os.PathLike, what: str = "problem file") -> Any:
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         raise InputError(path, _line(mark), f"not valid YAML ({getattr(e, 'problem', None) or e})") from None
+
+
+class _Rejected(Exception):
+    """JSON text holds a key twice in one object or an integer longer than MAX_INT_DIGITS (the first pass
+    of :func:`parse_json`; the second names it)."""
+
+
+def _json_int(digits: str) -> int:
+    if len(digits.lstrip("-")) > MAX_INT_DIGITS:
+        raise _Rejected
+    return int(digits)
+
+
+def _unique(pairs: list) -> dict:
+    d = dict(pairs)
+    if len(d) != len(pairs):
+        raise _Rejected
+    return d
+
+
+class _Pairs(list):
+    """A JSON object's (key, value) pairs in file order (the second pass of :func:`parse_json`)."""
+
+
+class _Digits(str):
+    """The digits of an integer longer than MAX_INT_DIGITS (the second pass of :func:`parse_json`)."""
+
+
+def _name_rejected(v: Any, path: object, where: str = "") -> None:
+    """Refuse the first key given twice in one object, or integer longer than MAX_INT_DIGITS, of JSON parsed
+    with its objects as _Pairs and those integers as _Digits, naming its key path."""
+    if isinstance(v, _Digits):
+        raise InputError(path, where, f"expected a number, found an integer of {len(v.lstrip('-'))} digits")
+    if isinstance(v, _Pairs):
+        seen = set()
+        for k, x in v:
+            w = f"{where}.{k}" if where else k
+            if k in seen:
+                raise InputError(path, w, "duplicate key; JSON readers differ in which value they keep")
+            seen.add(k)
+            _name_rejected(x, path, w)
+    elif isinstance(v, list):
+        for i, x in enumerate(v):
+            _name_rejected(x, path, f"{where}[{i}]")
+
+
+def parse_json(text: str, path: object) -> Any:
+    """JSON text (of a results file, a section list) parsed; invalid JSON and nesting too deep for the parser
+    are refused with the line, a key given twice in one object and an integer longer than MAX_INT_DIGITS with
+    the key path, as :func:`load_yaml` refuses them in YAML. json.loads kept the second of two keys silently,
+    and a longer integer became an internal error later: OverflowError where it was read as a float,
+    ValueError beyond Python's 4300 digits."""
+    try:
+        try:
+            return json.loads(text, parse_int=_json_int, object_pairs_hook=_unique)
+        except _Rejected:  # parsed again, to name it
+            _name_rejected(json.loads(text, object_pairs_hook=_Pairs, parse_int=lambda s: _Digits(s) if len(
+                s.lstrip("-")) > MAX_INT_DIGITS else int(s)), path)
+            raise
+    except RecursionError:
+        raise InputError(path, "", "not valid JSON (nested too deeply)") from None
+    except json.JSONDecodeError as e:
+        raise InputError(path, f"line {e.lineno}", f"not valid JSON ({e.msg})") from None

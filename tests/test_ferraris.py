@@ -103,6 +103,10 @@ def test_section_list_refusals(tmp_path):
     js.write_text("{not json")
     with pytest.raises(InputError, match="not valid JSON"):
         calibrate(load_problem(p))
+    # an integer beyond Python's 4300 digits was an internal error (ValueError from int())
+    js.write_text(json.dumps({**good, "z_a": {"start": 5, "end": "LONG"}}).replace('"LONG"', "9" * 5000))
+    with pytest.raises(InputError, match="sections.json: z_a.end: expected a number, found an integer of 5000 digits"):
+        calibrate(load_problem(p))
 
 
 def test_imucal_table_refusals(tmp_path):

@@ -639,6 +639,28 @@ def test_results_not_an_object(tmp_path):
     expect_error(lambda: read_results(p), p, "format", "expected 'castimate.results/1', found [1, 2]")
 
 
+@pytest.mark.parametrize("digits", [400, 5000])
+def test_results_long_integer(solved, tmp_path, digits):
+    """An integer too long for a float (OverflowError where T, b or any value was read) or for Python's
+    int() (ValueError beyond 4300 digits) was an internal error of apply, report and codegen; refused
+    where the JSON is read, with its key path, as load_yaml does."""
+    p = _results(solved, tmp_path, lambda d: d["triads"]["imu1"]["accelerometer"].__setitem__("b", "LONG"))
+    p.write_text(p.read_text().replace('"LONG"', "[0, " + "9" * digits + ", 0]"))
+    where, found = "triads.imu1.accelerometer.b[1]", f"expected a number, found an integer of {digits} digits"
+    expect_error(lambda: read_results(p), p, where, found)
+    expect_error(lambda: apply_calibration(p, solved / "no.csv", tmp_path / "o.csv"), p, where, found)
+
+
+def test_results_duplicate_key(solved, tmp_path):
+    """A key given twice in one object: json.loads kept the second, so a hand-edited {"success": false, ...,
+    "success": true} applied a calibration that another JSON reader (keeping the first) would refuse."""
+    p = _results(solved, tmp_path, lambda d: None)
+    p.write_text(p.read_text().replace('"status": {', '"status": {"success": false, ', 1))
+    found = "duplicate key; JSON readers differ in which value they keep"
+    expect_error(lambda: read_results(p), p, "status.success", found)
+    expect_error(lambda: apply_calibration(p, solved / "no.csv", tmp_path / "o.csv"), p, "status.success", found)
+
+
 def test_results_missing(tmp_path):
     p = tmp_path / "results.json"
     expect_error(lambda: read_results(p), p, "", "results file not found")

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import os
 
 import numpy as np
@@ -19,7 +18,7 @@ from castimate.errors import InputError
 from castimate.io.recording import Recording
 from castimate.io.timestamps import regular_times
 from castimate.io.units import UnitSpec, declared_rails, parse_units
-from castimate.validation import read_input_text
+from castimate.validation import parse_json, read_input_text
 
 COLUMNS = ("n_samples", "gyr_x", "gyr_y", "gyr_z", "acc_x", "acc_y", "acc_z")
 DEFAULT_ACC_UNITS, DEFAULT_GYRO_UNITS = "m/s^2", "deg/s"
@@ -68,10 +67,7 @@ def read_imucal(path: str | os.PathLike, rate: float, acc_units: UnitSpec | None
 def read_sections(path: str | os.PathLike) -> dict[str, tuple[int, int]]:
     """imucal's section list: label -> (start, end) sample indices, end exclusive."""
     source = str(path)
-    try:
-        raw = json.loads(read_input_text(path, "section list"))
-    except json.JSONDecodeError as e:
-        raise InputError(source, f"line {e.lineno}", f"not valid JSON ({e.msg})") from None
+    raw = parse_json(read_input_text(path, "section list"), source)
     if not isinstance(raw, dict):
         raise InputError(source, "", f"expected a mapping label -> {{start, end}}, found {type(raw).__name__}")
     out = {}

@@ -11,7 +11,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..problem.effects import KINDS
-from ..validation import Check, read_input_text, shown
+from ..validation import Check, parse_json, read_input_text, shown
 from .units import parse_units
 from .atomic import write_atomic
 
@@ -41,12 +41,7 @@ def write_json(path: str | Path, obj: dict) -> None:
 def load_results_json(path: str | Path) -> dict:
     """A results.json parsed, with its format checked (the status is not enforced here)."""
     path = Path(path)
-    try:
-        doc = json.loads(read_input_text(path, "results file", MAX_RESULTS_BYTES))
-    except RecursionError:
-        raise InputError(path, "", "not valid JSON (nested too deeply)") from None
-    except json.JSONDecodeError as e:
-        raise InputError(path, f"line {e.lineno}", f"not valid JSON ({e.msg})") from None
+    doc = parse_json(read_input_text(path, "results file", MAX_RESULTS_BYTES), path)
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise InputError(path, "format", f"expected {FORMAT!r}, found {doc.get('format') if isinstance(doc, dict) else doc!r}")
     return doc
