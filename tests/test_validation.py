@@ -421,6 +421,25 @@ def test_gyroscope_true_without_gyro_columns(doc, tmp_path):
                  "is true but data.csv has no gyroscope columns for 'imu2'")
 
 
+@pytest.mark.parametrize("mistake, found", [
+    ("m/s^2 declared g", "the data look like they are already in m/s^2: declare data.units.accelerometer: m/s^2"),
+    ("g declared m/s^2", "the data look like they are in g: declare data.units.accelerometer: g"),
+])
+def test_rows_in_the_wrong_accelerometer_units(doc, sim, tmp_path, mistake, found):
+    """Pose means (segments: rows) each read g: their norm is conclusive however few. Twenty rows were
+    below the 50 samples a time series needs: data in m/s^2 declared g were solved "successfully" with
+    gains of 9.8 (chi2/dof 95, inside the gain range 0.1-10), data in g declared m/s^2 with gains of 0.10
+    (chi2/dof 0.01; simulated seed 2) or not at all (exit 3; seed 1), the units named in neither."""
+    if mistake == "m/s^2 declared g":
+        edit(doc, "data.units", {"accelerometer": "g"})
+    else:
+        rec = read_csv(sim / "data.csv")
+        write_csv(tmp_path / "g.csv", Recording(rec.t, {n: a / 9.80665 for n, a in rec.acc.items()}))
+        edit(doc, "data.path", "g.csv")
+    p = write_yaml(tmp_path / "p.yaml", doc)
+    expect_error(lambda: calibrate_static(load_problem(p)), p, "data.units.accelerometer", found)
+
+
 @pytest.mark.parametrize("segments, where, found", [
     ([[0, 5]], "data.segments[0]", "[0, 5] s holds 6 samples; expected at least 10"),
     ([[12, 3]], "data.segments[0]", "expected t0 < t1, found [12, 3]"),

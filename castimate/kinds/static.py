@@ -439,7 +439,8 @@ def check_plausible(spec: ProblemSpec, rec: Recording, kind: str, log: Log) -> N
     used = Recording(rec.t, {n: rec.acc[n] for n in names}, {n: rec.gyro[n] for n in gyro_names if n in rec.gyro},
                      source=rec.source)
     check_channels(used, names, declared(spec), clipping=kind == "static" and spec.data.segments != "rows")
-    check_accelerometer_units(used, names, declared(spec), spec.model.gravity, kind, log)
+    check_accelerometer_units(used, names, declared(spec), spec.model.gravity, kind, log,
+                              at_rest=spec.data.segments == "rows")  # pose means: conclusive however few
     check_gyroscope_units(used, gyro_names, declared(spec))
     check_temperatures(rec, names, declared(spec))
 

@@ -8,7 +8,8 @@ refuse, with the numbers and the fix, where the evidence is conclusive; they war
   most of the time, so the 5 % quantile of the per-sample norm is near g (0.9-1.1 g on the bundled
   static and dynamic recordings, real and simulated). Near 1/9.81 of it the data are in g declared
   as m/s^2; near 9.81 times it, the reverse. One rule (:func:`gravity_norm`) for the problem's data,
-  ``castimate apply`` and ``Calibration.apply``, judged from 50 samples and 0.8 s on (MIN_NORM_SAMPLES).
+  ``castimate apply`` and ``Calibration.apply``, judged from 50 samples and 0.8 s on (MIN_NORM_SAMPLES),
+  or from any number of pose means at rest (``segments: rows``: each row reads g alone).
 - Gyroscope units: no MEMS gyroscope measures beyond about +-70 rad/s (4000 deg/s), and none has a
   white noise at rest of 0.05 rad/s (3 deg/s) per sample; data in deg/s declared as rad/s exceed both.
 - Dead channels: an axis that reads one value in every sample (stuck, disconnected, all zeros), or
@@ -127,13 +128,14 @@ class GravityNorm:
     ratio: float
     samples: int
     duration: float | None = None  # s, None when the sample times are not known
+    at_rest: bool = False  # every sample a pose mean at rest (segments: rows)
 
     @property
     def refused(self) -> bool:
-        """Conclusive: outside NORM_REFUSE on at least MIN_NORM_SAMPLES samples and MIN_NORM_DURATION,
-        so the readings are not in m/s^2."""
+        """Conclusive: outside NORM_REFUSE on at least MIN_NORM_SAMPLES samples and MIN_NORM_DURATION, or on
+        pose means at rest however few (no motion moves their norm off g), so the readings are not in m/s^2."""
         long = self.samples >= MIN_NORM_SAMPLES and (self.duration is None or self.duration >= MIN_NORM_DURATION)
-        return long and not NORM_REFUSE[0] <= self.ratio <= NORM_REFUSE[1]
+        return (long or self.at_rest) and not NORM_REFUSE[0] <= self.ratio <= NORM_REFUSE[1]
 
     @property
     def looks_like(self) -> str | None:
@@ -148,21 +150,24 @@ class GravityNorm:
         return None
 
 
-def gravity_norm(acc: dict[str, np.ndarray], gravity: float, t: np.ndarray | None = None) -> GravityNorm | None:
+def gravity_norm(acc: dict[str, np.ndarray], gravity: float, t: np.ndarray | None = None,
+                 at_rest: bool = False) -> GravityNorm | None:
     """The rule of the accelerometer units, one place for every caller (the problem's data, castimate
-    apply's, Calibration.apply's arrays; ``t`` their sample times if known): None without readings."""
+    apply's, Calibration.apply's arrays; ``t`` their sample times if known; ``at_rest``: every sample a
+    pose mean at rest): None without readings."""
     q = {n: float(np.quantile(np.linalg.norm(a, axis=1), NORM_QUANTILE)) for n, a in acc.items()}
     if not q:
         return None
     name = min(q, key=lambda n: abs(np.log(max(q[n], 1e-300) / gravity)))  # the most plausible triad
     duration = float(np.ptp(t)) if t is not None and len(t) else None
-    return GravityNorm(name, q[name], q[name] / gravity, len(acc[name]), duration)
+    return GravityNorm(name, q[name], q[name] / gravity, len(acc[name]), duration, at_rest)
 
 
 def check_accelerometer_units(rec: Recording, names: list[str], declared: Declared, gravity: float,
-                              kind: str, log: Log) -> None:
-    """The gravity norm against the declared accelerometer units (see the module docstring)."""
-    norm = gravity_norm({n: rec.acc[n] for n in names if n in rec.acc}, gravity, rec.t)
+                              kind: str, log: Log, at_rest: bool = False) -> None:
+    """The gravity norm against the declared accelerometer units (see the module docstring; ``at_rest``:
+    the rows are pose means at rest)."""
+    norm = gravity_norm({n: rec.acc[n] for n in names if n in rec.acc}, gravity, rec.t, at_rest)
     if norm is None:
         return
     r = norm.ratio
