@@ -749,6 +749,12 @@ SCENARIO_CASES = [
     ("samples_per_pose", "kind: static_array\nsamples_per_pose: 0\n", "samples_per_pose", "found 0"),
     ("rate_zero", "kind: static_array\ntime_series: true\nrate: 0\n", "rate", "found 0"),
     ("pose_duration", "kind: static_array\ntime_series: true\npose_duration: -1\n", "pose_duration", "found -1"),
+    # a pose shorter than a sample was simulated without error, truth.json holding poses the data lack (and
+    # with no sample at all, transitions as short, the error named the output's hidden staging file)
+    ("pose_without_sample", "kind: static_array\ntime_series: true\nrate: 1\npose_duration: 0.4\n", "pose_duration",
+     "expected a number from 1 to 100000 s, found 0.4"),
+    ("pose_range_without_sample", "kind: static_array\ntime_series: true\nrate: 10\npose_duration: [0.04, 5]\n",
+     "pose_duration[0]", "expected a number from 0.1 to 100000 s, found 0.04"),
     ("transition", "kind: static_array\ntime_series: true\ntransition: x\n", "transition", "found 'x'"),
 ]
 

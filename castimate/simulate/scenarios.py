@@ -42,18 +42,20 @@ SCENARIO_KEYS = ("kind", "seed", "gravity", "triads", "reference", "poses", "noi
 TIME_STAMP_KEYS = ("round", "jitter", "gaps")
 
 
-def _duration(c: Check, s: dict, key: str, default: float, count: int, rng: np.random.Generator) -> np.ndarray:
-    """A duration in seconds: one number, or [shortest, longest] drawn uniformly for each of ``count``."""
+def _duration(c: Check, s: dict, key: str, default: float, count: int, rng: np.random.Generator,
+              least: float | None = None) -> np.ndarray:
+    """A duration in seconds: one number, or [shortest, longest] drawn uniformly for each of ``count``;
+    ``least``: the shortest allowed, s."""
     v = s.get(key, default)
     if isinstance(v, list):
         if len(v) != 2:
             c.fail(key, f"expected a duration in seconds or [shortest, longest], found {v!r}")
-        lo = c.number(v[0], f"{key}[0]", positive=True, hi=1e5, unit="s")
-        hi = c.number(v[1], f"{key}[1]", positive=True, hi=1e5, unit="s")
+        lo = c.number(v[0], f"{key}[0]", positive=True, lo=least, hi=1e5, unit="s")
+        hi = c.number(v[1], f"{key}[1]", positive=True, lo=least, hi=1e5, unit="s")
         if hi < lo:
             c.fail(key, f"expected shortest <= longest, found {v!r}")
         return rng.uniform(lo, hi, count)
-    return np.full(count, c.number(v, key, positive=True, hi=1e5, unit="s"))
+    return np.full(count, c.number(v, key, positive=True, lo=least, hi=1e5, unit="s"))
 
 
 def _flag(c: Check, s: dict, key: str) -> bool:
@@ -223,7 +225,7 @@ def _static_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDraw
             c.fail("effects" if effects else "temperature", "effects and temperature are simulated for pose means "
                                                             "(time_series: false)")
         rate = c.number(s.get("rate", 100.0), "rate", positive=True, hi=1e5, unit="Hz")
-        dur = _duration(c, s, "pose_duration", 10.0, P, rng)
+        dur = _duration(c, s, "pose_duration", 10.0, P, rng, least=1 / rate)  # a pose holds a sample at least
         trans = _duration(c, s, "transition", 3.0, P - 1, rng)
         _check_size(c, (dur.sum() + trans.sum()) * rate, len(names) * (6 if gyro else 3), "poses x (pose_duration + "
                     "transition) x rate")
