@@ -475,3 +475,17 @@ def test_five_samples_without_a_time_range(doc, sim, tmp_path):
     doc["data"]["time_range"] = [0.0, 0.04]  # the cut is blamed when there is one
     p = write(tmp_path / "p.yaml", doc)
     expect_error(lambda: castimate.solve(p), p, "data.time_range", "(5 samples")
+
+
+def test_recording_shorter_than_the_excitation_smoothing(sim):
+    """300 samples stamped 10 µs apart (3 ms: a time column in ks, or a 100 kHz logger) are shorter than
+    the 0.05 s over which the excitation check smooths the angular rate: np.convolve's output was longer
+    than the time stamps, and np.gradient's ValueError made castimate solve of such data an internal error
+    (exit 1). The rate is smoothed over the whole recording then."""
+    from castimate.prepare.plausibility import angular_excitation, position_error
+
+    rec = read_csv(sim / "data.csv")
+    t, w = rec.t * 1e-3, rec.gyro["imu1"]
+    W = angular_excitation(w, t)
+    assert W.shape == (300, 3, 3) and np.isfinite(W).all()
+    assert np.isfinite(position_error(w, t, 0.04)).all()

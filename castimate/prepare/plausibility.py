@@ -215,9 +215,9 @@ def check_gyroscope_noise(sigma: dict[str, float], declared: Declared) -> None:
 
 def angular_excitation(omega: np.ndarray, t: np.ndarray) -> np.ndarray:
     """W_n = [w_dot_n]x + [w_n]x^2 (N, 3, 3), s^-2, from a gyroscope's rate (its median removed as the
-    bias, smoothed over 0.05 s so that differentiating its noise adds little)."""
+    bias, smoothed over 0.05 s, or the whole recording if shorter, so that differentiating its noise adds little)."""
     dt = float(np.median(np.diff(t)))
-    k = max(1, int(round(0.05 / dt))) if dt > 0 else 1
+    k = min(max(1, int(round(0.05 / dt))), len(t)) if dt > 0 else 1  # a longer kernel lengthens np.convolve's output
     kernel = np.ones(k) / k
     w = np.column_stack([np.convolve(omega[:, i] - np.median(omega[:, i]), kernel, mode="same") for i in range(3)])
     wd = np.gradient(w, t, axis=0)
