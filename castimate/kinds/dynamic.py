@@ -39,7 +39,7 @@ from ..solver.ipopt import Solver
 from ..solver.variance import block_rows, estimate_levels, hat_diagonal, map_threads
 from ..problem.graph import SolverOptions
 from ..prepare.masks import saturation_mask
-from ..prepare.plausibility import check_dynamic_information, check_uniform_sampling
+from ..prepare.plausibility import check_angle_per_sample, check_dynamic_information, check_uniform_sampling
 from ..problem.effects import BY_KEY, MOTION, RATE
 from ..solver.motion_noise import COMPONENTS, accelerated_fixed_point, fit_noise, noise_sigma
 from ..solver.serial import serial_covariance
@@ -376,8 +376,10 @@ def load_dynamic(spec: ProblemSpec, log: Log = quiet) -> DynamicInput:
     check_plausible(spec, rec, "dynamic", log)
     timed = [k for k in spec.model.effects if {RATE, MOTION} & set(BY_KEY[k].needs)]
     if spec.motion.process_model or timed:
-        check_uniform_sampling(rec.t, declared(spec), "the process model (motion.process_model)" if not timed
-                               else f"{timed[0]} (model.{timed[0]})")
+        needs = "the process model (motion.process_model)" if not timed else f"{timed[0]} (model.{timed[0]})"
+        check_uniform_sampling(rec.t, declared(spec), needs)
+        check_angle_per_sample(rec, [t.name for t in spec.array.triads if t.gyroscope is not False], declared(spec),
+                               needs)
     cache: dict = {}
     acc_sigma, gyro_sigma = noise_from_static(spec, full, log, cache)
     names = spec.array.names
