@@ -509,3 +509,15 @@ def test_time_stamps_in_ms(doc, sim, tmp_path, process_model):
     assert "expected at most 3.142 rad (half a turn) where " + ("the process model (motion.process_model)" if process_model
                                                                else "accelerometer.age (model.accelerometer.age)") in str(e)
     assert str(e).endswith("t holds seconds; are its times in ms, µs or ns?")
+
+
+def test_scenario_rate_below_half_a_turn_per_sample(tmp_path, capsys):
+    """A rate at which max_omega turns more than half a turn per sample: the attitude integration's
+    sub-steps grew with the turn per sample (0.001 Hz: 3 GB for 100 samples) and castimate simulate
+    ended in "the input is too large to process (MemoryError)" naming no file; at 8 Hz it wrote data that
+    castimate solve refuses (check_angle_per_sample) with the process model."""
+    sc = tmp_path / "scenario.yaml"
+    sc.write_text(SCENARIO + "rate: 8\n")  # max_omega 1500 deg/s: 8.33 Hz at least
+    expect_error(lambda: simulate_scenario(sc, tmp_path / "out"), sc, "rate",
+                 "expected at least 8.33333 Hz, at most half a turn per sample at max_omega 1500 deg/s, found 8")
+    assert not (tmp_path / "out").exists()

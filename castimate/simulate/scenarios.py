@@ -322,6 +322,9 @@ def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDra
     rate = c.number(s.get("rate", 100.0), "rate", positive=True, hi=1e5, unit="Hz")
     w_max = np.radians(c.number(s.get("max_omega", 2000.0), "max_omega", positive=True, hi=1e4, unit="deg/s"))
     wd_max = np.radians(c.number(s.get("max_omega_dot", 2000.0), "max_omega_dot", positive=True, hi=1e6, unit="deg/s^2"))
+    if w_max / rate > np.pi:  # as castimate solve refuses (prepare.plausibility.check_angle_per_sample)
+        c.fail("rate", f"expected at least {np.degrees(w_max) / 180:g} Hz, at most half a turn per sample at max_omega "
+                       f"{np.degrees(w_max):g} deg/s, found {rate:g}")
     noise = c.mapping(s.get("noise"), "noise", ("accelerometer", "gyroscope", "pink", "jitter"))
     acc_sigma = c.number(noise.get("accelerometer", 0.04), "noise.accelerometer", positive=True, hi=100.0, unit="m/s^2")
     gyro_sigma = np.radians(c.number(noise.get("gyroscope", 0.06), "noise.gyroscope", positive=True, hi=500.0, unit="deg/s"))
