@@ -298,6 +298,13 @@ def parse_problem(raw: Any, path: Path, sha256: str = "") -> ProblemSpec:
                                   "each gyroscope row; found auto")
     if kind == "dynamic_array" and data.segments == "rows":
         c.fail("data.segments", "a dynamic problem needs the raw time series, not one row per pose")
+    if kind == "dynamic_array" and isinstance(data.segments, tuple):
+        c.fail("data.segments", "kind dynamic_array detects the static segments of its noise (data.detection) and "
+                                "would ignore these: remove this key")
+    if kind == "static_array" and data.segments != "auto" and "detection" in top["data"]:
+        c.fail("data.detection", f"settings of the static-pose detection, which data.segments "
+                                 f"({'rows' if data.segments == 'rows' else 'explicit segments'}) replaces: "
+                                 "remove this key")
     return ProblemSpec(path, sha256, kind, data, array, model, noise, solver, motion, _uncertainty(c, top.get("uncertainty")))
 
 

@@ -175,6 +175,11 @@ SPEC_CASES = [
     # ignored by the static kind before: 0.001 m/s^2 "masked" every reading and the solve reported success
     ("saturation_for_static", {"data.saturation": {"accelerometer": 0.001}}, "data.saturation",
      "masks of readings on an ADC rail are for kind dynamic_array; kind static_array would ignore them"),
+    # ignored before: the detection does not run where the poses are the rows or explicit segments
+    ("detection_with_rows", {"data.detection": {"window": 1.0}}, "data.detection",
+     "settings of the static-pose detection, which data.segments (rows) replaces: remove this key"),
+    ("detection_with_segments", {"data.segments": [[0, 3], [5, 8]], "data.detection": {"window": 1.0}},
+     "data.detection", "which data.segments (explicit segments) replaces"),
     # data
     ("data_not_mapping", {"data": "data.csv"}, "data", "expected a mapping, found str 'data.csv'"),
     ("unknown_data_key", {"data.pth": "x.csv"}, "data.pth", "unknown key; expected one of detection, format"),
