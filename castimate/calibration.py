@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -144,6 +145,23 @@ class Calibration:
         """Whether an included effect needs ``what`` (``time``, ``temperature``)."""
         return any(what in BY_KEY[k].needs for k in self.effects)
 
+    def extrapolation(self, t) -> str | None:
+        """Why applying at the times ``t`` [s] extrapolates, or None: a time-dependent effect (drift) is
+        a polynomial in τ = (t − t_mid) / t_half, fitted over the calibration session (τ = ±1 at its first
+        and last pose), and ``t`` reaches |τ| > :data:`EXTRAPOLATED_TAU`."""
+        drifts = [k for k in self.effects if TIME in BY_KEY[k].needs]
+        t = np.asarray(t, float)
+        if not drifts or not t.size or not np.isfinite(t).any():
+            return None
+        reg = self.regressors
+        tau = (np.array([np.nanmin(t), np.nanmax(t)]) - reg.t_mid) / reg.t_half
+        worst = tau[np.argmax(np.abs(tau))]
+        if abs(worst) <= EXTRAPOLATED_TAU:
+            return None
+        return (f"t spans {np.nanmin(t):.6g}-{np.nanmax(t):.6g} s, beyond the calibration session "
+                f"({reg.t_mid - reg.t_half:.6g}-{reg.t_mid + reg.t_half:.6g} s, its first and last pose): "
+                f"{', '.join(drifts)} extrapolated to tau = {worst:+.3g} (the session is -1 to +1)")
+
     def apply(self, acc, gyro=None, t=None, temp=None):
         """(f, ω): body-frame specific force [m/s²] and angular rate [rad/s] from raw readings in SI.
 
@@ -152,7 +170,9 @@ class Calibration:
         ``temp``: {triad: (N,)} or one (N,) array for every triad [K], needed by temperature effects.
         ω is None without gyroscope data; a triad without a calibrated gyroscope is left out of it.
         Readings whose norm is far from g are refused as not in m/s² (:func:`check_gravity`, the rule
-        of ``castimate apply``), from 50 samples (and 0.8 s when ``t`` is given) on.
+        of ``castimate apply``), from 50 samples (and 0.8 s when ``t`` is given) on. Times beyond the
+        calibration session where a drift is applied give an :class:`ExtrapolationWarning`
+        (:meth:`extrapolation`).
         """
         where = "Calibration.apply"
         single = not isinstance(acc, dict)
@@ -198,6 +218,9 @@ class Calibration:
             g = np.zeros((n, 3)) if not has_gyro else readings(g, w("gyro"), n, w("acc"), MAX_RATE)
             inputs[name] = (y, g, tau, dT, has_gyro)
         check_gravity({n: v[0] for n, v in inputs.items()}, single, times if np.ndim(t) == 1 else None)
+        note = None if times is None else self.extrapolation(times)
+        if note:
+            warnings.warn(f"{where}: {note}", ExtrapolationWarning, stacklevel=2)
         f, omega = {}, {}
         for name, (y, g, tau, dT, has_gyro) in inputs.items():
             fi, wi = _evaluate(self.layouts[name], y, g, tau, dT, self.params[name])
@@ -207,6 +230,15 @@ class Calibration:
         if single:
             return f[self.names[0]], (omega.get(self.names[0]) if gyro is not None else None)
         return f, (omega if gyro is not None else None)
+
+
+#: How far beyond the calibration session (|τ| = 1 at its first and last pose) a drift is applied without
+#: an :class:`ExtrapolationWarning`: a tenth of the session's half-span.
+EXTRAPOLATED_TAU = 1.1
+
+
+class ExtrapolationWarning(UserWarning):
+    """A calibration applied where its drift polynomial was not fitted (:meth:`Calibration.extrapolation`)."""
 
 
 #: What Calibration.apply suggests for the units the readings look like they are in.
@@ -415,8 +447,13 @@ def apply_calibration(results_path, data_path, out_path, fmt: str | None = None,
     if unread:
         log(f"note: the calibration includes the gyroscope of {', '.join(unread)}, but {data_path.name} has no "
             "gyroscope readings" + (" (imutk: pass --gyro FILE)" if fmt == "imutk" else "") + "; accelerometer only")
-    f, omega = cal.apply({n: rec.acc[n] for n in cal.names}, gyro, rec.t,
-                         {n: rec.temp[n] for n in cal.names if n in rec.temp})
+    note = cal.extrapolation(rec.t)
+    if note:
+        log(f"note: {data_path.name}: {note}")
+    with warnings.catch_warnings():  # noted above
+        warnings.simplefilter("ignore", ExtrapolationWarning)
+        f, omega = cal.apply({n: rec.acc[n] for n in cal.names}, gyro, rec.t,
+                             {n: rec.temp[n] for n in cal.names if n in rec.temp})
     out = Recording(t=rec.t, acc=f, gyro=omega or {}, source=str(data_path))
     (write_npz if out_path.suffix.lower() == ".npz" else write_csv)(out_path, out)
     return len(out)

@@ -147,6 +147,42 @@ def test_apply_asks_for_the_data_its_effects_need(tmp_path):
         cal.apply(acc, acc, t=np.zeros(2))
 
 
+def test_a_drift_applied_beyond_the_session_warns(tmp_path):
+    """τ = (t − 50) / 40: the session (its first and last pose) is 10–90 s. Up to |τ| = 1.1 (6–94 s) the
+    drift applies silently; at 110 s (τ = +1.5) Calibration.apply warns, naming the drift and τ, and
+    castimate apply notes it; without a time effect nothing is said whatever t."""
+    import warnings
+
+    from castimate.calibration import ExtrapolationWarning, apply_calibration
+    from castimate.io.readers import write_csv
+    from castimate.io.recording import Recording
+
+    doc, _ = results_doc(["accelerometer.bias_drift"], np.random.default_rng(1))
+    (tmp_path / "r.json").write_text(json.dumps(doc))
+    cal = Calibration.read(tmp_path / "r.json")
+    assert cal.extrapolation(np.array([6.0, 94.0])) is None
+    note = cal.extrapolation(np.array([20.0, 110.0]))
+    assert "accelerometer.bias_drift" in note and "tau = +1.5" in note and "10-90 s" in note
+    assert "tau = -2" in cal.extrapolation(np.array([-30.0, 60.0]))
+    acc = {n: np.zeros((3, 3)) + [0, 0, 9.81] for n in NAMES}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        cal.apply(acc, t=np.array([6.0, 50.0, 94.0]))
+    with pytest.warns(ExtrapolationWarning, match=r"Calibration.apply: t spans 20-110 s.*tau = \+1.5"):
+        cal.apply(acc, t=np.array([20.0, 60.0, 110.0]))
+    plain, _ = results_doc(["gyroscope.temperature_bias"], np.random.default_rng(1))
+    (tmp_path / "p.json").write_text(json.dumps(plain))
+    assert Calibration.read(tmp_path / "p.json").extrapolation(np.array([0.0, 1e6])) is None
+    # castimate apply: a note, no warning
+    t = np.linspace(20.0, 110.0, 91)
+    write_csv(tmp_path / "d.csv", Recording(t=t, acc={n: np.zeros((91, 3)) + [0, 0, 9.81] for n in NAMES}, gyro={}))
+    notes = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        apply_calibration(tmp_path / "r.json", tmp_path / "d.csv", tmp_path / "out.csv", log=notes.append)
+    assert [m for m in notes if "extrapolated to tau = +1.5" in m and m.startswith("note: d.csv: t spans")]
+
+
 @pytest.mark.parametrize("change, where, message", [
     (lambda d: d["triads"]["imu2"]["parameters"]["scale_nonlinearity"].update(value=[1.0, 2.0]),
      "triads.imu2.parameters.scale_nonlinearity.value", "expected 3 finite numbers"),
