@@ -79,7 +79,7 @@ def load(source: Problem, base_dir: str | Path = ".") -> ProblemSpec:
         source = plain_values(source, base / "<dict>")  # numpy arrays and tuples as the lists of a YAML file
         spec = parse_problem(source, base / "<dict>")  # first: a key that is not a string is named there
         text = json.dumps(source, sort_keys=True, default=str)
-        return replace(spec, sha256=hashlib.sha256(text.encode()).hexdigest())
+        return replace(spec, sha256=hashlib.sha256(text.encode()).hexdigest(), source=source)
     return load_problem(as_path(source, "castimate.load", "source", "a problem file path, a dict or a ProblemSpec"))
 
 
@@ -108,7 +108,9 @@ def solve(problem: Problem, log: Log | None = None):
 def write(outcome, directory: str | Path) -> Path:
     """Write what ``castimate solve`` writes for an outcome of :func:`solve`: ``results.json``
     and ``details.npz`` (``castimate report DIR`` renders them; a ``report.html`` of earlier results
-    there goes, as with the command). Returns the results.json path.
+    there goes, as with the command); or what ``castimate diagnose`` writes for a diagnosis of
+    :func:`diagnose` (:func:`diagnosis_files`). Returns the results.json path (for a diagnosis, the
+    refined model's).
 
     >>> import castimate, json, tempfile
     >>> outcome = castimate.solve("problems/xsens_imutk.yaml")
@@ -118,18 +120,47 @@ def write(outcome, directory: str | Path) -> Path:
     ('castimate.results/1', 'static_array', True)
     """
     from .io.atomic import StagedOutput
+    from .kinds.diagnose import Diagnosis
     from .kinds.dynamic import DynamicOutcome
     from .kinds.static import StaticOutcome
     from .output import write_outputs
 
-    if not isinstance(outcome, (StaticOutcome, DynamicOutcome)):
-        raise TypeError(f"castimate.write: outcome: expected the outcome of castimate.solve, found "
-                        f"{type(outcome).__name__}")
+    if not isinstance(outcome, (StaticOutcome, DynamicOutcome, Diagnosis)):
+        raise TypeError(f"castimate.write: outcome: expected the outcome of castimate.solve or castimate.diagnose, "
+                        f"found {type(outcome).__name__}")
     directory = as_path(directory, "castimate.write", "directory", "a directory path")
+    if isinstance(outcome, Diagnosis):
+        names = diagnosis_files(outcome.spec)
+        with StagedOutput(directory, names=names, inputs=outcome.spec.inputs, option="directory") as stage:
+            write_diagnosis(stage, outcome, directory)
+        return directory / "results.json"
     with StagedOutput(directory, names=("results.json", "details.npz"), inputs=outcome.spec.inputs,
                       option="directory", stale=("report.html",)) as stage:
         write_outputs(stage, outcome)
     return directory / "results.json"
+
+
+def diagnosis_files(spec: ProblemSpec) -> tuple[str, str, str, str]:
+    """The files of ``castimate diagnose``: diagnose.json, the refined model's results.json, the
+    refined problem file (``<problem>_refined.yaml``; ``problem_refined.yaml`` for a problem given as
+    a dict) and report.html."""
+    stem = "problem" if spec.source is not None else Path(spec.path).stem
+    return "diagnose.json", "results.json", f"{stem}_refined.yaml", "report.html"
+
+
+def write_diagnosis(stage: Path, d, out: Path) -> None:
+    """:func:`diagnosis_files` of the diagnosis ``d`` into the directory ``stage``, which becomes
+    ``out`` (the refined problem's paths are relative to ``out``)."""
+    from .io.atomic import write_atomic
+    from .io.results import write_json
+    from .output.diagnosis import diagnosis_document, final_results, refined_problem
+    from .report.diagnose import render_diagnosis
+
+    doc, results, problem, report = diagnosis_files(d.spec)
+    write_json(stage / doc, diagnosis_document(d))
+    write_json(stage / results, final_results(d))
+    write_atomic(stage / problem, refined_problem(d, Path(out)))
+    write_atomic(stage / report, render_diagnosis(d))
 
 
 def diagnose(problem: Problem, log: Log | None = None):

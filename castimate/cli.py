@@ -95,23 +95,18 @@ def cmd_report(args) -> int:
 
 
 def cmd_diagnose(args) -> int:
-    from .io.atomic import StagedOutput, write_atomic
-    from .io.results import write_json
+    from .api import diagnosis_files, write_diagnosis
+    from .io.atomic import StagedOutput
     from .kinds.diagnose import diagnose
-    from .output.diagnosis import diagnosis_document, final_results, refined_problem
-    from .report.diagnose import render_diagnosis
     from .spec import load_problem
 
     out = Path(args.output)
     spec = load_problem(args.problem)
     log = _progress(args)
-    names = ("diagnose.json", "results.json", f"{Path(args.problem).stem}_refined.yaml", "report.html")
-    with StagedOutput(out, names=names, inputs=spec.inputs) as stage:
+    names = diagnosis_files(spec)
+    with StagedOutput(out, names=names, inputs=spec.inputs) as stage:  # refused before the long run
         d = diagnose(spec, log=log)
-        write_json(stage / names[0], diagnosis_document(d))
-        write_json(stage / names[1], final_results(d))
-        write_atomic(stage / names[2], refined_problem(d, out))  # paths relative to the final directory
-        write_atomic(stage / names[3], render_diagnosis(d))
+        write_diagnosis(stage, d, out)
     b, a = d.before, d.after
     print(f"added: {', '.join(d.added) or 'nothing'}")
     print(f"chi2/dof {b.s2:.4g} -> {a.s2:.4g}; held-out error (RMS of residual/sigma) {b.cv.rms:.4g} -> {a.cv.rms:.4g}")

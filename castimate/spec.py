@@ -234,6 +234,9 @@ class ProblemSpec:
     solver: SolverOptions
     motion: MotionSpec | None = None
     uncertainty: UncertaintySpec = field(default_factory=UncertaintySpec)
+    #: the problem's content as given, when it came as a dict (``castimate.load``; ``path`` is then
+    #: ``base_dir/<dict>``); a file's is read again from ``path`` (diagnose's refined problem file)
+    source: dict | None = field(default=None, compare=False, repr=False)
 
     @property
     def inputs(self) -> tuple:

@@ -46,3 +46,32 @@ def test_the_package_exposes_the_api_lazily():
     assert castimate.write is castimate.api.write
     assert set(castimate.__all__) <= set(dir(castimate))  # tab completion lists the lazy API (it listed none)
     assert "OPENBLAS_NUM_THREADS" in os.environ  # set by conftest, as the CLI does, before numpy loads
+
+
+def test_write_takes_a_diagnosis_as_castimate_diagnose_writes_it(shared_data, monkeypatch, tmp_path):
+    """castimate.write(castimate.diagnose(...)) writes the command's four files (it refused a Diagnosis),
+    from a problem file and from the same problem as a dict; the refined problem file loads from where
+    it was written and frees the added effects."""
+    import json
+
+    import yaml
+
+    monkeypatch.chdir(ROOT)
+    d = castimate.diagnose("problems/xsens_imutk.yaml")
+    assert d.added  # the imu_tk session's drift and g-sensitivity: something to refine
+    path = castimate.write(d, tmp_path / "file")
+    assert path == tmp_path / "file" / "results.json"
+    assert sorted(p.name for p in (tmp_path / "file").iterdir()) == \
+        ["diagnose.json", "report.html", "results.json", "xsens_imutk_refined.yaml"]
+    assert json.loads(path.read_text())["status"]["success"]
+    doc = yaml.safe_load(open("problems/xsens_imutk.yaml"))
+    from_dict = castimate.diagnose(castimate.load(doc, base_dir="problems"))
+    assert from_dict.added == d.added
+    castimate.write(from_dict, tmp_path / "dict")
+    refined = castimate.load(tmp_path / "dict" / "problem_refined.yaml")
+    assert refined.data.path.resolve() == (ROOT / "problems" / doc["data"]["path"]).resolve()
+    assert refined.kind == "static_array"
+    text = (tmp_path / "dict" / "problem_refined.yaml").read_text()
+    assert "given as a dict" in text.splitlines()[0]
+    model = yaml.safe_load(text)["model"]
+    assert all(model[k.split(".")[0]][k.split(".")[1]] == "free" for k in d.added)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import os
 from pathlib import Path
 
@@ -94,7 +95,8 @@ def diagnosis_document(d: Diagnosis) -> dict:
 def refined_problem(d: Diagnosis, out_dir: Path) -> str:
     """The problem file with the added effects declared, its paths rewritten relative to ``out_dir``
     (the original file is not touched)."""
-    raw = load_yaml(d.spec.path)  # as the problem was read (1e-3 a number)
+    # as the problem was given (a file read again: 1e-3 a number, as YAML reads it)
+    raw = copy.deepcopy(d.spec.source) if d.spec.source is not None else load_yaml(d.spec.path)
     base = Path(d.spec.path).resolve().parent
     rel = lambda p: os.path.relpath((base / p).resolve(), out_dir.resolve())  # noqa: E731
     data = raw["data"]
@@ -105,7 +107,8 @@ def refined_problem(d: Diagnosis, out_dir: Path) -> str:
     raw["model"] = model
     if isinstance(model.get("intrinsics"), str):
         model["intrinsics"] = rel(model["intrinsics"])
-    lines = [f"# Refined by castimate diagnose from {d.spec.path}."]
+    origin = "a problem given as a dict" if d.spec.source is not None else d.spec.path
+    lines = [f"# Refined by castimate diagnose from {origin}."]
     for key in d.added:
         e = BY_KEY[key]
         section = model.setdefault(e.sensor, None) or {}
