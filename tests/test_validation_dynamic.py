@@ -216,10 +216,14 @@ def _with(results: dict, tmp_path: Path, regressors) -> Path:
 
 
 def test_drift_regressors_applied(drift_results, tmp_path):
-    """Hand-computed: b_g(τ) = c τ with c = 1e-3 rad/s, τ = (t - 1) / 2: at t = 5 the x rate reads 2e-3 high."""
+    """Hand-computed: b_g(τ) = c τ with c = 1e-3 rad/s, τ = (t - 1) / 2: at t = 5 the x rate reads 2e-3 high
+    (τ = 2, beyond the session: applied, with its warning)."""
+    from castimate.calibration import ExtrapolationWarning
+
     cal = Calibration.read(_with(drift_results, tmp_path, drift_results["effects"]["regressors"]))
     acc, gyro = {"imu1": np.array([[0.0, 0.0, 9.81]])}, {"imu1": np.array([[2e-3, 0.0, 0.0]])}
-    _, omega = cal.apply(acc, gyro, t=np.array([5.0]))
+    with pytest.warns(ExtrapolationWarning, match=r"tau = \+2 "):
+        _, omega = cal.apply(acc, gyro, t=np.array([5.0]))
     assert np.allclose(omega["imu1"], 0.0, atol=1e-15)
 
 
