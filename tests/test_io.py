@@ -347,6 +347,7 @@ class TestNpz:
         ("crc", "found unreadable data (Bad CRC-32"),
         ("deflate", "found unreadable data (Error -3 while decompressing"),
         ("no_header", "found 7 bytes without the .npy header"),
+        ("huge", "found a header declaring more than this machine's memory holds"),
     ])
     def test_error_damaged_member(self, tmp_path, damage, found):
         """np.load reads only the archive's directory: a damaged member fails when it is read, and
@@ -354,10 +355,16 @@ class TestNpz:
         returns for a member without the .npy header)."""
         p = tmp_path / "d.npz"
         arrays = {"t": np.arange(100.0), "a.acc": np.random.default_rng(1).standard_normal((100, 3))}
-        if damage == "no_header":
+        if damage in ("no_header", "huge"):  # huge: 4e12 values declared, 3 stored (was 'the input is too large')
+            import io
             import zipfile
+            member = io.BytesIO()
+            if damage == "huge":
+                np.lib.format.write_array_header_1_0(member, {"descr": "<f8", "fortran_order": False,
+                                                              "shape": (4_000_000_000_000,)})
+            member.write(np.zeros(3).tobytes() if damage == "huge" else b"garbage")
             with zipfile.ZipFile(p, "w") as z:
-                z.writestr("t.npy", b"garbage")
+                z.writestr("t.npy", member.getvalue())
         else:  # flip bytes of a.acc: its last value (stored: the CRC-32 fails), its start (deflated: the stream)
             (np.savez if damage == "crc" else np.savez_compressed)(p, **arrays)
             raw = bytearray(p.read_bytes())
@@ -368,7 +375,7 @@ class TestNpz:
             for i in range(lo, lo + (4 if damage == "crc" else 40)):
                 raw[i] ^= 0x5A
             p.write_bytes(bytes(raw))
-        with pytest.raises(InputError, match=rx(p, "t" if damage == "no_header" else "a.acc", found)):
+        with pytest.raises(InputError, match=rx(p, "t" if damage in ("no_header", "huge") else "a.acc", found)):
             read_npz(p)
 
     def test_error_not_npz(self, tmp_path):

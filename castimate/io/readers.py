@@ -387,12 +387,16 @@ def npz_member(archive: np.lib.npyio.NpzFile, key: str, source: object, expected
     np.load reads only the archive's directory: a member's damage shows when it is read, as a
     ValueError (an object array, which needs pickle, or a bad .npy header), zipfile.BadZipFile (bad
     CRC-32), zlib.error (a corrupt compressed stream) or EOFError / OSError (a truncated one). A
-    member without the .npy header comes back as its raw bytes.
+    member without the .npy header comes back as its raw bytes; one whose header declares a huge shape
+    raises MemoryError.
     """
     try:
         arr = archive[key]
     except (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
         raise InputError(source, key, f"expected {expected}, found unreadable data ({exc})") from None
+    except MemoryError:  # a header declaring a shape far beyond the member's bytes
+        raise InputError(source, key, f"expected {expected}, found a header declaring more than this machine's "
+                                      "memory holds") from None
     if not isinstance(arr, np.ndarray):
         raise InputError(source, key, f"expected {expected}, found {len(arr)} bytes without the .npy header")
     return arr
