@@ -148,6 +148,18 @@ def test_problem_file_for_the_compensation_function_is_refused_with_advice(tmp_p
     assert "\n" not in str(e.value) and "results.json" in str(e.value)
 
 
+@pytest.mark.parametrize("name", ["problem.json", "problem.txt"])
+def test_a_problem_file_named_otherwise_than_yaml_is_named_as_such(tmp_path, name):
+    """codegen tells a problem file by its extension: one named .json was read as a results.json and
+    refused as 'not valid JSON (Expecting value)'."""
+    src = tmp_path / name
+    src.write_text((ROOT / "problems" / "xsens_imutk.yaml").read_text())
+    with pytest.raises(InputError, match=r"found a problem file \(YAML with kind and data\) named "
+                                         rf"{re.escape(src.suffix)}: rename it to \.yaml") as e:
+        generate_c(src, tmp_path / "c")
+    assert str(e.value).startswith(str(src)) and "\n" not in str(e.value) and not (tmp_path / "c").exists()
+
+
 def test_unconverged_results_are_refused(tmp_path):
     doc = json.loads(MIMU.read_text())
     doc["status"]["success"] = False
