@@ -525,3 +525,12 @@ def test_scenario_rate_below_half_a_turn_per_sample(tmp_path, capsys):
     expect_error(lambda: simulate_scenario(sc, tmp_path / "out"), sc, "rate",
                  "expected at least 8.33333 Hz, at most half a turn per sample at max_omega 1500 deg/s, found 8")
     assert not (tmp_path / "out").exists()
+
+
+def test_scenario_with_fewer_samples_than_solve_takes(tmp_path):
+    """samples: 1 was simulated, and castimate solve then refused its data (at least MIN_DYNAMIC_SAMPLES)."""
+    sc = tmp_path / "scenario.yaml"
+    sc.write_text(SCENARIO.replace("samples: 300", "samples: 4"))
+    expect_error(lambda: simulate_scenario(sc, tmp_path / "out"), sc, "samples",
+                 "expected an integer from 5 to 1e+06, found 4")
+    assert not (tmp_path / "out").exists()

@@ -13,6 +13,7 @@ from ..io.recording import Recording
 from ..io.atomic import write_atomic
 from ..io.results import write_json
 from ..io.units import STANDARD_GRAVITY
+from ..prepare.plausibility import MIN_DYNAMIC_SAMPLES
 from ..validation import Check, load_yaml, shown
 from ..problem.effects import BY_KEY, RETIRED
 from .effects import REALISTIC_DYNAMIC_EFFECTS, REALISTIC_EFFECTS, chip_clock, random_coefficients, random_effects
@@ -318,7 +319,8 @@ def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDra
                                                  "sigma_integration", "density_s", "density_omega", "process_model"))
     parse_motion(c, msec)  # the values too: the problem file written at the end carries them
     geometry = c.choice(s["geometry"], "geometry", ("carlsson", "schopp"))
-    N = c.number(s.get("samples", 1000), "samples", positive=True, integer=True, hi=MAX_SAMPLES)
+    # at least what castimate solve takes (fewer were written, then refused by solve)
+    N = c.number(s.get("samples", 1000), "samples", positive=True, integer=True, lo=MIN_DYNAMIC_SAMPLES, hi=MAX_SAMPLES)
     rate = c.number(s.get("rate", 100.0), "rate", positive=True, hi=1e5, unit="Hz")
     w_max = np.radians(c.number(s.get("max_omega", 2000.0), "max_omega", positive=True, hi=1e4, unit="deg/s"))
     wd_max = np.radians(c.number(s.get("max_omega_dot", 2000.0), "max_omega_dot", positive=True, hi=1e6, unit="deg/s^2"))
