@@ -592,3 +592,20 @@ def test_scenario_kind_checked_before_the_cluster(tmp_path, capsys):
         load_plan(sc)
     assert main(["montecarlo", str(sc), "--runs", "2", "-o", str(tmp_path / "mc"), "--workers", "1"]) == 2
     assert capsys.readouterr().err.count("\n") == 1 and not (tmp_path / "mc").exists()
+
+
+def test_an_unknown_scenario_key_checked_before_the_cluster(tmp_path, capsys):
+    """An unknown top-level key was found by the first simulation on a worker, after the cluster had
+    started, as "the 1 s case cannot be solved: bogus: unknown key" (plan) or "the noise-free session
+    cannot be solved for the bound: ..." (montecarlo); now by the scenario's reading, before any
+    cluster. Each verb's own section (plan, montecarlo) is not the other's."""
+    for verb, own in (("plan", {"plan": {"durations": [1]}}), ("montecarlo", {"montecarlo": {}})):
+        sc = write(tmp_path / f"{verb}.yaml", {**STATIC, **own, "bogus": 1})
+        argv = [verb, str(sc), "-o", str(tmp_path / verb), "--workers", "1"] + (["--runs", "2"] if verb == "montecarlo" else [])
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and f"{sc}: bogus: unknown key" in err and "cannot be solved" not in err, err
+        assert not (tmp_path / verb).exists()
+    with pytest.raises(InputError, match="montecarlo: unknown key"):
+        load_plan(write(tmp_path / "p.yaml", {**STATIC, "montecarlo": {}, "plan": {"durations": [1]}}))
+    assert load_scenario(write(tmp_path / "m.yaml", {**STATIC, "montecarlo": {}}))["montecarlo"] == {}

@@ -30,7 +30,7 @@ from ..errors import InputError
 from ..kinds import kind_of
 from ..kinds.dynamic import MOTION_LEVEL_KEYS
 from ..output import OUTPUTS
-from ..simulate.scenarios import read_scenario, simulate_scenario
+from ..simulate.scenarios import read_scenario, scenario_keys, simulate_scenario
 from ..solver.ipopt import Solver
 from ..solver.uncertainty import partial_bound
 from ..spec import load_problem, motion_noise_setting
@@ -101,11 +101,13 @@ def bound_problem(settings: StudySettings, levels: dict | None = None) -> dict:
     return settings.problem
 
 
-def load_scenario(path: str | Path, drop: tuple[str, ...] = ()) -> dict:
-    """A scenario file's mapping (checked fully when first simulated); ``drop``: keys of the caller's
-    own (a plan's ``plan``) taken out before."""
-    raw = read_scenario(path)  # here, not from every worker's simulation after the cluster started
-    return {k: v for k, v in raw.items() if k not in drop}
+def load_scenario(path: str | Path, own: tuple[str, ...] = ("montecarlo",)) -> dict:
+    """A scenario file's mapping, its kind and top-level keys checked (here, not from every worker's
+    simulation after the cluster started; the values when first simulated); ``own``: the caller's
+    sections beside the scenario's keys (montecarlo's ``montecarlo``, a plan's ``plan``)."""
+    raw = read_scenario(path)
+    Check(path).mapping({k: v for k, v in raw.items() if k not in own}, "", scenario_keys(raw["kind"]))
+    return raw
 
 
 def check_runs(runs) -> int:

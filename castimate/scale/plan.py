@@ -44,7 +44,7 @@ class Plan:
 
 def load_plan(path: str | Path) -> Plan:
     path = Path(path)
-    raw = load_scenario(path)
+    raw = load_scenario(path, own=("plan",))
     c = Check(path)
     if "plan" not in raw:
         c.fail("(top level)", "missing required key 'plan' (plan: {durations: [seconds, ...]}); the rest is a "

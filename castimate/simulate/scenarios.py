@@ -108,6 +108,11 @@ def read_scenario(path: str | Path) -> dict:
     return raw
 
 
+def scenario_keys(kind: str) -> tuple[str, ...]:
+    """The top-level keys a scenario of ``kind`` may have."""
+    return DYNAMIC_KEYS if kind == "dynamic_array" else SCENARIO_KEYS
+
+
 def scenario_kind(c: Check, raw: dict) -> str:
     """A scenario's kind, of those that can be simulated."""
     if "kind" not in raw:
