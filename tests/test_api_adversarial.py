@@ -310,6 +310,10 @@ def test_apply_judges_units_only_on_conclusive_segments(cals, shared_data):
         plain.apply({n: a[:50] for n, a in in_g.items()})
     with pytest.raises(castimate.InputError, match="in g"):
         plain.apply(in_g, t=np.linspace(0, 0.8, 200))
+    # triads of unequal lengths: judged on one long enough, in either order (10 then 70 samples passed)
+    for short in ("imu1", "imu2"):
+        with pytest.raises(castimate.InputError, match="in g"):
+            plain.apply({n: a[:10] if n == short else a[:70] for n, a in in_g.items()})
     # plausible SI readings in strong motion pass: the norm 0.5-2 g
     rng = np.random.default_rng(1)
     u = rng.standard_normal((200, 3))

@@ -158,7 +158,10 @@ def gravity_norm(acc: dict[str, np.ndarray], gravity: float, t: np.ndarray | Non
     q = {n: float(np.quantile(np.linalg.norm(a, axis=1), NORM_QUANTILE)) for n, a in acc.items()}
     if not q:
         return None
-    name = min(q, key=lambda n: abs(np.log(max(q[n], 1e-300) / gravity)))  # the most plausible triad
+    # the most plausible triad, of those with samples enough to tell where any has (triads of unequal
+    # lengths: a short one nearest g passed readings that a long one shows are not in m/s^2)
+    long = [n for n in q if len(acc[n]) >= MIN_NORM_SAMPLES] or list(q)
+    name = min(long, key=lambda n: abs(np.log(max(q[n], 1e-300) / gravity)))
     duration = float(np.ptp(t)) if t is not None and len(t) else None
     return GravityNorm(name, q[name], q[name] / gravity, len(acc[name]), duration, at_rest)
 
