@@ -12,7 +12,6 @@ from pathlib import Path
 
 from ..errors import InputError
 from ..io.atomic import write_atomic
-from ..validation import read_input_text
 from .compensation import generate_files, load_calibration
 from .options import CodegenOptions
 
@@ -20,32 +19,6 @@ from .options import CodegenOptions
 def is_problem_file(path: str | Path) -> bool:
     """A problem file by its name (.yaml, .yml); anything else is read as a results.json."""
     return Path(path).suffix.lower() in (".yaml", ".yml")
-
-
-def _refuse_misnamed_problem(source: str | Path) -> None:
-    """A problem file under another name than .yaml/.yml would be read as a results.json and refused
-    as 'not valid JSON': say what it is."""
-    import json
-
-    import yaml
-
-    try:
-        text = read_input_text(source, "problem file")
-    except InputError:  # missing, not a regular file, too large or not text: read_results says so
-        return
-    try:
-        json.loads(text)
-        return
-    except ValueError:  # not JSON: a problem file?
-        pass
-    try:
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError:
-        return
-    if isinstance(doc, dict) and {"kind", "data"} <= set(doc):
-        raise InputError(source, "", f"expected a results.json or a problem file named .yaml or .yml, found a problem "
-                                     f"file (YAML with kind and data) named {Path(source).suffix or 'without an extension'}: "
-                                     "rename it to .yaml")
 
 
 def codegen_io(source: str | Path) -> tuple[tuple, tuple[str, ...]]:
@@ -81,7 +54,6 @@ def generate_c(source: str | Path, out_dir: str | Path, options: CodegenOptions 
         log("generating the C solver (CasADi)")
         files = generate_solver_files(ref)
     else:
-        _refuse_misnamed_problem(source)
         options.check(source, None)
         files = generate_files(source)
         log(f"generated the compensation function of {Path(source).name} (CasADi)")

@@ -35,6 +35,7 @@ from ..calibration import Calibration
 from ..errors import InputError
 from ..io.units import UnitConversion
 from ..problem.effects import BY_KEY, NOT_SAMPLE_WISE, TEMPERATURE, TIME
+from ..validation import read_input_text
 from .ctext import c_comment, c_double, c_string, casadi_sources
 
 #: The files written into the output directory, in this order.
@@ -57,12 +58,31 @@ TOLERANCE, TOLERANCE_FLOAT = 1e-12, 1e-5
 
 
 def load_calibration(path: str | Path) -> Calibration:
-    """Read a results.json for code generation; a problem file gives an InputError saying to solve it first."""
+    """Read a results.json for code generation; a problem file gives an InputError saying to solve it
+    first, or, named otherwise than .yaml/.yml (read as a results.json: 'not valid JSON'), to rename it."""
     path = Path(path)
     if path.suffix.lower() in (".yaml", ".yml"):
         raise InputError(path, "", "the compensation function needs a results.json, not a problem file; solve it "
                                    f"first (castimate solve {path} -o DIR) and pass DIR/results.json")
-    return Calibration.read(path)
+    try:
+        return Calibration.read(path)
+    except InputError:
+        if _is_problem_file(path):
+            raise InputError(path, "", "expected a results.json or a problem file named .yaml or .yml, found a "
+                                       "problem file (YAML with kind and data) named "
+                                       f"{path.suffix or 'without an extension'}: rename it to .yaml") from None
+        raise
+
+
+def _is_problem_file(path: Path) -> bool:
+    """Whether the file is a problem file by its content (a YAML mapping with kind and data)."""
+    import yaml
+
+    try:
+        doc = yaml.safe_load(read_input_text(path, "problem file"))
+    except (InputError, yaml.YAMLError):
+        return False
+    return isinstance(doc, dict) and {"kind", "data"} <= set(doc)
 
 
 # ----------------------------------------------------------------------------------------------

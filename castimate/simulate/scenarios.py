@@ -13,7 +13,7 @@ from ..io.recording import Recording
 from ..io.atomic import write_atomic
 from ..io.results import write_json
 from ..io.units import STANDARD_GRAVITY
-from ..prepare.plausibility import MIN_DYNAMIC_SAMPLES
+from ..prepare.plausibility import MAX_ANGLE_PER_SAMPLE, MIN_DYNAMIC_SAMPLES
 from ..validation import Check, load_yaml, shown
 from ..problem.effects import BY_KEY, RETIRED
 from .effects import REALISTIC_DYNAMIC_EFFECTS, REALISTIC_EFFECTS, chip_clock, random_coefficients, random_effects
@@ -329,8 +329,8 @@ def _dynamic_scenario(c: Check, raw: dict, path: Path, out: Path, draw: NoiseDra
     rate = c.number(s.get("rate", 100.0), "rate", positive=True, hi=1e5, unit="Hz")
     w_max = np.radians(c.number(s.get("max_omega", 2000.0), "max_omega", positive=True, hi=1e4, unit="deg/s"))
     wd_max = np.radians(c.number(s.get("max_omega_dot", 2000.0), "max_omega_dot", positive=True, hi=1e6, unit="deg/s^2"))
-    if w_max / rate > np.pi:  # as castimate solve refuses (prepare.plausibility.check_angle_per_sample)
-        c.fail("rate", f"expected at least {np.degrees(w_max) / 180:g} Hz, at most half a turn per sample at max_omega "
+    if w_max / rate > MAX_ANGLE_PER_SAMPLE:  # as castimate solve refuses (prepare.plausibility.check_angle_per_sample)
+        c.fail("rate", f"expected at least {w_max / MAX_ANGLE_PER_SAMPLE:g} Hz, at most half a turn per sample at max_omega "
                        f"{np.degrees(w_max):g} deg/s, found {rate:g}")
     noise = c.mapping(s.get("noise"), "noise", ("accelerometer", "gyroscope", "pink", "jitter"))
     acc_sigma = c.number(noise.get("accelerometer", 0.04), "noise.accelerometer", positive=True, hi=100.0, unit="m/s^2")
